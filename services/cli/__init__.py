@@ -1,0 +1,37 @@
+"""The ``csr`` command (contract section 4). Each subcommand lives in its own module here and
+exposes ``register(subparsers)``; heavy imports happen inside the command, not at start."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# module name -> owns these subcommands
+_COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="csr", description="CSR crowdsourced road structure reconstruction")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in _COMMAND_MODULES:
+        module = importlib.import_module(f"services.cli.{name}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    result = args.func(args)
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
