@@ -9,7 +9,7 @@ import logging
 import sys
 
 # module name -> owns these subcommands
-_COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench")
+_COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,14 +1,66 @@
-"""`csr bench` (placeholder until its issue lands: exits with an error, does nothing)."""
+"""`csr bench [--set quick|standard|hard|full] [--out bench-out] [--write BENCHMARKS.md]`.
+
+Simulates the set's scenarios (cached), runs `csr reconstruct` with the pipeline and both
+baselines, evaluates per contract section 6, prints the tables, writes figures to
+``--figures`` (default ``docs/figures``) and, with ``--write``, rewrites only the bench section
+of the given markdown file (between ``<!-- bench:begin -->`` and ``<!-- bench:end -->``).
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+import time
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="(not available yet)")
+    p = sub.add_parser("bench", help="benchmark the pipeline and baselines on simulated scenarios")
+    p.add_argument("--set", dest="set_name", default="quick", choices=("quick", "standard", "hard", "full", "toy"))
+    p.add_argument("--out", default="bench-out", help="work folder: scenarios cache, runs, results.json")
+    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the bench section of this file (e.g. BENCHMARKS.md)")
+    p.add_argument("--figures", default="docs/figures", help="where the PNG figures go")
+    p.add_argument("--methods", default="pipeline,gnss_only,roadmap_icp", help="comma-separated methods")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    raise SystemExit("csr bench: not available in this build yet")
+    import orjson
+
+    from csr_core.bench.figures import make_figures
+    from csr_core.bench.report import render_section
+    from csr_core.bench.runner import run_bench
+    from csr_core.bench.tables import table_cost, table_map, table_pose, write_section
+    from csr_core.errors import CsrError
+
+    t0 = time.perf_counter()
+    out_root = Path(args.out)
+    out_root.mkdir(parents=True, exist_ok=True)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    try:
+        records = run_bench(args.set_name, out_root, methods,
+                            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr))
+    except CsrError as exc:
+        print(f"csr bench: {exc}", file=sys.stderr)
+        return 2
+    elapsed = time.perf_counter() - t0
+    results = [{
+        "scenario": r.scenario, "method": r.method, "variant": r.variant, "returncode": r.run.returncode,
+        "wall_s": r.run.wall_s, "peak_rss_mb": r.run.peak_rss_mb, "uploaded_bytes": r.uploaded_bytes,
+        "output_bytes": r.output_bytes, "km": r.km,
+        "evaluation": r.evaluated.evaluation.as_dict() if r.evaluated else None,
+    } for r in records]
+    (out_root / "results.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY))
+    figures = []
+    first = records[0].scenario if records else None
+    fig_records = [r for r in records if r.scenario == first and not r.variant and r.ok]
+    if fig_records:
+        figures = make_figures(fig_records, Path(args.figures), f"bench_{args.set_name}")
+    print(table_map(records), table_pose(records), table_cost(records), sep="\n\n")
+    if args.write:
+        doc = Path(args.write)
+        write_section(doc, render_section(records, args.set_name, figures, doc.parent, elapsed))
+        print(f"csr bench: wrote the bench section of {doc}", file=sys.stderr)
+    failed = [r for r in records if not r.ok]
+    print(f"csr bench: {len(records)} runs on set {args.set_name!r}, {len(failed)} failed, {elapsed:.0f} s")
+    return 1 if failed else 0

@@ -1,0 +1,148 @@
+"""Parameters of multi-trip alignment (paper section III-D), one frozen object.
+
+Thresholds and similarity widths are *multiples of noise sigmas* (see :func:`noise_scales`):
+the sigmas come from ``TripReconstruction.noise`` (single-trip residuals), so a noisier
+perception widens every gate by itself; the multiples here are the only knobs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from csr_core.types import ElementNoise, ElementType, GnssStatus, TripReconstruction
+
+#: Eq. 11's M_table: weight of a GNSS fix by receiver status (best 1.0, none 0.0).
+DEFAULT_GNSS_STATUS_WEIGHTS: dict[int, float] = {
+    int(GnssStatus.RTK_FIXED): 1.0,
+    int(GnssStatus.RTK_FLOAT): 0.6,
+    int(GnssStatus.DGPS): 0.35,
+    int(GnssStatus.SINGLE): 0.2,
+    int(GnssStatus.NONE): 0.0,
+}
+
+#: used when a trip reports no noise for a type (metres)
+FALLBACK_LATERAL_SIGMA_M = 0.15
+
+
+@dataclass(frozen=True, slots=True)
+class AlignmentParams:
+    # --- ablation switches (paper Table I) ---------------------------------------------------
+    coarse: bool = True
+    fine: bool = True
+
+    # --- sub-map splitting (Fig. 4) ----------------------------------------------------------
+    submap_radius_m: float = 25.0  # circle radius; sub-map elements are clipped to it
+    frame_graph_distance_m: float = 6.0  # inter-trip frame edges: closer than this ...
+    frame_graph_angle_rad: float = np.radians(30.0)  # ... and heading difference below this
+    pair_opposite_directions: bool = True  # headings compared modulo pi (two-way roads)
+    keyframe_spacing_m: float = 2.0  # node spacing of the frame graph
+    min_submap_path_m: float = 10.0  # a trip must drive this far inside a circle to get a sub-map
+    max_partners_per_submap: int = 3  # P_sub-sub pairs: each sub-map with its next k in the circle
+    element_resample_m: float = 1.0
+    min_element_length_m: float = 3.0
+
+    # --- Eq. 3 global topology (multiples of sigmas) -----------------------------------------
+    topo_lane_count_tol: int = 1
+    topo_road_width_k: float = 4.0  # x sqrt(2) * boundary lateral sigma
+    topo_split_merge_tol: int = 3
+    topo_road_centre_k: float = 3.0  # x sqrt(sigma_pose_i^2 + sigma_pose_j^2 + boundary^2)
+    topo_road_centre_floor_m: float = 2.0
+    voting_half_window: int = 2  # sliding window of 2w+1 neighbouring pairs of the same two trips
+    voting_min_fraction: float = 0.5
+
+    # --- Eq. 4-7 graph matching -------------------------------------------------------------
+    w_count: float = 0.15  # omega_1 (per match)
+    w_node: float = 1.0  # omega_2
+    w_edge: float = 1.0  # omega_3
+    node_position_weight: float = 0.7  # omega of Eq. 5 / Eq. 7
+    sigma_p_k: float = 2.5  # sigma_p = k * sqrt(2 lat^2 + boundary^2)  (after pre-alignment)
+    sigma_p_floor_m: float = 0.4
+    sigma_o: float = 0.5  # overlap similarity width (d_o = 1 - overlap ratio)
+    sigma_e_k: float = 3.0  # sigma_e = k * sqrt(2) * lateral sigma
+    sigma_e_floor_m: float = 0.25
+    tau_s: float = 0.3  # x_kk' = 0 iff s_kk' < tau_s
+    rrwm_max_iter: int = 30
+    max_elements_per_submap: int = 28  # keeps the (n1 n2)^2 affinity matrix small
+    max_prealign_shift_m: float = 6.0
+
+    # --- registration (GNC-TLS) -------------------------------------------------------------
+    gnc_inlier_k: float = 3.0  # TLS threshold = k * point sigma
+    gnc_max_outer: int = 12
+    min_matched_elements: int = 2
+    max_registration_rms_k: float = 3.0
+    degenerate_sigma_xy_m: float = 5.0  # regulariser on unobservable directions
+    degenerate_sigma_yaw_rad: float = 0.2
+
+    # --- Step 3 / Step 4 consistency ---------------------------------------------------------
+    clique_consistency_m: float = 0.6  # |delta_p - delta_q| for the same two trips ...
+    clique_drift_m_per_m: float = 0.01  # ... plus this per metre between the two places
+    clique_window_m: float = 250.0  # pairs further apart are not compared
+
+    # --- Eq. 9-12 pose graph ----------------------------------------------------------------
+    gnss_status_weights: Mapping[int, float] = field(default_factory=lambda: dict(DEFAULT_GNSS_STATUS_WEIGHTS))
+    gnss_deviation_weight_per_m: float = -2.0  # omega of Eq. 11 (a GNSS/odometry disagreement lowers the weight)
+    gnss_sigma_base_xy_m: float = 1.0  # Omega_g^base
+    gnss_sigma_base_yaw_rad: float = 0.05
+    gnss_min_weight: float = 0.02
+    reg_alpha: float = 1.0  # alpha of Eq. 12
+    reg_sigma_floor_xy_m: float = 0.03
+    submap_chain_sigma_xy_m: float = 0.05  # e^sm: consistency of one trip's overlapping sub-maps
+    submap_chain_sigma_per_m: float = 0.002
+    submap_chain_sigma_yaw_rad: float = 0.003
+    prior_map_sigma_xy_m: float = 0.10  # how firmly a pre-built map holds
+    prior_map_sigma_yaw_rad: float = 0.005
+    pose_graph_gnc: bool = True
+
+    # --- fine alignment (frame level) -------------------------------------------------------
+    fine_keyframe_spacing_m: float = 2.0
+    fine_gate_k: float = 4.0  # association gate = k * single-frame lateral sigma (+ coarse sigma)
+    fine_coarse_sigma_m: float = 0.15  # expected error left by coarse alignment
+    fine_odom_sigma_per_m: float = 0.01
+    fine_odom_sigma_yaw_per_m: float = 0.0005
+    fine_odom_sigma_floor_m: float = 0.005
+    fine_prior_sigma_xy_m: float = 0.5  # keeps along-track where perception is degenerate
+    fine_prior_sigma_yaw_rad: float = 0.02
+    fine_min_points: int = 6
+    fine_iterations: int = 2
+
+    # --- failure marking --------------------------------------------------------------------
+    min_registered_fraction: float = 0.2  # of a trip's sub-maps with an accepted registration
+
+
+DEFAULT = AlignmentParams()
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseScales:
+    """Per-type lateral sigma (metres) pooled over trips, and the derived Eq. 5/6 widths."""
+
+    lateral_sigma_m: dict[ElementType, float]
+    boundary_sigma_m: float
+    sigma_p_m: float
+    sigma_e_m: float
+
+    def lateral(self, element_type: ElementType) -> float:
+        return self.lateral_sigma_m.get(element_type, FALLBACK_LATERAL_SIGMA_M)
+
+
+def pooled_noise(noises: Sequence[Mapping[ElementType, ElementNoise]]) -> dict[ElementType, float]:
+    """Root-mean-square lateral sigma per element type over trips."""
+    out: dict[ElementType, float] = {}
+    for t in ElementType:
+        vals = [n[t].lateral_sigma_m for n in noises if t in n and np.isfinite(n[t].lateral_sigma_m)]
+        out[t] = float(np.sqrt(np.mean(np.square(vals)))) if vals else FALLBACK_LATERAL_SIGMA_M
+    return out
+
+
+def noise_scales(trips: Sequence[TripReconstruction], params: AlignmentParams) -> NoiseScales:
+    """Derive the Eq. 5/6 widths from the single-trip noise estimates."""
+    lat = pooled_noise([t.noise for t in trips])
+    bdr = lat[ElementType.ROAD_BOUNDARY]
+    lines = [lat[t] for t in (ElementType.LANE_DIVIDER, ElementType.CENTERLINE, ElementType.ROAD_BOUNDARY)]
+    typical = float(np.sqrt(np.mean(np.square(lines))))
+    sigma_p = params.sigma_p_k * float(np.sqrt(2 * typical**2 + bdr**2)) + params.sigma_p_floor_m
+    sigma_e = max(params.sigma_e_k * np.sqrt(2.0) * typical, params.sigma_e_floor_m)
+    return NoiseScales(lat, bdr, sigma_p, float(sigma_e))

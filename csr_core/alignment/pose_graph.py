@@ -1,0 +1,202 @@
+"""Incremental pose graph optimisation over sub-map poses (Eq. 9-12, Fig. 8), with gtsam.
+
+Variables ``S(i)``: ``world_T_submap`` of every sub-map (trip sub-maps and pre-built-map patches).
+Factors (Eq. 9/10):
+- ``e^g``  ``PriorFactorPose2(S(i), g_i)``, g_i the smoothed anchor pose, information
+  ``Omega_g = mean_t(M_table(s_t) + omega d_go_t) Omega_g^base`` (Eq. 11; ``omega < 0``: a GNSS
+  step that disagrees with odometry lowers the weight; clipped at ``gnss_min_weight``);
+- ``e^pre`` the pre-built map: each patch is a variable held by a ``PriorFactorPose2`` at its
+  stored pose with the map's own sigma, and a sub-map registered to it gets a between factor,
+  so the map moves only as far as its weight allows (a fixed map is the limit sigma -> 0);
+- ``e^reg`` ``BetweenFactorPose2(S(i), S(j), T_reg)``, information ``alpha c_ij Omega_reg^base``
+  (Eq. 12) where ``Omega_reg^base`` is the registration's own point-to-line information (so a
+  straight road constrains across, hardly along);
+- ``e^sm`` consecutive (overlapping) sub-maps of one trip share frames: their relative pose is
+  held at the smoothed one, ``sigma = sigma_0 + sigma_per_m * distance``.
+Registrations are not trusted blindly: GNC-TLS (gtsam ``GncLMOptimizer``, all other factors
+known inliers) rejects those that contradict the rest (cycles through several trips), warm
+started from a Huber LM solution (GNC restarts from its initial values; LIBRARY-NOTES).
+
+Incremental: a new batch is optimised against the pre-built map through its patches (the old
+solution marginalised into priors), so the cost depends on the new trips and the map patches
+they touch, never on how many trips built the map.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import S
+
+from csr_core import se2
+from csr_core.alignment.association import PairMatch
+from csr_core.alignment.params import AlignmentParams
+from csr_core.alignment.submaps import Submap
+from csr_core.types import TripReconstruction
+
+log = logging.getLogger(__name__)
+
+EARTH_RADIUS_M = 6_378_137.0
+
+
+@dataclass(frozen=True, slots=True)
+class PoseGraphResult:
+    poses_xyyaw: dict[int, np.ndarray]  # sub-map id -> optimised world_T_submap
+    registration_inlier: np.ndarray  # (P,) per accepted PairMatch
+    gnss_weight: dict[int, float]  # Eq. 11 weight per trip sub-map
+
+
+def gnss_odometry_deviation_m(trip: TripReconstruction) -> np.ndarray:
+    """``d_go^t`` of Eq. 11: |GNSS step - odometry step| between consecutive frames (metres,
+    ``(N,)``, 0 at the first frame). The GNSS step uses a local equirectangular scale, exact
+    enough for metre-scale steps."""
+    t = trip.trip
+    lon, lat = np.radians(t.gnss_lonlat_deg[:, 0]), np.radians(t.gnss_lonlat_deg[:, 1])
+    dx = np.diff(lon) * np.cos(lat[:-1]) * EARTH_RADIUS_M
+    dy = np.diff(lat) * EARTH_RADIUS_M
+    g_step = np.hypot(dx, dy)
+    o_step = np.linalg.norm(np.diff(t.odom_xyyaw[:, :2], axis=0), axis=1)
+    d = np.abs(g_step - o_step)
+    fix = t.has_fix
+    d[~(fix[1:] & fix[:-1])] = 0.0
+    return np.concatenate([[0.0], d])
+
+
+def gnss_weight(trip: TripReconstruction, lo: int, hi: int, deviation: np.ndarray, params: AlignmentParams) -> float:
+    """Eq. 11's scalar factor over frames ``lo..hi``."""
+    status = trip.trip.gnss_status[lo : hi + 1].astype(int)
+    table = np.array([params.gnss_status_weights.get(int(s), 0.0) for s in range(5)])
+    w = table[np.clip(status, 0, 4)] + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1]
+    w = np.where(status == 4, 0.0, np.maximum(w, 0.0))
+    return float(max(np.mean(w), params.gnss_min_weight))
+
+
+def _clip_information(info: np.ndarray, max_eig: float) -> np.ndarray:
+    info = 0.5 * (info + info.T)
+    vals, vecs = np.linalg.eigh(info)
+    vals = np.clip(vals, 1e-9, max_eig)
+    return (vecs * vals) @ vecs.T
+
+
+def build_factor_graph(
+    trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
+    params: AlignmentParams,
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int], list[int], dict[int, float]]:
+    """Eq. 9 as a factor graph; returns graph, initial values, the indices of the registration
+    factors and of the known-inlier factors, and the Eq. 11 weights."""
+    g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    known, reg_idx, weights = [], [], {}
+    deviations = {k: gnss_odometry_deviation_m(t) for k, t in enumerate(trips)}
+    for s in submaps:
+        init.insert(S(s.submap_id), gtsam.Pose2(*s.world_T_submap))
+        if s.is_prior:  # e^pre: the pre-built map holds with its own weight
+            sig = np.array([params.prior_map_sigma_xy_m] * 2 + [params.prior_map_sigma_yaw_rad])
+        else:  # e^g with Eq. 11
+            w = gnss_weight(trips[s.trip_index], s.first_frame, s.last_frame, deviations[s.trip_index], params)
+            weights[s.submap_id] = w
+            sig = np.array([params.gnss_sigma_base_xy_m] * 2 + [params.gnss_sigma_base_yaw_rad]) / np.sqrt(w)
+        known.append(g.size())
+        g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
+                                     gtsam.noiseModel.Diagonal.Sigmas(sig)))
+    # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
+    by_trip: dict[int, list[Submap]] = {}
+    for s in submaps:
+        if not s.is_prior:
+            by_trip.setdefault(s.trip_index, []).append(s)
+    for group in by_trip.values():
+        group.sort(key=lambda s: s.anchor_frame)
+        for a, b in zip(group[:-1], group[1:]):
+            rel = se2.between(a.world_T_submap, b.world_T_submap)
+            d = float(np.hypot(rel[0], rel[1]))
+            sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d
+            syaw = params.submap_chain_sigma_yaw_rad * (1.0 + d / 50.0)
+            known.append(g.size())
+            g.add(gtsam.BetweenFactorPose2(S(a.submap_id), S(b.submap_id), gtsam.Pose2(*rel),
+                                           gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy, sxy, syaw]))))
+    # e^reg (and e^pre against map patches) with Eq. 12 weights
+    max_eig = 1.0 / params.reg_sigma_floor_xy_m**2
+    for m in matches:
+        si, sj = submaps[m.i], submaps[m.j]
+        T = m.relative_pose(si.world_T_submap, sj.world_T_submap)
+        info = _clip_information(params.reg_alpha * m.confidence * m.information_body_j(sj.world_T_submap), max_eig)
+        reg_idx.append(g.size())
+        g.add(gtsam.BetweenFactorPose2(S(m.i), S(m.j), gtsam.Pose2(*T), gtsam.noiseModel.Gaussian.Information(info)))
+    return g, init, reg_idx, known, weights
+
+
+def _huber_copy(g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+    """The graph with each registration factor under a Huber loss (warm start for GNC)."""
+    h = gtsam.NonlinearFactorGraph()
+    regs = set(reg_idx)
+    for n in range(g.size()):
+        f = g.at(n)
+        if n in regs:
+            f = gtsam.BetweenFactorPose2(f.keys()[0], f.keys()[1], f.measured(),
+                                         gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+                                                                        f.noiseModel()))
+        h.add(f)
+    return h
+
+
+def optimize_submap_poses(
+    trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
+    params: AlignmentParams,
+) -> PoseGraphResult:
+    g, init, reg_idx, known, weights = build_factor_graph(trips, submaps, matches, params)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(100)
+    warm = gtsam.LevenbergMarquardtOptimizer(_huber_copy(g, reg_idx, init), init, lm).optimize()
+    inlier = np.ones(len(matches), bool)
+    if params.pose_graph_gnc and len(reg_idx) > 0:
+        gp = gtsam.GncLMParams(lm)
+        gp.setLossType(gtsam.GncLossType.TLS)
+        gp.setKnownInliers(known)
+        opt = gtsam.GncLMOptimizer(g, warm, gp)
+        opt.setInlierCostThresholdsAtProbability(0.999)
+        result = opt.optimize()
+        w = np.asarray(opt.getWeights())
+        inlier = w[np.asarray(reg_idx)] > 0.5
+        if not inlier.all():
+            log.debug("pose graph GNC rejected %d of %d registrations", int((~inlier).sum()), len(inlier))
+            keep = gtsam.NonlinearFactorGraph()
+            rejected = {reg_idx[n] for n in np.flatnonzero(~inlier)}
+            for n in range(g.size()):
+                if n not in rejected:
+                    keep.add(g.at(n))
+            result = gtsam.LevenbergMarquardtOptimizer(keep, result, lm).optimize()
+    else:
+        result = warm
+    poses = {s.submap_id: np.array([result.atPose2(S(s.submap_id)).x(), result.atPose2(S(s.submap_id)).y(),
+                                    result.atPose2(S(s.submap_id)).theta()]) for s in submaps}
+    return PoseGraphResult(poses, inlier, weights)
+
+
+def frame_poses_from_submaps(trip: TripReconstruction, trip_submaps: Sequence[Submap],
+                             poses: Mapping[int, np.ndarray]) -> np.ndarray:
+    """Distribute the sub-map solution to every frame: each sub-map carries its frames rigidly
+    (``x_t = x_i (g_i^-1 g_t)``); between two anchors the two proposals are blended linearly in
+    travelled distance. ``(N, 3)``; the smoothed poses when the trip has no sub-map."""
+    smoothed = trip.poses_xyyaw_world
+    if not trip_submaps:
+        return smoothed.copy()
+    group = sorted(trip_submaps, key=lambda s: s.anchor_frame)
+    anchors = np.array([s.anchor_frame for s in group])
+    s_travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(smoothed[:, :2], axis=0), axis=1))])
+    corrections = [se2.compose(poses[s.submap_id], se2.inverse(s.world_T_submap)) for s in group]
+    proposals = np.stack([se2.compose(c[None, :], smoothed) for c in corrections])  # (G, N, 3)
+    n = len(smoothed)
+    hi = np.clip(np.searchsorted(anchors, np.arange(n), side="right"), 1, len(group) - 1) if len(group) > 1 else None
+    if hi is None:
+        return proposals[0]
+    lo = hi - 1
+    s_lo, s_hi = s_travel[anchors[lo]], s_travel[anchors[hi]]
+    w = np.clip((s_travel - s_lo) / np.maximum(s_hi - s_lo, 1e-9), 0.0, 1.0)
+    idx = np.arange(n)
+    a, b = proposals[lo, idx], proposals[hi, idx]
+    out = a + w[:, None] * (b - a)
+    out[:, 2] = se2.wrap_angle(a[:, 2] + w * se2.wrap_angle(b[:, 2] - a[:, 2]))
+    return out

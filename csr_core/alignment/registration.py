@@ -1,0 +1,170 @@
+"""Algorithm 1, Step 2b: sub-map relative pose by GNC and the matching confidence (Eq. 7).
+
+GNC-TLS over point-to-line residuals, written in numpy. Why not gtsam: gtsam has no 2D
+point-to-line (nor point-to-point with fixed points) factor for a ``Pose2``, and a
+``CustomFactor`` per point is slow (LIBRARY-NOTES: 1,000 CustomFactors made LM take seconds),
+while the problem here is 3 unknowns and a few hundred residuals. The loop is the standard
+GNC-TLS of Yang et al. (2020) (the GNC of the paper's ref. [28]): the surrogate weights
+``w = clip(c sqrt(mu (mu+1)) / |r| - mu, 0, 1)``, ``mu`` growing by 1.4 per outer step, one
+weighted Gauss-Newton step per outer step with correspondences refreshed (ICP style).
+
+Residual of a source point ``p`` (sub-map ``j``) against the matched element of sub-map ``i``:
+``r = n . (delta(p) - q)``, ``q`` the foot on the nearest segment, ``n`` its normal; points that
+project beyond the target's ends are left out (clipped pieces differ in extent).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from csr_core import se2
+from csr_core.alignment.geometry import point_to_segments
+from csr_core.alignment.graph_matching import ElementSet, element_distances, node_similarity
+from csr_core.alignment.params import AlignmentParams, NoiseScales
+
+MAX_POINTS_PER_ELEMENT = 30
+
+
+@dataclass(frozen=True, slots=True)
+class Registration:
+    """``delta`` maps the source set onto the target (``target ~ delta o source``), in the
+    common local frame; ``information_xyyaw`` is in the same frame (left perturbation)."""
+
+    delta_xyyaw: np.ndarray  # (3,)
+    information_xyyaw: np.ndarray  # (3, 3)
+    element_inlier: np.ndarray  # (N_m,) bool per match
+    residual_rms_m: float
+    n_points: int
+
+
+def _nearest_on_polyline(points: np.ndarray, poly: np.ndarray, closed: bool):
+    """Foot, normal and validity of each point's nearest segment on one polyline (the two
+    segments around the nearest vertex are compared; vertices are ~1 m apart)."""
+    n = len(poly)
+    d2 = ((points[:, None, :] - poly[None, :, :]) ** 2).sum(-1)
+    v = np.argmin(d2, axis=1)
+    if closed:
+        cand = np.stack([(v - 1) % n, v], axis=1)  # segment s joins vertex s and s+1
+        seg_b = lambda s_: (s_ + 1) % n  # noqa: E731
+    else:
+        cand = np.stack([np.clip(v - 1, 0, n - 2), np.clip(v, 0, n - 2)], axis=1)
+        seg_b = lambda s_: s_ + 1  # noqa: E731
+    P = len(points)
+    sa = cand.ravel()
+    foot, normal, u_raw, dist = point_to_segments(np.repeat(points, 2, axis=0), poly[sa], poly[seg_b(sa)])
+    pick = np.argmin(dist.reshape(P, 2), axis=1)
+    sel = np.arange(P) * 2 + pick
+    best = sa[sel]
+    valid = np.ones(P, bool)
+    if not closed:  # beyond the ends of the target polyline: not a lateral constraint
+        valid = ~(((best == 0) & (u_raw[sel] < 0.0)) | ((best == n - 2) & (u_raw[sel] > 1.0)))
+    return foot[sel], normal[sel], valid
+
+
+def _subsample(points: np.ndarray, n_max: int) -> np.ndarray:
+    if len(points) <= n_max:
+        return points
+    return points[np.linspace(0, len(points) - 1, n_max).round().astype(int)]
+
+
+def register_elements(
+    target: ElementSet, source: ElementSet, matches: Sequence[tuple[int, int]], point_sigma_m: float,
+    params: AlignmentParams, closed_target: Sequence[bool] | None = None,
+    initial_xyyaw: np.ndarray | None = None,
+) -> Registration | None:
+    """GNC-TLS registration of ``source`` onto ``target`` over matched elements ``(k, k')``
+    (``k`` in target, ``k'`` in source). None when fewer than ``min_matched_elements`` remain."""
+    if len(matches) < 1:
+        return None
+    closed_target = closed_target or [False] * len(target)
+    # polygons (crosswalks, markings): their centroid, point to point (an outline matched point
+    # to line slides onto the next parallel edge of a wide crosswalk); lines: vertices
+    src, fixed_foot, fixed_normal = [], [], []
+    for k, kp in matches:
+        if closed_target[k]:
+            c_src, c_tgt = source.points[kp].mean(axis=0), target.points[k].mean(axis=0)
+            src.append(np.vstack([c_src, c_src]))
+            fixed_foot.append(np.vstack([c_tgt, c_tgt]))
+            fixed_normal.append(np.eye(2))
+        else:
+            p = _subsample(source.points[kp], MAX_POINTS_PER_ELEMENT)
+            src.append(p)
+            fixed_foot.append(np.full((len(p), 2), np.nan))
+            fixed_normal.append(np.full((len(p), 2), np.nan))
+    owner = np.concatenate([np.full(len(p), m) for m, p in enumerate(src)])
+    src_pts = np.vstack(src)
+    fixed_foot, fixed_normal = np.vstack(fixed_foot), np.vstack(fixed_normal)
+    is_fixed = np.isfinite(fixed_foot[:, 0])
+    delta = np.zeros(3) if initial_xyyaw is None else np.asarray(initial_xyyaw, float).copy()
+    if is_fixed.any():  # start from the polygons' mean centroid offset (a unique basin)
+        off = (fixed_foot[is_fixed] - se2.transform_points(delta, src_pts[is_fixed])).mean(axis=0)
+        delta = se2.compose(np.array([off[0], off[1], 0.0]), delta)
+    c_bar = params.gnc_inlier_k * point_sigma_m
+    mu = None
+    w = np.ones(len(src_pts))
+    for outer in range(params.gnc_max_outer + 1):
+        moved = se2.transform_points(delta, src_pts)
+        foot = np.empty_like(moved)
+        normal = np.empty_like(moved)
+        valid = np.ones(len(moved), bool)
+        for m, (k, _) in enumerate(matches):
+            sel = owner == m
+            if closed_target[k]:
+                foot[sel], normal[sel] = fixed_foot[sel], fixed_normal[sel]
+            else:
+                foot[sel], normal[sel], valid[sel] = _nearest_on_polyline(moved[sel], target.points[k], False)
+        r = np.einsum("ij,ij->i", normal, moved - foot)
+        r2 = np.where(valid, r**2, 0.0)
+        if mu is None:
+            r_max2 = float(r2[valid].max()) if valid.any() else 0.0
+            mu = c_bar**2 / max(2 * r_max2 - c_bar**2, 1e-9) if r_max2 > c_bar**2 else 1e6
+        # TLS surrogate weights
+        lo, hi = mu / (mu + 1) * c_bar**2, (mu + 1) / mu * c_bar**2
+        w = np.where(r2 <= lo, 1.0, np.where(r2 >= hi, 0.0,
+                     c_bar * np.sqrt(mu * (mu + 1)) / np.sqrt(np.maximum(r2, 1e-12)) - mu))
+        w = np.clip(w, 0.0, 1.0) * valid
+        J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])
+        H = (J * w[:, None]).T @ J + 1e-6 * np.eye(3)
+        g = (J * w[:, None]).T @ r
+        step = -np.linalg.solve(H, g)
+        delta = se2.compose(step, delta)
+        if outer == params.gnc_max_outer or (mu >= 1e5 and np.linalg.norm(step) < 1e-4):
+            break
+        mu = min(mu * 1.4, 1e6)
+    inlier_pts = w > 0.5
+    element_inlier = np.array([np.sum(inlier_pts[owner == m]) >= max(2, 0.5 * np.sum(owner == m))
+                               for m in range(len(matches))])
+    if element_inlier.sum() < params.min_matched_elements:
+        return None
+    sel = inlier_pts & element_inlier[owner]
+    moved = se2.transform_points(delta, src_pts)
+    rms = float(np.sqrt(np.mean(r[sel] ** 2))) if sel.any() else float("inf")
+    J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])[sel]
+    # points of one element share its perception error: count ~2 independent samples per element
+    n_eff = 2.0 * element_inlier.sum()
+    info = J.T @ J / point_sigma_m**2 * (n_eff / max(len(J), 1))
+    info += np.diag([1 / params.degenerate_sigma_xy_m**2] * 2 + [1 / params.degenerate_sigma_yaw_rad**2])
+    return Registration(delta, info, element_inlier, rms, int(sel.sum()))
+
+
+def match_confidence(target: ElementSet, source_aligned: ElementSet, matches: Sequence[tuple[int, int]],
+                     noise: NoiseScales, params: AlignmentParams) -> np.ndarray:
+    """Eq. 7 per match: ``c = w s_kk' + (1-w) mean_l' s_kl,k'l'`` after alignment."""
+    if not matches:
+        return np.zeros(0)
+    s = node_similarity(target, source_aligned, noise, params)
+    k = np.array([m[0] for m in matches])
+    kp = np.array([m[1] for m in matches])
+    node = s[k, kp]
+    if len(matches) > 1:
+        e_t, e_s = element_distances(target), element_distances(source_aligned)
+        pair = np.exp(-0.5 * ((e_t[np.ix_(k, k)] - e_s[np.ix_(kp, kp)]) / noise.sigma_e_m) ** 2)  # Eq. 6
+        np.fill_diagonal(pair, 0.0)
+        edge = pair.sum(axis=1) / (len(matches) - 1)
+    else:
+        edge = np.ones(1)
+    w = params.node_position_weight
+    return w * node + (1 - w) * edge

@@ -1,0 +1,259 @@
+"""Sub-map splitting and matching pairs (paper Fig. 4).
+
+1. Frame graph: nodes are frames (subsampled every ``keyframe_spacing_m`` of smoothed travel);
+   edges join consecutive nodes of a trip and nodes of different trips closer than
+   ``frame_graph_distance_m`` whose headings differ by less than ``frame_graph_angle_rad``
+   (modulo pi when ``pair_opposite_directions``: on a two-way road both directions see the same
+   dividers and boundaries).
+2. Circles: an uncovered node is a centre; the nodes within ``submap_radius_m`` that the graph
+   reaches without leaving the disk are its members, and are covered.
+3. Sub-maps: per circle, each trip's contiguous run of member nodes is one sub-map, anchored at
+   the run's node nearest the centre (``world_T_submap`` = that frame's smoothed pose); its
+   elements are the trip's instances seen during the run, clipped to the disk, in the sub-map
+   frame.
+4. Pairs: sub-maps of different trips in one circle form P_sub-sub (each with its next
+   ``max_partners_per_submap`` in trip order, so every circle holds cycles for Step 4); a
+   circle that overlaps the pre-built map forms P_sub-pre with its patch of that map.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import breadth_first_order
+from scipy.spatial import cKDTree
+
+from csr_core import se2
+from csr_core.alignment.geometry import arclength_m, resample_polyline
+from csr_core.alignment.params import AlignmentParams
+from csr_core.types import ElementType, MapFeature, TripReconstruction
+
+
+@dataclass(frozen=True, slots=True)
+class SubmapElement:
+    """One element of a sub-map, in the sub-map (anchor) frame, resampled every ~1 m."""
+
+    type: ElementType
+    points_xy_submap: np.ndarray  # (M, 2)
+    instance_index: int  # index into the trip's instances (prior map: into its features)
+    closed: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Submap:
+    """One trip's data inside one circle. ``trip_index == -1`` marks a pre-built-map patch."""
+
+    submap_id: int
+    circle_id: int
+    trip_index: int
+    trip_key: str
+    anchor_frame: int
+    first_frame: int
+    last_frame: int
+    world_T_submap: np.ndarray  # (3,) initial (smoothed) pose of the anchor
+    elements: tuple[SubmapElement, ...]
+
+    @property
+    def is_prior(self) -> bool:
+        return self.trip_index < 0
+
+    def element_points_world(self, world_T_submap: np.ndarray | None = None) -> list[np.ndarray]:
+        pose = self.world_T_submap if world_T_submap is None else world_T_submap
+        return [se2.transform_points(pose, e.points_xy_submap) for e in self.elements]
+
+
+@dataclass(frozen=True, slots=True)
+class Circle:
+    circle_id: int
+    centre_xy_world: np.ndarray  # (2,)
+    heading_rad: float  # heading of the centre node (reference direction for Eq. 3 cross-sections)
+    radius_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class FrameGraph:
+    positions_xy: np.ndarray  # (V, 2)
+    yaw_rad: np.ndarray  # (V,)
+    trip_index: np.ndarray  # (V,)
+    frame_index: np.ndarray  # (V,)
+    adjacency: sparse.csr_matrix  # (V, V)
+
+
+def _distance_subsample(poses_xyyaw: np.ndarray, spacing_m: float) -> np.ndarray:
+    s = arclength_m(poses_xyyaw[:, :2])
+    bins = np.floor(s / spacing_m).astype(int)
+    keep = np.concatenate([[True], bins[1:] != bins[:-1]])
+    keep[-1] = True
+    return np.flatnonzero(keep)
+
+
+def build_frame_graph(trips: Sequence[TripReconstruction], params: AlignmentParams) -> FrameGraph:
+    pos, yaw, tix, fix = [], [], [], []
+    for k, tr in enumerate(trips):
+        idx = _distance_subsample(tr.poses_xyyaw_world, params.keyframe_spacing_m)
+        pos.append(tr.poses_xyyaw_world[idx, :2])
+        yaw.append(tr.poses_xyyaw_world[idx, 2])
+        tix.append(np.full(len(idx), k))
+        fix.append(idx)
+    P, Y, T, F = np.vstack(pos), np.concatenate(yaw), np.concatenate(tix), np.concatenate(fix)
+    # consecutive frames of a trip
+    same = T[1:] == T[:-1]
+    rows = [np.flatnonzero(same)]
+    cols = [np.flatnonzero(same) + 1]
+    # frames of different trips within distance and angle
+    pairs = cKDTree(P).query_pairs(params.frame_graph_distance_m, output_type="ndarray")
+    if len(pairs):
+        a, b = pairs[:, 0], pairs[:, 1]
+        dyaw = np.abs(se2.wrap_angle(Y[a] - Y[b]))
+        if params.pair_opposite_directions:
+            dyaw = np.minimum(dyaw, np.pi - dyaw)
+        ok = (T[a] != T[b]) & (dyaw < params.frame_graph_angle_rad)
+        rows.append(a[ok])
+        cols.append(b[ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    n = len(P)
+    adj = sparse.coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n)).tocsr()
+    return FrameGraph(P, Y, T, F, (adj + adj.T).tocsr())
+
+
+def split_circles(graph: FrameGraph, params: AlignmentParams) -> tuple[list[Circle], list[np.ndarray]]:
+    """Greedy circles over the frame graph; returns circles and their member node indices."""
+    tree = cKDTree(graph.positions_xy)
+    covered = np.zeros(len(graph.positions_xy), bool)
+    circles, members = [], []
+    R = params.submap_radius_m
+    for v in range(len(graph.positions_xy)):
+        if covered[v]:
+            continue
+        ball = np.asarray(tree.query_ball_point(graph.positions_xy[v], R), int)
+        sub = graph.adjacency[ball][:, ball]
+        local = int(np.flatnonzero(ball == v)[0])
+        order = breadth_first_order(sub, local, directed=False, return_predecessors=False)
+        mem = np.sort(ball[order])
+        covered[mem] = True
+        circles.append(Circle(len(circles), graph.positions_xy[v].copy(), float(graph.yaw_rad[v]), R))
+        members.append(mem)
+    return circles, members
+
+
+def _prepared_instances(trip: TripReconstruction, params: AlignmentParams) -> list[tuple[np.ndarray, bool]]:
+    out = []
+    for inst in trip.instances:
+        closed = inst.type.is_polygon
+        out.append((resample_polyline(inst.points_xy_world, params.element_resample_m, closed), closed))
+    return out
+
+
+def clip_elements_to_disk(
+    prepared: Sequence[tuple[np.ndarray, bool]], types: Sequence[ElementType], centre_xy: np.ndarray,
+    radius_m: float, min_length_m: float,
+) -> list[tuple[int, np.ndarray, bool]]:
+    """Pieces of (resampled) elements inside a disk: ``(element index, points, closed)``."""
+    out = []
+    for i, ((pts, closed), etype) in enumerate(zip(prepared, types)):
+        if len(pts) < 2:
+            continue
+        inside = np.linalg.norm(pts - centre_xy, axis=1) <= radius_m
+        if not inside.any():
+            continue
+        if closed:
+            if np.linalg.norm(pts.mean(axis=0) - centre_xy) <= radius_m:
+                out.append((i, pts, True))
+            continue
+        edges = np.flatnonzero(np.diff(inside.astype(int))) + 1
+        for run in np.split(np.arange(len(pts)), edges):
+            if not inside[run[0]] or len(run) < 2:
+                continue
+            piece = pts[run]
+            min_len = min_length_m if etype != ElementType.STOP_LINE else 1.0
+            if arclength_m(piece)[-1] >= min_len:
+                out.append((i, piece, False))
+    return out
+
+
+def _limit(elements: list[SubmapElement], n_max: int) -> tuple[SubmapElement, ...]:
+    if len(elements) <= n_max:
+        return tuple(elements)
+    d = [float(np.min(np.linalg.norm(e.points_xy_submap, axis=1))) for e in elements]
+    keep = sorted(np.argsort(d)[:n_max])
+    return tuple(elements[i] for i in keep)
+
+
+def split_submaps(
+    trips: Sequence[TripReconstruction], params: AlignmentParams
+) -> tuple[list[Circle], list[Submap]]:
+    """Fig. 4: circles over the frame graph and one sub-map per trip (run) per circle."""
+    graph = build_frame_graph(trips, params)
+    circles, members = split_circles(graph, params)
+    prepared = [_prepared_instances(t, params) for t in trips]
+    types = [[inst.type for inst in t.instances] for t in trips]
+    submaps: list[Submap] = []
+    for circle, mem in zip(circles, members):
+        for k in np.unique(graph.trip_index[mem]):
+            nodes = mem[graph.trip_index[mem] == k]
+            runs = np.split(nodes, np.flatnonzero(np.diff(nodes) > 1) + 1)
+            tr = trips[int(k)]
+            for run in runs:
+                frames = graph.frame_index[run]
+                if arclength_m(tr.poses_xyyaw_world[frames[0] : frames[-1] + 1, :2])[-1] < params.min_submap_path_m:
+                    continue
+                near = run[np.argmin(np.linalg.norm(graph.positions_xy[run] - circle.centre_xy_world, axis=1))]
+                anchor = int(graph.frame_index[near])
+                pose = tr.poses_xyyaw_world[anchor].copy()
+                lo, hi = int(frames[0]), int(frames[-1])
+                inv = se2.inverse(pose)
+                elems = []
+                for i, pts, closed in clip_elements_to_disk(
+                    prepared[k], types[k], circle.centre_xy_world, circle.radius_m, params.min_element_length_m
+                ):
+                    inst = tr.instances[i]
+                    if inst.last_frame > inst.first_frame and (inst.last_frame < lo or inst.first_frame > hi):
+                        continue  # not seen while in this circle
+                    elems.append(SubmapElement(inst.type, se2.transform_points(inv, pts), i, closed))
+                submaps.append(Submap(
+                    len(submaps), circle.circle_id, int(k), tr.trip.key, anchor, lo, hi, pose,
+                    _limit(elems, params.max_elements_per_submap),
+                ))
+    return circles, submaps
+
+
+def prior_patches(
+    circles: Sequence[Circle], features: Sequence[MapFeature], params: AlignmentParams, first_id: int
+) -> list[Submap]:
+    """The pre-built map's elements inside each circle, as a sub-map anchored at the circle
+    centre (``trip_index = -1``); circles with fewer than two map elements get none."""
+    prepared = [(resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
+                 f.type.is_polygon) for f in features]
+    types = [f.type for f in features]
+    out = []
+    for c in circles:
+        pose = np.array([c.centre_xy_world[0], c.centre_xy_world[1], c.heading_rad])
+        inv = se2.inverse(pose)
+        elems = [SubmapElement(types[i], se2.transform_points(inv, pts), i, closed)
+                 for i, pts, closed in clip_elements_to_disk(prepared, types, c.centre_xy_world, c.radius_m,
+                                                             params.min_element_length_m)]
+        if len(elems) >= 2:
+            out.append(Submap(first_id + len(out), c.circle_id, -1, "<prior>", -1, -1, -1, pose,
+                              _limit(elems, params.max_elements_per_submap)))
+    return out
+
+
+def submap_pairs(submaps: Sequence[Submap], params: AlignmentParams) -> list[tuple[int, int]]:
+    """P_sub-sub and P_sub-pre: ``(i, j)`` sub-map ids, ``i`` the reference (prior patch first)."""
+    by_circle: dict[int, list[Submap]] = {}
+    for s in submaps:
+        by_circle.setdefault(s.circle_id, []).append(s)
+    pairs = []
+    for group in by_circle.values():
+        group.sort(key=lambda s: (s.trip_index, s.anchor_frame))
+        prior = [s for s in group if s.is_prior]
+        trips_ = [s for s in group if not s.is_prior]
+        for p in prior:
+            pairs += [(p.submap_id, s.submap_id) for s in trips_]
+        for a, s in enumerate(trips_):
+            partners = [t for t in trips_[a + 1 :] if t.trip_index != s.trip_index][: params.max_partners_per_submap]
+            pairs += [(s.submap_id, t.submap_id) for t in partners]
+    return pairs

@@ -1,0 +1,122 @@
+"""Algorithm 1, Step 1: global topology consistency (Eq. 3) and sliding-window voting.
+
+Descriptors are read on a cross-section of each sub-map: the line through the circle centre
+perpendicular to the circle's reference heading (world frame, initial poses), so sub-maps of
+one circle are compared on the same line whatever their anchor frames.
+
+- ``N_nl`` lane count: lateral crossings of dividers and boundaries (merged within 1 m) minus 1;
+- ``N_rw`` road width: between the nearest boundary crossing on each side of the vehicle;
+- ``N_sm`` split/merge count: divider and centreline ends strictly inside the circle;
+- ``N_rc`` road centre: mid-point of those two boundaries (lateral coordinate).
+
+A missing quantity (e.g. one boundary out of sight) leaves its test out instead of failing it.
+Thresholds grow with the single-trip noise (boundary sigma, pose sigma), as the paper asks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from csr_core.alignment.geometry import line_crossing
+from csr_core.alignment.params import AlignmentParams, NoiseScales
+from csr_core.alignment.submaps import Circle, Submap
+from csr_core.types import ElementType, TripReconstruction
+
+_LINE_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY)
+_END_TYPES = (ElementType.LANE_DIVIDER, ElementType.CENTERLINE)
+
+
+@dataclass(frozen=True, slots=True)
+class TopologyDescriptor:
+    lane_count: int  # N_nl (-1: unknown)
+    road_width_m: float  # N_rw (NaN: unknown)
+    split_merge_count: int  # N_sm
+    road_centre_m: float  # N_rc, lateral coordinate on the cross-section (NaN: unknown)
+    pose_sigma_m: float  # smoothed-pose sigma at the anchor (sets tau_rc)
+
+
+def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> TopologyDescriptor:
+    direction = np.array([np.cos(circle.heading_rad), np.sin(circle.heading_rad)])
+    normal = np.array([-direction[1], direction[0]])
+    pts_world = submap.element_points_world()
+    crossings: list[float] = []
+    boundaries: list[float] = []
+    ends = 0
+    for e, pts in zip(submap.elements, pts_world):
+        if e.closed:
+            continue
+        if e.type in _LINE_TYPES:
+            y = line_crossing(pts, circle.centre_xy_world, direction)
+            if np.isfinite(y):
+                crossings.append(y)
+                if e.type == ElementType.ROAD_BOUNDARY:
+                    boundaries.append(y)
+        if e.type in _END_TYPES:
+            r = np.linalg.norm(pts[[0, -1]] - circle.centre_xy_world, axis=1)
+            ends += int(np.sum(r < circle.radius_m - 3.0))
+    xs = np.sort(np.asarray(crossings))
+    vehicle = float((submap.world_T_submap[:2] - circle.centre_xy_world) @ normal)
+    b = np.asarray(boundaries)
+    left, right = b[b > vehicle], b[b < vehicle]
+    if len(left) and len(right):
+        lo, hi = float(right.max()), float(left.min())
+        width, centre = hi - lo, 0.5 * (hi + lo)
+        lanes = int(np.sum((np.diff(xs) > 1.0) & (xs[1:] <= hi + 0.5) & (xs[:-1] >= lo - 0.5)))
+    else:
+        width, centre, lanes = float("nan"), float("nan"), -1
+    return TopologyDescriptor(lanes, width, ends, centre, pose_sigma_m)
+
+
+def topology_consistent(
+    a: TopologyDescriptor, b: TopologyDescriptor, noise: NoiseScales, params: AlignmentParams
+) -> bool:
+    """Eq. 3, each test only where both sub-maps define the quantity."""
+    if a.lane_count >= 0 and b.lane_count >= 0 and abs(a.lane_count - b.lane_count) > params.topo_lane_count_tol:
+        return False
+    tau_rw = params.topo_road_width_k * np.sqrt(2.0) * noise.boundary_sigma_m
+    if np.isfinite(a.road_width_m) and np.isfinite(b.road_width_m) and abs(a.road_width_m - b.road_width_m) > tau_rw:
+        return False
+    if abs(a.split_merge_count - b.split_merge_count) > params.topo_split_merge_tol:
+        return False
+    tau_rc = params.topo_road_centre_floor_m + params.topo_road_centre_k * np.sqrt(
+        a.pose_sigma_m**2 + b.pose_sigma_m**2 + noise.boundary_sigma_m**2)
+    if np.isfinite(a.road_centre_m) and np.isfinite(b.road_centre_m) and abs(a.road_centre_m - b.road_centre_m) > tau_rc:
+        return False
+    return True
+
+
+def sliding_window_vote(keys: Sequence[tuple], order: np.ndarray, votes: np.ndarray, half_window: int,
+                        min_fraction: float) -> np.ndarray:
+    """Smooth binary outcomes in time: within each group (same two trips), ordered by
+    ``order``, a pair is kept when at least ``min_fraction`` of the ``2w+1`` outcomes around
+    it (itself included) are positive, and its own outcome is positive."""
+    votes = np.asarray(votes, bool)
+    out = votes.copy()
+    groups: dict[tuple, list[int]] = {}
+    for i, k in enumerate(keys):
+        groups.setdefault(k, []).append(i)
+    for idx in groups.values():
+        idx = np.asarray(idx)[np.argsort(np.asarray(order)[idx], kind="stable")]
+        v = votes[idx].astype(float)
+        for p in range(len(idx)):
+            lo, hi = max(0, p - half_window), min(len(idx), p + half_window + 1)
+            out[idx[p]] = votes[idx[p]] and v[lo:hi].mean() >= min_fraction
+    return out
+
+
+def topology_filter(
+    pairs: Sequence[tuple[int, int]], submaps: Sequence[Submap], circles: Sequence[Circle],
+    trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
+) -> np.ndarray:
+    """Step 1 for all candidate pairs: Eq. 3, then voting over each trip pair's sequence."""
+    desc = {}
+    for s in submaps:
+        sigma = float(trips[s.trip_index].pose_sigma_xy_m[s.anchor_frame]) if not s.is_prior else 0.0
+        desc[s.submap_id] = topology_descriptor(s, circles[s.circle_id], sigma if np.isfinite(sigma) else 1.0)
+    raw = np.array([topology_consistent(desc[i], desc[j], noise, params) for i, j in pairs], bool)
+    keys = [(submaps[i].trip_index, submaps[j].trip_index) for i, j in pairs]
+    order = np.array([submaps[i].anchor_frame for i, _ in pairs], float)
+    return sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)

@@ -1,0 +1,161 @@
+"""Benchmark figures (matplotlib, Agg), the kind of pictures in the paper's Figs. 10 and 11.
+
+For one scenario and each method (aligned outputs, contract section 6):
+
+- ``map``: truth (wide grey) against the reconstruction coloured by element type, zoomed;
+- ``trajectories``: true trajectories, the estimate raw and after the global alignment, zoomed;
+- ``heatmap``: every kept truth sample coloured by its capped distance to the reconstruction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from csr_core.bench.runner import Record
+from csr_core.bench.tables import METHOD_NAMES
+from csr_core.metrics import CD_CAP_M, apply_se2, transform_features
+from csr_core.types import ElementType, MapFeature
+
+TYPE_COLOURS = {
+    ElementType.LANE_DIVIDER: "tab:blue",
+    ElementType.CENTERLINE: "tab:green",
+    ElementType.ROAD_BOUNDARY: "tab:red",
+    ElementType.STOP_LINE: "tab:purple",
+    ElementType.CROSSWALK: "tab:orange",
+    ElementType.ROAD_MARKING: "tab:brown",
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _chain(f: MapFeature) -> np.ndarray:
+    p = f.points_xy_world
+    return np.vstack([p, p[:1]]) if f.type.is_polygon and len(p) > 2 else p
+
+
+def zoom_centre(record: Record) -> np.ndarray:
+    """A window centre with many element types: a true stop line or crosswalk near the trips if
+    any, else the middle of the first true trajectory."""
+    ev = record.ev
+    frames = np.concatenate(list(ev.true_xy_by_key.values()))
+    for etype in (ElementType.STOP_LINE, ElementType.CROSSWALK):
+        for f in ev.truth_map:
+            if f.type == etype:
+                c = f.points_xy_world.mean(axis=0)
+                if np.min(np.linalg.norm(frames - c, axis=1)) < 10.0:
+                    return c
+    first = next(iter(ev.true_xy_by_key.values()))
+    return first[len(first) // 2]
+
+
+def _window(ax, centre: np.ndarray, half_w: float, half_h: float) -> None:
+    ax.set_xlim(centre[0] - half_w, centre[0] + half_w)
+    ax.set_ylim(centre[1] - half_h, centre[1] + half_h)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+
+
+def _panels(n: int, width_in: float = 5.2, height_in: float = 4.2):
+    plt = _plt()
+    fig, axes = plt.subplots(1, n, figsize=(width_in * n, height_in), squeeze=False)
+    return plt, fig, axes[0]
+
+
+def plot_map(records: Sequence[Record], path: Path, half_w: float = 30.0, half_h: float = 18.0) -> Path:
+    ok = [r for r in records if r.ok]
+    plt, fig, axes = _panels(len(ok))
+    centre = zoom_centre(ok[0])
+    for ax, r in zip(axes, ok, strict=False):
+        ev = r.ev
+        pred = transform_features(ev.evaluation.truth_T_est, ev.pred_map)
+        for f in ev.truth_map:
+            c = _chain(f)
+            ax.plot(c[:, 0], c[:, 1], color="0.75", lw=4.0, solid_capstyle="round", zorder=1)
+        for f in pred:
+            c = _chain(f)
+            ax.plot(c[:, 0], c[:, 1], color=TYPE_COLOURS[f.type], lw=0.7, alpha=0.85, zorder=2)
+        _window(ax, centre, half_w, half_h)
+        ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}  mCD {ev.evaluation.map_aligned.mcd:.3f} m", fontsize=9)
+    handles = [plt.Line2D([], [], color="0.75", lw=4, label="truth")]
+    handles += [plt.Line2D([], [], color=c, lw=1.5, label=t.value) for t, c in TYPE_COLOURS.items()]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.suptitle(f"{ok[0].scenario}: truth vs reconstruction (aligned), {2 * half_w:.0f} m x {2 * half_h:.0f} m",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.95))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_trajectories(records: Sequence[Record], path: Path, half_w: float = 15.0, half_h: float = 9.0) -> Path:
+    ok = [r for r in records if r.ok]
+    plt, fig, axes = _panels(len(ok))
+    centre = zoom_centre(ok[0])
+    for ax, r in zip(axes, ok, strict=False):
+        ev = r.ev
+        T = ev.evaluation.truth_T_est
+        for k, true_xy in ev.true_xy_by_key.items():
+            ax.plot(true_xy[:, 0], true_xy[:, 1], color="k", lw=1.6, zorder=3)
+            if k in ev.est_xy_by_key:
+                est = ev.est_xy_by_key[k]
+                ax.plot(est[:, 0], est[:, 1], color="tab:red", lw=0.7, ls="--", zorder=2)
+                al = apply_se2(T, est)
+                ax.plot(al[:, 0], al[:, 1], color="tab:blue", lw=0.8, zorder=2)
+        _window(ax, centre, half_w, half_h)
+        e = ev.evaluation
+        ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}\nATE raw {e.raw.ate.rmse:.2f} m, aligned "
+                     f"{e.aligned.ate.rmse:.2f} m; RPE {e.aligned.rpe.rmse:.3f} m", fontsize=8)
+    handles = [plt.Line2D([], [], color="k", lw=1.6, label="truth"),
+               plt.Line2D([], [], color="tab:red", lw=1, ls="--", label="estimate, raw"),
+               plt.Line2D([], [], color="tab:blue", lw=1, label="estimate, globally aligned")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.suptitle(f"{ok[0].scenario}: trajectories before and after the global alignment "
+                 f"({2 * half_w:.0f} m x {2 * half_h:.0f} m)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.93))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_error_heatmap(records: Sequence[Record], path: Path) -> Path:
+    ok = [r for r in records if r.ok]
+    plt, fig, axes = _panels(len(ok), 5.2, 4.6)
+    sc = None
+    for ax, r in zip(axes, ok, strict=False):
+        m = r.ev.evaluation.map_aligned
+        xy = np.concatenate([m.truth_samples_xy[t] for t in m.truth_samples_xy if len(m.truth_samples_xy[t])])
+        err = np.concatenate([m.truth_sample_error_m[t] for t in m.truth_samples_xy if len(m.truth_samples_xy[t])])
+        order = np.argsort(err)
+        sc = ax.scatter(xy[order, 0], xy[order, 1], c=err[order], s=0.6, cmap="inferno_r", vmin=0.0,
+                        vmax=CD_CAP_M / 2, linewidths=0)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}  mCD {m.mcd:.3f} m", fontsize=9)
+    cbar = fig.colorbar(sc, ax=list(axes), shrink=0.8, pad=0.01)
+    cbar.set_label("truth sample -> reconstruction distance [m] (capped 1 m; colour scale to 0.5 m)", fontsize=8)
+    fig.suptitle(f"{ok[0].scenario}: map error along the truth (aligned)", fontsize=10)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def make_figures(records: Sequence[Record], out_dir: Path, stem: str) -> list[tuple[str, Path]]:
+    """All three figures for one scenario's records (one per method); ``(caption, path)`` list."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return [
+        ("Truth vs reconstruction per element type (aligned, zoomed)", plot_map(records, out_dir / f"{stem}_map.png")),
+        ("Trajectories before and after the global alignment (zoomed)",
+         plot_trajectories(records, out_dir / f"{stem}_trajectories.png")),
+        ("Map error heat map (distance from each truth sample to the reconstruction)",
+         plot_error_heatmap(records, out_dir / f"{stem}_error_heatmap.png")),
+    ]

@@ -1,0 +1,214 @@
+"""`csr bench`: named scenario sets -> simulated scenarios (cached) -> `csr reconstruct` per method
+(as a subprocess: the benchmark reaches the pipeline only through the command, which also gives
+honest wall time and peak memory) -> evaluation (contract section 6) -> records.
+
+Scenario sets (deterministic seeds; generated with ``csr simulate`` into ``OUT/scenarios``):
+
+- ``quick``: urban and highway, standard profile, 6 trips of 800 m (CI speed).
+- ``standard``: every world, standard profile, 10 trips of 1.5 km.
+- ``hard``: every world, hard profile, 10 trips of 1.5 km.
+- ``full``: standard + hard.
+- ``toy``: the hand-made toy road of :mod:`csr_core.bench.toy` (3 trips of 300 m), written
+  in-process rather than simulated: a seconds-long smoke run of the whole bench.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import orjson
+
+from csr_core.bench.evaluate import EvaluatedOutput, evaluate_output
+from csr_core.errors import CsrError
+
+log = logging.getLogger(__name__)
+
+WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+METHODS = ("pipeline", "gnss_only", "roadmap_icp")
+ABLATIONS = {"coarse only": ["--no-fine"], "fine only": ["--no-coarse"], "coarse + fine": []}
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioSpec:
+    world: str
+    trips: int
+    profile: str = "standard"
+    seed: int = 1
+    trip_length_m: float | None = None
+
+    @property
+    def name(self) -> str:
+        length = f"-{int(self.trip_length_m)}m" if self.trip_length_m else ""
+        return f"{self.world}-{self.profile}-{self.trips}x{length}-s{self.seed}"
+
+
+def scenario_set(name: str) -> list[ScenarioSpec]:
+    if name == "quick":
+        return [ScenarioSpec("urban", 6, "standard", 1, 800.0), ScenarioSpec("highway", 6, "standard", 1, 800.0)]
+    if name == "standard":
+        return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in WORLDS]
+    if name == "hard":
+        return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]
+    if name == "toy":
+        return [ScenarioSpec("toy", 3, "toy", 1, 300.0)]
+    if name == "full":
+        return scenario_set("standard") + scenario_set("hard")
+    raise ValueError(f"unknown scenario set {name!r} (quick, standard, hard, full, toy)")
+
+
+def csr_command() -> list[str]:
+    """How to run the ``csr`` command from here (the venv's console script when present)."""
+    script = Path(sys.executable).parent / "csr"
+    if script.exists():
+        return [str(script)]
+    found = shutil.which("csr")
+    if found:
+        return [found]
+    return [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())"]
+
+
+@dataclass(frozen=True, slots=True)
+class CommandRun:
+    returncode: int
+    wall_s: float
+    peak_rss_mb: float
+    stderr_tail: str
+
+
+def run_measured(argv: Sequence[str]) -> CommandRun:
+    """Run a command; its wall time and its own peak resident memory (``wait4`` rusage)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # Drain pipes while waiting: communicate() would reap the child and lose its rusage.
+    chunks: dict[str, bytes] = {}
+
+    def drain(name: str, stream) -> None:
+        chunks[name] = stream.read()
+
+    threads = [threading.Thread(target=drain, args=(n, s)) for n, s in (("out", proc.stdout), ("err", proc.stderr))]
+    for t in threads:
+        t.start()
+    _, status, rusage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    for t in threads:
+        t.join()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = chunks.get("err", b"").decode(errors="replace")
+    return CommandRun(proc.returncode, wall, rusage.ru_maxrss / 1024.0, "\n".join(err.strip().splitlines()[-5:]))
+
+
+def ensure_scenario(spec: ScenarioSpec, cache_dir: Path) -> Path:
+    """The scenario folder for ``spec``, simulated with ``csr simulate`` unless cached."""
+    out = cache_dir / spec.name
+    if (out / "scenario.json").exists() and (out / "truth" / "map.geojson").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    if spec.world == "toy":
+        from csr_core.bench.toy import ToySpec, write_toy_scenario
+
+        return write_toy_scenario(out, ToySpec(n_trips=spec.trips, length_m=spec.trip_length_m or 300.0,
+                                               seed=spec.seed))
+    argv = csr_command() + ["simulate", "--world", spec.world, "--trips", str(spec.trips), "--profile", spec.profile,
+                            "--seed", str(spec.seed), "--out", str(out)]
+    if spec.trip_length_m:
+        argv += ["--trip-length-m", str(spec.trip_length_m)]
+    log.info("simulating %s", spec.name)
+    run = run_measured(argv)
+    if run.returncode != 0:
+        raise CsrError(f"csr simulate failed for {spec.name} (exit {run.returncode}): {run.stderr_tail}")
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    """One method on one scenario: the evaluation and the costs."""
+
+    scenario: str
+    world: str
+    profile: str
+    method: str
+    variant: str  # "" or an ablation name
+    run: CommandRun
+    uploaded_bytes: int
+    output_bytes: int
+    km: float
+    report: dict
+    evaluated: EvaluatedOutput | None = field(default=None, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.run.returncode == 0 and self.evaluated is not None
+
+    @property
+    def ev(self) -> EvaluatedOutput:
+        """The evaluation of a run that succeeded (check :attr:`ok` first)."""
+        if self.evaluated is None:
+            raise CsrError(f"{self.scenario} {self.method}: the run failed, nothing to evaluate")
+        return self.evaluated
+
+
+def _dir_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[str] = (), variant: str = "",
+               spec: ScenarioSpec | None = None) -> Record:
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    argv = csr_command() + ["reconstruct", str(scenario_dir), "--out", str(out_dir), "--method", method,
+                            "--no-progress", *extra]
+    run = run_measured(argv)
+    uploaded = sum(p.stat().st_size for p in (scenario_dir / "trips").glob("*.json.gz"))
+    evaluated, report = None, {}
+    if run.returncode == 0:
+        report = orjson.loads((out_dir / "report.json").read_bytes())
+        evaluated = evaluate_output(scenario_dir, out_dir)
+    else:
+        log.error("csr reconstruct --method %s failed on %s: %s", method, scenario_dir.name, run.stderr_tail)
+    return Record(
+        scenario=scenario_dir.name,
+        world=spec.world if spec else scenario_dir.name,
+        profile=spec.profile if spec else "",
+        method=method,
+        variant=variant,
+        run=run,
+        uploaded_bytes=uploaded,
+        output_bytes=_dir_bytes(out_dir / "poses") + (out_dir / "map.geojson").stat().st_size if run.returncode == 0 else 0,
+        km=evaluated.trip_length_km if evaluated else float("nan"),
+        report=report,
+        evaluated=evaluated,
+    )
+
+
+def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, ablation: bool = True,
+              progress: Callable[[str], None] | None = None) -> list[Record]:
+    """Simulate (cached), reconstruct with every method and evaluate. Records in set order."""
+    records: list[Record] = []
+    for spec in scenario_set(set_name):
+        scenario_dir = ensure_scenario(spec, out_root / "scenarios")
+        for method in methods:
+            if progress:
+                progress(f"{spec.name}: {method}")
+            records.append(run_method(scenario_dir, out_root / "runs" / spec.name / method, method, spec=spec))
+        pipeline = next((r for r in records if r.scenario == spec.name and r.method == "pipeline"), None)
+        stages = set(pipeline.report.get("diagnostics", {}).get("stages", [])) if pipeline else set()
+        if ablation and {"coarse", "fine"} <= stages:
+            for variant, extra in ABLATIONS.items():
+                if not extra:
+                    continue
+                if progress:
+                    progress(f"{spec.name}: pipeline ({variant})")
+                slug = variant.replace(" ", "_")
+                records.append(run_method(scenario_dir, out_root / "runs" / spec.name / f"pipeline-{slug}",
+                                          "pipeline", extra, variant, spec))
+    return records

@@ -1,0 +1,310 @@
+"""MapTR-like BEV vector perception (parameters: ``profiles.PerceptionParams``).
+
+Per frame, every truth element inside the BEV range (vehicle frame x in ``range_x_m``, y in
+``range_y_m``, from the TRUE pose) is reported as the pieces that fall inside the range:
+- lines are resampled every ``point_spacing_m``; dashed dividers are reported dash by dash
+  ("as seen": ``dash_length_m`` painted, ``dash_gap_m`` gap, phase fixed on the truth polyline,
+  so the same dashes appear in every frame and every trip);
+- noise: a per-element offset (the same for all points of the element in that frame, i.e.
+  correlated along the element) plus white noise per point, both with sigma
+  ``base + per_m * distance``; road boundaries ``boundary_noise_factor`` times noisier;
+- missed detections (more likely far away), false positives (short spurious lines), ghosts (a
+  divider/boundary copy shifted sideways by about one lane width for a few frames);
+- crosswalks are polygons clipped to the range (first point not repeated), stop lines short lines;
+- ``score``, ``style`` (dividers), and ``track_id``: stable per truth element (per dash) within a
+  trip, scrambled per trip so that ids do not match across trips.
+
+Output is JSON-ready (the upload's element dicts, vehicle frame, metres rounded to mm) because
+the simulator writes millions of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import shapely
+from scipy.spatial import cKDTree
+
+from csr_core.sim import geometry as geo
+from csr_core.sim.profiles import PerceptionParams
+from csr_core.sim.world import World
+from csr_core.types import DividerStyle, ElementType
+
+_TYPE_CODES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+_DIVIDER, _BOUNDARY, _CENTERLINE, _STOP = range(4)
+_TYPE_NAMES = tuple(t.value for t in _TYPE_CODES)
+_GHOST_KEY, _FALSE_KEY = 1 << 28, 1 << 29
+_DASH_KEYS = 4096
+
+
+@dataclass(frozen=True)
+class TruthIndex:
+    """Dense samples of the world's line elements, and its polygons, for fast per-frame clipping."""
+
+    points_xy: np.ndarray  # (P, 2) world
+    element_of_point: np.ndarray  # (P,) index into ``element_type`` etc.
+    dash_of_point: np.ndarray  # (P,) dash number along the element; -1 where not dashed
+    painted: np.ndarray  # (P,) False in the gaps of dashed dividers
+    element_type: np.ndarray  # (E,) type code
+    element_style: tuple[str | None, ...]  # (E,)
+    element_id: np.ndarray  # (E,) truth element id
+    tree: cKDTree
+    polygons_xy: tuple[np.ndarray, ...]  # world outlines
+    polygon_centroids_xy: np.ndarray  # (Q, 2)
+    polygon_ids: np.ndarray  # (Q,)
+
+
+def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
+    pts, elem, dash, painted, types, styles, ids = [], [], [], [], [], [], []
+    polys, poly_ids = [], []
+    period = params.dash_length_m + params.dash_gap_m
+    for e in world.elements:
+        if e.type.is_polygon:
+            polys.append(e.points_xy_world)
+            poly_ids.append(e.element_id)
+            continue
+        dense = geo.resample(e.points_xy_world, params.dense_step_m)
+        s = geo.arclength_m(dense)
+        k = len(types)
+        types.append(_TYPE_CODES.index(e.type))
+        styles.append(e.style.value if e.style is not None else None)
+        ids.append(e.element_id)
+        pts.append(dense)
+        elem.append(np.full(len(dense), k))
+        if e.style == DividerStyle.DASHED:
+            dash.append(np.floor(s / period).astype(np.int64))
+            painted.append(np.mod(s, period) < params.dash_length_m)
+        else:
+            dash.append(np.full(len(dense), -1))
+            painted.append(np.ones(len(dense), bool))
+    points = np.vstack(pts) if pts else np.zeros((0, 2))
+    return TruthIndex(
+        points_xy=points,
+        element_of_point=np.concatenate(elem) if elem else np.zeros(0, int),
+        dash_of_point=np.concatenate(dash) if dash else np.zeros(0, int),
+        painted=np.concatenate(painted) if painted else np.zeros(0, bool),
+        element_type=np.array(types, int),
+        element_style=tuple(styles),
+        element_id=np.array(ids, int),
+        tree=cKDTree(points if len(points) else np.zeros((1, 2))),
+        polygons_xy=tuple(polys),
+        polygon_centroids_xy=np.array([p.mean(axis=0) for p in polys]).reshape(-1, 2),
+        polygon_ids=np.array(poly_ids, int),
+    )
+
+
+def _line_sigma(params: PerceptionParams, type_code: np.ndarray, dist_m: np.ndarray, offset: bool) -> np.ndarray:
+    base, per_m = (params.line_offset_base_m, params.line_offset_per_m) if offset else (
+        params.line_white_base_m, params.line_white_per_m)
+    factor = np.where(type_code == _BOUNDARY, params.boundary_noise_factor, 1.0)
+    return (base + per_m * dist_m) * factor
+
+
+class _FramePerceiver:
+    """Holds the per-trip state (RNG, ghosts, id scrambling) across frames."""
+
+    def __init__(self, index: TruthIndex, params: PerceptionParams, rng: np.random.Generator, n_frames: int):
+        self.index, self.p, self.rng = index, params, rng
+        self.salt = int(rng.integers(1, 1 << 30))
+        self.box = (params.range_x_m[0], params.range_y_m[0], params.range_x_m[1], params.range_y_m[1])
+        self.far_m = float(np.hypot(max(abs(params.range_x_m[0]), params.range_x_m[1]), params.range_y_m[1]))
+        self.subsample = max(int(round(params.point_spacing_m / params.dense_step_m)), 1)
+        self.min_run = int(np.ceil(params.min_visible_m / params.dense_step_m)) + 1
+        starts = np.flatnonzero(rng.random(n_frames) < params.ghost_rate_per_frame)
+        self.ghost_until = np.full(n_frames, -1)
+        self.ghost_event = np.full(n_frames, -1)
+        for k, i in enumerate(starts.tolist()):
+            n = int(rng.integers(params.ghost_frames[0], params.ghost_frames[1] + 1))
+            self.ghost_event[i : i + n] = k
+        self.ghost_side = rng.choice([-1.0, 1.0], size=max(len(starts), 1))
+        self.ghost_target: dict[int, int] = {}
+        self.false_count = 0
+
+    def _score(self, dist_m: np.ndarray) -> np.ndarray:
+        p = self.p
+        s = p.score_mean - p.score_drop_at_range_end * dist_m / self.far_m
+        if p.score_sigma > 0:
+            s = s + p.score_sigma * self.rng.standard_normal(len(dist_m))
+        return np.round(np.clip(s, 0.05, 0.99), 3)
+
+    def lines(self, frames: np.ndarray, poses_xyyaw: np.ndarray, candidates: np.ndarray,
+              out: list[list[dict[str, Any]]]) -> None:
+        """Perceive line elements for a batch of frames at once, appending to ``out[frame]``.
+
+        ``candidates (T,)`` are dense truth point indices near each frame, ``frames (T,)`` their
+        frame numbers (ascending, candidates ascending within a frame), ``poses_xyyaw (n, 3)``.
+        """
+        ix, p, rng = self.index, self.p, self.rng
+        if candidates.size == 0:
+            return
+        pose = poses_xyyaw[frames]
+        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+        d = ix.points_xy[candidates] - pose[:, :2]
+        xv = c * d[:, 0] + s * d[:, 1]
+        yv = -s * d[:, 0] + c * d[:, 1]
+        ok = (xv >= self.box[0]) & (xv <= self.box[2]) & (yv >= self.box[1]) & (yv <= self.box[3])
+        ok &= ix.painted[candidates]
+        sel, frame_of = candidates[ok], frames[ok]
+        if sel.size == 0:
+            return
+        xv, yv = xv[ok], yv[ok]
+        elem, dash = ix.element_of_point[sel], ix.dash_of_point[sel]
+        brk = (np.diff(sel) != 1) | (np.diff(elem) != 0) | (np.diff(dash) != 0) | (np.diff(frame_of) != 0)
+        starts = np.flatnonzero(np.concatenate([[True], brk]))
+        n_runs = starts.size
+        lengths = np.diff(np.append(starts, sel.size))
+        run_of = np.repeat(np.arange(n_runs), lengths)
+        pos = np.arange(sel.size) - starts[run_of]
+        keep = ((pos % self.subsample) == 0) | (pos == lengths[run_of] - 1)
+        run_elem = elem[starts]
+        run_frame = frame_of[starts]
+        run_type = ix.element_type[run_elem]
+        mid = starts + lengths // 2
+        run_dist = np.hypot(xv[mid], yv[mid])
+        # which runs are reported
+        report = lengths >= self.min_run
+        p_miss = np.where(run_type == _STOP, p.small_miss_prob,
+                          p.miss_prob_base + p.miss_prob_at_range_end * run_dist / self.far_m)
+        if p_miss.any():
+            report &= rng.random(n_runs) >= p_miss
+        # noise: per-run offset (correlated along the element) + per-point white noise
+        xy = np.column_stack([xv, yv])
+        off_sigma = _line_sigma(p, run_type, run_dist, offset=True)
+        if off_sigma.any():
+            xy += (off_sigma[:, None] * rng.standard_normal((n_runs, 2)))[run_of]
+        white = _line_sigma(p, run_type[run_of], np.hypot(xv, yv), offset=False)
+        if white.any():
+            xy += white[:, None] * rng.standard_normal((sel.size, 2))
+        xy = np.round(xy, 3)
+        scores = self._score(run_dist).tolist()
+        kept_idx = np.flatnonzero(keep)
+        bounds = np.searchsorted(run_of[kept_idx], np.arange(n_runs + 1)).tolist()
+        kept_xy = xy[kept_idx]
+        style_wrong = (rng.random(n_runs) < p.style_error_prob) if p.style_error_prob > 0 else np.zeros(n_runs, bool)
+        keys = ((ix.element_id[run_elem] * _DASH_KEYS + np.maximum(dash[starts], 0)) ^ self.salt).tolist()
+        run_elem_l, run_type_l, run_frame_l = run_elem.tolist(), run_type.tolist(), run_frame.tolist()
+        style_wrong_l = style_wrong.tolist()
+        styles = ix.element_style
+        for r in np.flatnonzero(report).tolist():
+            b0, b1 = bounds[r], bounds[r + 1]
+            if b1 - b0 < 2:
+                continue
+            t = run_type_l[r]
+            item: dict[str, Any] = {"type": _TYPE_NAMES[t], "points": kept_xy[b0:b1].tolist()}
+            if t == _DIVIDER:
+                item["style"] = "unknown" if style_wrong_l[r] else styles[run_elem_l[r]]
+            item["score"] = scores[r]
+            item["track_id"] = keys[r]
+            out[run_frame_l[r]].append(item)
+        # ghosts: frames inside a ghost event copy one visible divider/boundary sideways
+        ghost_frames = np.flatnonzero(self.ghost_event[run_frame] >= 0)
+        if ghost_frames.size:
+            for f in np.unique(run_frame[ghost_frames]).tolist():
+                in_f = np.flatnonzero(run_frame == f)
+                out[f].extend(self._ghost(f, run_elem[in_f], run_type[in_f], report[in_f], kept_xy,
+                                          np.asarray(bounds)[in_f], np.asarray(bounds)[in_f + 1]))
+
+    def _ghost(self, frame, run_elem, run_type, report, kept_xy, b0, b1) -> list[dict[str, Any]]:
+        event = int(self.ghost_event[frame])
+        eligible = np.flatnonzero(report & ((run_type == _DIVIDER) | (run_type == _BOUNDARY)) & (b1 - b0 >= 2))
+        if event < 0 or eligible.size == 0:
+            return []
+        if event not in self.ghost_target:
+            self.ghost_target[event] = int(run_elem[eligible[int(self.rng.integers(eligible.size))]])
+        runs = eligible[run_elem[eligible] == self.ghost_target[event]]
+        if runs.size == 0:
+            return []
+        r = int(runs[0])
+        pts = kept_xy[b0[r] : b1[r]].copy()
+        pts[:, 1] += self.ghost_side[event] * self.p.ghost_shift_m
+        pts = pts[(pts[:, 1] >= self.box[1]) & (pts[:, 1] <= self.box[3])]
+        if len(pts) < 2:
+            return []
+        item: dict[str, Any] = {"type": _TYPE_NAMES[int(run_type[r])], "points": np.round(pts, 3).tolist()}
+        if run_type[r] == _DIVIDER:
+            item["style"] = self.index.element_style[int(run_elem[r])]
+        item["score"] = round(float(self.rng.uniform(*self.p.spurious_score)), 3)
+        item["track_id"] = (_GHOST_KEY + event) ^ self.salt
+        return [item]
+
+    def false_positives(self, count: int) -> list[dict[str, Any]]:
+        p, rng = self.p, self.rng
+        out = []
+        for _ in range(count):
+            start = np.array([rng.uniform(self.box[0] + 5, self.box[2] - 5), rng.uniform(self.box[1] + 3, self.box[3] - 3)])
+            a = rng.normal(0.0, 0.3)
+            n = max(int(rng.uniform(*p.false_positive_length_m) / p.point_spacing_m), 1) + 1
+            pts = start + np.arange(n)[:, None] * p.point_spacing_m * np.array([np.cos(a), np.sin(a)])
+            pts += 0.1 * rng.standard_normal(pts.shape)
+            pts = pts[(pts[:, 0] <= self.box[2]) & (np.abs(pts[:, 1]) <= self.box[3])]
+            if len(pts) < 2:
+                continue
+            is_divider = rng.random() < 0.7
+            item: dict[str, Any] = {"type": "lane_divider" if is_divider else "road_boundary",
+                                    "points": np.round(pts, 3).tolist()}
+            if is_divider:
+                item["style"] = "dashed" if rng.random() < 0.5 else "solid"
+            item["score"] = round(float(rng.uniform(*p.spurious_score)), 3)
+            item["track_id"] = (_FALSE_KEY + self.false_count) ^ self.salt
+            self.false_count += 1
+            out.append(item)
+        return out
+
+    def polygons(self, pose: np.ndarray, candidates: np.ndarray) -> list[dict[str, Any]]:
+        p, rng, ix = self.p, self.rng, self.index
+        out = []
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        for q in candidates.tolist():
+            d = ix.polygons_xy[q] - pose[:2]
+            v = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+            inside = (v[:, 0] >= self.box[0]) & (v[:, 0] <= self.box[2]) & (v[:, 1] >= self.box[1]) & (v[:, 1] <= self.box[3])
+            if not inside.all():
+                clipped = shapely.clip_by_rect(shapely.Polygon(v), *self.box)
+                if clipped.is_empty or clipped.geom_type != "Polygon" or clipped.area < 2.0:
+                    continue
+                v = np.asarray(clipped.exterior.coords)[:-1, :2]
+            dist = float(np.hypot(*v.mean(axis=0)))
+            if p.small_miss_prob > 0 and rng.random() < p.small_miss_prob:
+                continue
+            sigma = (p.line_white_base_m + p.line_white_per_m * dist) * p.polygon_noise_factor
+            off = (p.line_offset_base_m + p.line_offset_per_m * dist) * p.polygon_noise_factor
+            if sigma > 0 or off > 0:
+                v = v + off * rng.standard_normal(2) + sigma * rng.standard_normal(v.shape)
+            out.append({
+                "type": "crosswalk", "points": np.round(v, 3).tolist(),
+                "score": float(self._score(np.array([dist]))[0]),
+                "track_id": (int(ix.polygon_ids[q]) * _DASH_KEYS) ^ self.salt,
+            })
+        return out
+
+
+def perceive_trip(
+    index: TruthIndex, poses_xyyaw_world: np.ndarray, params: PerceptionParams, rng: np.random.Generator,
+    batch_frames: int = 400,
+) -> list[list[dict[str, Any]]]:
+    """Per frame, the perceived elements as upload dicts (vehicle frame), from TRUE poses ``(N, 3)``."""
+    n = len(poses_xyyaw_world)
+    perceiver = _FramePerceiver(index, params, rng, n)
+    cx = (params.range_x_m[0] + params.range_x_m[1]) / 2.0
+    half_diag = float(np.hypot((params.range_x_m[1] - params.range_x_m[0]) / 2.0, (params.range_y_m[1] - params.range_y_m[0]) / 2.0))
+    yaw = poses_xyyaw_world[:, 2]
+    centers = poses_xyyaw_world[:, :2] + cx * np.column_stack([np.cos(yaw), np.sin(yaw)])
+    frames: list[list[dict[str, Any]]] = [[] for _ in range(n)]
+    for f0 in range(0, n, batch_frames):
+        f1 = min(f0 + batch_frames, n)
+        if len(index.points_xy):
+            balls = index.tree.query_ball_point(centers[f0:f1], r=half_diag + 0.01, return_sorted=True)
+            lens = np.fromiter((len(b) for b in balls), np.intp, f1 - f0)
+            cand = np.fromiter((i for b in balls for i in b), np.intp, int(lens.sum()))
+            perceiver.lines(np.repeat(np.arange(f0, f1), lens), poses_xyyaw_world, cand, frames)
+    if len(index.polygons_xy):
+        near = np.linalg.norm(centers[:, None, :] - index.polygon_centroids_xy[None, :, :], axis=2) < half_diag + 15.0
+        for k in np.flatnonzero(near.any(axis=1)).tolist():
+            frames[k].extend(perceiver.polygons(poses_xyyaw_world[k], np.flatnonzero(near[k])))
+    if params.false_positive_rate_per_frame > 0:
+        counts = rng.poisson(params.false_positive_rate_per_frame, n)
+        for k in np.flatnonzero(counts).tolist():
+            frames[k].extend(perceiver.false_positives(int(counts[k])))
+    return frames

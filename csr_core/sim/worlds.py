@@ -1,0 +1,31 @@
+"""World registry: ``load_world(name)`` for the names ``csr simulate --world`` accepts."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+from csr_core.sim.world import World
+
+WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+
+
+def _builders() -> dict[str, Callable[[], World]]:
+    from csr_core.sim import lanelet2_world, worlds_procedural
+
+    return {
+        "urban": worlds_procedural.urban_grid,
+        "highway": worlds_procedural.highway,
+        "rural": worlds_procedural.rural,
+        "roundabout": worlds_procedural.roundabout,
+        "karlsruhe": lanelet2_world.karlsruhe,
+    }
+
+
+@functools.lru_cache(maxsize=8)
+def load_world(name: str) -> World:
+    """The named world (built once per process; treat it as read-only)."""
+    builders = _builders()
+    if name not in builders:
+        raise ValueError(f"unknown world {name!r}; known: {', '.join(WORLD_NAMES)}")
+    return builders[name]()

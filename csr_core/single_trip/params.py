@@ -1,0 +1,115 @@
+"""Parameters of single-trip reconstruction (paper section III-C), every threshold named with units.
+
+Where a value can be read from the trip itself it is: the receiver's own ``std_m`` before the
+status table, the BEV range from ``sensor_setup`` (else from the detections), track support
+from the frame spacing. The constants below are priors and physical bounds, not fits to a seed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from csr_core.types import ElementType
+
+
+@dataclass(frozen=True, slots=True)
+class SingleTripParams:
+    # --- GNSS factors (Eq. 2) ------------------------------------------------------------------
+    # 1-sigma horizontal error per status code (GnssStatus order: rtk_fixed, rtk_float, dgps,
+    # single, none), used only when the receiver gives no std_m. Typical receiver figures.
+    GNSS_SIGMA_BY_STATUS_M: tuple[float, ...] = (0.05, 0.5, 1.0, 3.0, math.inf)
+    # Lower bound of any GNSS sigma: receivers under-report; also keeps the graph well scaled.
+    GNSS_SIGMA_FLOOR_M: float = 0.05
+    # GNSS errors (multipath, atmosphere) are correlated over seconds; fixes within this time
+    # count as one independent fix in the graph (0: every fix independent).
+    GNSS_CORRELATION_S: float = 0.0
+    # GNSS latency (fix stamped t = position at t - L), estimated per trip; windows remove the bias
+    GNSS_LATENCY_ESTIMATE: bool = True
+    GNSS_LATENCY_WINDOW_S: float = 20.0
+    GNSS_LATENCY_MAX_S: float = 0.5
+    # Width of the robust kernel, in sigmas. Stage 1 is Huber (convex: converges from the rigid
+    # initial fit), stage 2 Cauchy (rejects GNSS jumps), warm-started from stage 1.
+    GNSS_HUBER_K_SIGMAS: float = 1.5
+    GNSS_CAUCHY_C_SIGMAS: float = 2.0
+    # GNSS course is the velocity direction, equal to the yaw only when moving.
+    GNSS_HEADING_SIGMA_RAD: float = math.radians(3.0)
+    GNSS_HEADING_MIN_SPEED_MPS: float = 3.0
+    GNSS_HEADING_CAUCHY_C_SIGMAS: float = 2.0
+    # Hard rejection of GNSS jumps: residual norm over (sigma x data scale) above this (Rayleigh
+    # tail 0.2 % at 3.5). The scale is the trip's median normalised residual, at least SCALE_MIN.
+    GNSS_OUTLIER_SIGMAS: float = 3.5
+    GNSS_SCALE_MIN: float = 0.5
+    GNSS_REJECTION_ROUNDS: int = 3
+    GNSS_MIN_INLIER_SHARE: float = 0.3  # never reject more than 70 % of a trip's fixes
+
+    # --- odometry factors (Eq. 2): sigma grows with the distance of the increment ------------------
+    # (after the per-trip calibration of scale and yaw-rate bias below)
+    ODOM_SIGMA_XY_PER_M: float = 0.005  # metres per metre travelled (0.5 %)
+    ODOM_SIGMA_XY_FLOOR_M: float = 0.002  # per increment (standing still)
+    ODOM_SIGMA_YAW_PER_M: float = math.radians(0.01)  # radians per metre travelled
+    ODOM_SIGMA_YAW_PER_S: float = math.radians(0.01)  # gyro drift left after the bias estimate
+    ODOM_SIGMA_YAW_FLOOR_RAD: float = math.radians(0.002)  # per increment
+
+    # per-trip odometry calibration against GNSS (scale error, constant yaw-rate bias)
+    CAL_ENABLED: bool = True
+    CAL_WINDOW_M: float = 100.0  # GNSS/odometry displacement pairs this far apart
+    CAL_MIN_DURATION_S: float = 60.0  # yaw-rate bias only from trips at least this long
+    CAL_MAX_SCALE_ERROR: float = 0.05
+    CAL_MAX_YAW_RATE_BIAS_RAD_S: float = math.radians(0.5)
+
+    # graph nodes (frames in between follow the odometry): keeps the cost per km fixed
+    POSE_NODE_SPACING_M: float = 5.0
+    POSE_NODE_PERIOD_S: float = 1.0
+
+    LM_MAX_ITERATIONS: int = 50
+    LM_RELATIVE_ERROR_TOL: float = 1e-4
+
+    # --- keyframes ---------------------------------------------------------------------------------
+    KEYFRAME_DISTANCE_M: float = 5.0
+    KEYFRAME_PERIOD_S: float = 5.0  # a keyframe at least this often, even standing still
+
+    # --- tracking (Qiao et al.) ----------------------------------------------------------------------
+    TRACK_STEP_M: float = 1.5  # frames are tracked once the vehicle moved this far (else all in time)
+    TRACK_STEP_S: float = 1.0  # ... or this long
+    TRACK_RESAMPLE_POINTS: int = 8  # points per detection in the association cost
+    TRACK_DISTANCE_CAP_M: float = 3.0  # truncation of point distances in the Chamfer cost
+    TRACK_GATE_M: float = 0.9  # Chamfer gate at zero pose uncertainty; grows with it
+    TRACK_GATE_SIGMAS: float = 3.0  # gate in sigmas of the combined lateral noise
+    TRACK_LATERAL_WEIGHT: float = 0.3  # weight of the lateral-order term in the assignment cost
+    TRACK_MAX_EXTRAPOLATION_M: float = 12.0  # a detection may extend a track by at most this
+    TRACK_MAX_MISSED_M: float = 15.0  # a track not updated over this much travel ends
+    TRACK_MERGE_GATE_M: float = 0.6  # an unassigned piece collinear with a matched track joins it
+
+    # --- ghosts and false positives -----------------------------------------------------------------
+    TRACK_MIN_FRAMES: int = 4  # tracked frames supporting an instance
+    TRACK_MIN_VISIBILITY_RATIO: float = 0.35  # seen / in-range tracked frames
+    BEV_RANGE_MARGIN_M: float = 2.0  # an instance point counts as in range this far inside the BEV box
+    INSTANCE_MIN_LENGTH_M: dict[ElementType, float] | None = None  # None: defaults below
+
+    # --- splicing ------------------------------------------------------------------------------------
+    SPLICE_BIN_M: float = 1.0  # arclength bins of the robust lateral profile
+    SPLICE_SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the lateral profile along arclength
+    SPLICE_OUTLIER_SIGMAS: float = 3.0
+    SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
+    SPLICE_ITERATIONS: int = 2
+    SPLICE_OUTPUT_SPACING_M: float = 1.0
+
+    # --- noise prior (used where a type has too few residuals) -----------------------------------------
+    NOISE_PRIOR_LATERAL_M: float = 0.2
+    NOISE_PRIOR_ALONG_M: float = 0.5
+    NOISE_MIN_SAMPLES: int = 30
+
+    def min_length_m(self, element_type: ElementType) -> float:
+        table = self.INSTANCE_MIN_LENGTH_M or {
+            ElementType.LANE_DIVIDER: 3.0,
+            ElementType.ROAD_BOUNDARY: 3.0,
+            ElementType.CENTERLINE: 3.0,
+            ElementType.STOP_LINE: 1.0,
+            ElementType.CROSSWALK: 0.0,
+            ElementType.ROAD_MARKING: 0.0,
+        }
+        return table.get(element_type, 0.0)
+
+
+DEFAULT = SingleTripParams()

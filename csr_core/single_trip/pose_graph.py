@@ -1,0 +1,407 @@
+"""Single-trip pose smoothing (paper Eq. 2): odometry between-factors + robust GNSS priors.
+
+    X_hat = argmin_X  sum_t ||e_o(x_t, x_t+1, o_t,t+1)||^2_{Omega_o} + rho(||e_g(x_t, g_t)||^2_{Omega_g})
+
+Built-in gtsam factors only (Python custom factors are 30-100x slower):
+``BetweenFactorPose2`` for odometry increments (sigma grows with the distance travelled),
+``PoseTranslationPrior2D`` for GNSS positions (sigma from the receiver's ``std_m``, else from the
+status table), ``PoseRotationPrior2D`` for the GNSS course when the vehicle moves. Frames without
+a fix get no GNSS factor: odometry alone bridges them. Two LM stages: Huber from a robust rigid
+fit of the odometry to GNSS (convex, so the warm start is safe), then Cauchy from the Huber
+solution, which leaves GNSS jumps (tunnels, urban canyons) with almost no weight.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from csr_core import se2
+from csr_core.errors import ReconstructionError
+from csr_core.single_trip.keyframes import every_travel_or_time
+from csr_core.single_trip.params import SingleTripParams
+from csr_core.types import GnssStatus
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class SmoothedPoses:
+    poses_xyyaw_world: np.ndarray  # (N, 3) world_T_vehicle
+    sigma_xy_m: np.ndarray  # (N,) approximate marginal horizontal sigma
+    gnss_sigma_m: np.ndarray  # (N,) sigma used per GNSS factor (inf: no factor)
+    gnss_inlier: np.ndarray  # (N,) bool, fix kept by the robust kernel
+    world_T_odom_fit: np.ndarray  # (3,) the rigid initial fit, for diagnostics
+    odom_scale: float = 1.0  # estimated odometry distance scale (applied)
+    odom_yaw_rate_bias_rad_s: float = 0.0  # estimated yaw-rate bias (removed)
+    gnss_latency_s: float = 0.0  # estimated GNSS latency (compensated)
+
+
+def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams) -> np.ndarray:
+    """Per-frame GNSS sigma (N,): the receiver's ``std_m`` when given, else the status table;
+    ``inf`` where there is no fix."""
+    table = np.asarray(params.GNSS_SIGMA_BY_STATUS_M, float)
+    status = np.asarray(status, int)
+    sigma = np.where(np.isfinite(std_m) & (std_m > 0), std_m, table[np.clip(status, 0, len(table) - 1)])
+    sigma = np.maximum(sigma, params.GNSS_SIGMA_FLOOR_M)
+    sigma[status == GnssStatus.NONE] = np.inf
+    return sigma
+
+
+def robust_rigid_fit(odom_xy: np.ndarray, world_xy: np.ndarray, sigma_m: np.ndarray,
+                     iterations: int = 8) -> np.ndarray:
+    """world_T_odom ``(3,)`` minimising a Huber-weighted 2D Umeyama (no scale) over pairs (M, 2)."""
+    w = 1.0 / np.square(sigma_m)
+    pose = np.zeros(3)
+    for _ in range(iterations):
+        sw = w.sum()
+        mu_o = (w[:, None] * odom_xy).sum(0) / sw
+        mu_w = (w[:, None] * world_xy).sum(0) / sw
+        a, b = odom_xy - mu_o, world_xy - mu_w
+        cross = (w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])).sum()
+        dot = (w * (a * b).sum(1)).sum()
+        yaw = np.arctan2(cross, dot)
+        c, s = np.cos(yaw), np.sin(yaw)
+        t = mu_w - np.array([c * mu_o[0] - s * mu_o[1], s * mu_o[0] + c * mu_o[1]])
+        pose = np.array([t[0], t[1], yaw])
+        r = np.linalg.norm(se2.transform_points(pose, odom_xy) - world_xy, axis=1) / sigma_m
+        k = 1.5 * max(np.median(r), 1.0)
+        w = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12)) / np.square(sigma_m)
+    return pose
+
+
+def _heading_yaw(heading_deg: np.ndarray, odom_xyyaw: np.ndarray, timestamps_s: np.ndarray,
+                 params: SingleTripParams) -> np.ndarray:
+    """GNSS course as yaw (rad), NaN where absent or the vehicle is too slow for a course."""
+    n = len(timestamps_s)
+    step = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
+    dt = np.maximum(np.diff(timestamps_s), 1e-6)
+    speed = np.zeros(n)
+    if n > 1:
+        v = step / dt
+        speed[:-1] = v
+        speed[1:] = np.maximum(speed[1:], v) if n > 2 else v
+    yaw = np.where(np.isfinite(heading_deg), se2.heading_deg_to_yaw_rad(np.nan_to_num(heading_deg)), np.nan)
+    yaw[speed < params.GNSS_HEADING_MIN_SPEED_MPS] = np.nan
+    return yaw
+
+
+def _optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, params: SingleTripParams) -> gtsam.Values:
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(params.LM_MAX_ITERATIONS)
+    lm.setRelativeErrorTol(params.LM_RELATIVE_ERROR_TOL)
+    return gtsam.LevenbergMarquardtOptimizer(graph, initial, lm).optimize()
+
+
+def _marginal_sigma_xy(gnss_var: np.ndarray, step_var: np.ndarray) -> np.ndarray:
+    """Closed-form marginal position sigma (N,): a scalar random-walk Kalman smoother (RTS) with
+    per-frame GNSS variance ``gnss_var`` (inf: none) and odometry variance ``step_var`` (N-1,)
+    between frames. Cheap stand-in for ``gtsam.Marginals`` (same model, isotropic, linear)."""
+    n = len(gnss_var)
+    big = 1e8
+    pf = np.empty(n)
+    pp = np.empty(n)
+    p = big
+    for t in range(n):
+        pp[t] = p
+        info = 1.0 / p + (1.0 / gnss_var[t] if np.isfinite(gnss_var[t]) else 0.0)
+        p = 1.0 / info
+        pf[t] = p
+        if t < n - 1:
+            p = p + step_var[t]
+    ps = pf.copy()
+    for t in range(n - 2, -1, -1):
+        pred = pf[t] + step_var[t]
+        g = pf[t] / pred
+        ps[t] = pf[t] + g * g * (ps[t + 1] - pred)
+    return np.sqrt(np.clip(ps, 0.0, big))
+
+
+def integrate_increments(first_xyyaw: np.ndarray, incr_xyyaw: np.ndarray) -> np.ndarray:
+    """Poses (N, 3) from a first pose and N-1 body-frame increments (vectorised: cumulative yaw,
+    then rotated steps summed)."""
+    yaw = first_xyyaw[2] + np.r_[0.0, np.cumsum(incr_xyyaw[:, 2])]
+    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    dx = c * incr_xyyaw[:, 0] - s * incr_xyyaw[:, 1]
+    dy = s * incr_xyyaw[:, 0] + c * incr_xyyaw[:, 1]
+    x = first_xyyaw[0] + np.r_[0.0, np.cumsum(dx)]
+    y = first_xyyaw[1] + np.r_[0.0, np.cumsum(dy)]
+    return np.column_stack([x, y, se2.wrap_angle(yaw)])
+
+
+def interpolate_poses(timestamps_s: np.ndarray, poses_xyyaw: np.ndarray, at_s: np.ndarray) -> np.ndarray:
+    """Poses (M, 3) at times ``at_s`` by linear interpolation (yaw unwrapped), clamped at the ends."""
+    yaw = np.unwrap(poses_xyyaw[:, 2])
+    return np.column_stack([np.interp(at_s, timestamps_s, poses_xyyaw[:, 0]),
+                            np.interp(at_s, timestamps_s, poses_xyyaw[:, 1]),
+                            se2.wrap_angle(np.interp(at_s, timestamps_s, yaw))])
+
+
+def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
+                       inlier: np.ndarray, window_s: float, max_s: float, step_s: float = 0.01) -> float:
+    """GNSS latency L (s): the fix stamped t is the position at t - L.
+
+    For each candidate L, the (calibrated) odometry at t - L is rigidly fitted to the fixes in
+    windows of ``window_s`` (each window its own SE(2): the slowly varying GNSS bias and the
+    odometry drift drop out); L minimises the summed residual, refined by a parabola. Where
+    speed and heading do not change within windows, L has no effect there and is not seen."""
+    idx = np.flatnonzero(inlier)
+    if len(idx) < 50:
+        return 0.0
+    t = timestamps_s[idx]
+    wid = np.floor((t - t[0]) / window_s).astype(np.int64)
+    n_w = int(wid.max()) + 1
+    cnt = np.maximum(np.bincount(wid, minlength=n_w), 1).astype(float)
+    g = gnss_xy_world[idx]
+    mg = np.column_stack([np.bincount(wid, g[:, k], n_w) / cnt for k in range(2)])
+    b = g - mg[wid]
+    bb = np.bincount(wid, (b * b).sum(1), n_w)
+    grid = np.arange(-max_s, max_s + 1e-9, step_s)
+    cost = np.empty(len(grid))
+    ox, oy = odom_xyyaw[:, 0], odom_xyyaw[:, 1]
+    for i, lat in enumerate(grid):
+        o = np.column_stack([np.interp(t - lat, timestamps_s, ox), np.interp(t - lat, timestamps_s, oy)])
+        mo = np.column_stack([np.bincount(wid, o[:, k], n_w) / cnt for k in range(2)])
+        a = o - mo[wid]
+        cross = np.bincount(wid, a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], n_w)
+        dot = np.bincount(wid, (a * b).sum(1), n_w)
+        aa = np.bincount(wid, (a * a).sum(1), n_w)
+        cost[i] = float((aa + bb - 2.0 * np.hypot(cross, dot)).sum())
+    k = int(np.argmin(cost))
+    if 0 < k < len(grid) - 1:
+        c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
+        den = c0 - 2 * c1 + c2
+        if den > 0:
+            return float(grid[k] + 0.5 * step_s * (c0 - c2) / den)
+    return float(grid[k])
+
+
+def calibrate_odometry(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, smoothed_xyyaw: np.ndarray,
+                       gnss_xy_world: np.ndarray, gnss_sigma_m: np.ndarray, inlier: np.ndarray,
+                       params: SingleTripParams) -> tuple[float, float]:
+    """Per-trip odometry scale (1 + e) and yaw-rate bias (rad/s) against GNSS.
+
+    Scale: weighted median over pairs of GNSS inlier fixes at least ``CAL_WINDOW_M`` of travel
+    apart of |GNSS displacement| / |odometry displacement| (independent of the smoother).
+    Yaw-rate bias: slope of (smoothed yaw - odometry yaw) over time; the smoothed yaw is set by
+    the GNSS positions at long range. (1.0, 0.0) when the trip is too short to tell.
+    """
+    scale, bias = 1.0, 0.0
+    incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
+    travel = np.r_[0.0, np.cumsum(np.linalg.norm(incr[:, :2], axis=1))]
+    idx = np.flatnonzero(inlier)
+    if travel[-1] >= 2 * params.CAL_WINDOW_M and len(idx) > 10:
+        j = np.searchsorted(travel[idx], travel[idx] + params.CAL_WINDOW_M)
+        ok = j < len(idx)
+        a, b = idx[ok], idx[j[ok]]
+        d_odo = np.linalg.norm(odom_xyyaw[b, :2] - odom_xyyaw[a, :2], axis=1)
+        d_gnss = np.linalg.norm(gnss_xy_world[b] - gnss_xy_world[a], axis=1)
+        good = d_odo > 0.5 * params.CAL_WINDOW_M
+        if good.sum() > 5:
+            ratio = d_gnss[good] / d_odo[good]
+            w = np.square(d_odo[good]) / (np.square(gnss_sigma_m[a[good]]) + np.square(gnss_sigma_m[b[good]]))
+            order = np.argsort(ratio)
+            cw = np.cumsum(w[order])
+            scale = float(ratio[order][np.searchsorted(cw, 0.5 * cw[-1])])
+            scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
+    duration = timestamps_s[-1] - timestamps_s[0]
+    if duration >= params.CAL_MIN_DURATION_S and travel[-1] >= 2 * params.CAL_WINDOW_M:
+        e = np.unwrap(smoothed_xyyaw[:, 2] - odom_xyyaw[:, 2])
+        t = timestamps_s - timestamps_s[0]
+        A = np.column_stack([np.ones_like(t), t])
+        coef, *_ = np.linalg.lstsq(A, e, rcond=None)
+        bias = float(np.clip(-coef[1], -params.CAL_MAX_YAW_RATE_BIAS_RAD_S, params.CAL_MAX_YAW_RATE_BIAS_RAD_S))
+    return scale, bias
+
+
+def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_status: np.ndarray,
+                 gnss_std_m: np.ndarray, gnss_heading_deg: np.ndarray, odom_xyyaw: np.ndarray,
+                 params: SingleTripParams) -> SmoothedPoses:
+    """Eq. 2 for one trip. Arrays (N,...) in upload order; returns world_T_vehicle per frame.
+
+    Recipe: robust rigid fit (warm start) -> Huber LM -> reject GNSS jumps -> calibrate the
+    odometry (scale, yaw-rate bias) against the kept fixes -> Cauchy LM with rejection rounds.
+    """
+    n = len(timestamps_s)
+    timestamps_s = np.asarray(timestamps_s, float)
+    sigma = gnss_sigmas_m(gnss_status, gnss_std_m, params)
+    has_fix = np.isfinite(sigma) & np.all(np.isfinite(gnss_xy_world), axis=1)
+    sigma[~has_fix] = np.inf
+    fix_idx = np.flatnonzero(has_fix)
+    # GNSS errors are correlated over GNSS_CORRELATION_S: the fixes inside that time carry about
+    # one fix's information, so each factor's sigma is inflated by sqrt(fixes per correlation time)
+    if len(fix_idx) > 1:
+        rate_hz = 1.0 / max(float(np.median(np.diff(timestamps_s[fix_idx]))), 1e-3)
+        sigma = sigma * np.sqrt(max(1.0, rate_hz * params.GNSS_CORRELATION_S))
+    if len(fix_idx) == 0:
+        raise ReconstructionError("trip has no GNSS fix: it cannot be placed in the world")
+    if n < 2:
+        raise ReconstructionError("trip has fewer than two frames")
+
+    # warm start: odometry rigidly fitted to GNSS (robust); fixes too close together need the course
+    spread = np.ptp(odom_xyyaw[fix_idx, :2], axis=0).max() if len(fix_idx) > 1 else 0.0
+    heading_yaw = _heading_yaw(gnss_heading_deg, odom_xyyaw, timestamps_s, params)
+    if spread > 3.0 * np.median(sigma[fix_idx]) + 1.0:
+        world_T_odom = robust_rigid_fit(odom_xyyaw[fix_idx, :2], gnss_xy_world[fix_idx], sigma[fix_idx])
+    else:
+        with_course = np.flatnonzero(np.isfinite(heading_yaw) & has_fix)
+        if len(with_course) == 0:
+            raise ReconstructionError("trip GNSS fixes span too little distance to fix its orientation")
+        i = with_course[0]
+        world_T_odom = np.array([0.0, 0.0, float(se2.wrap_angle(heading_yaw[i] - odom_xyyaw[i, 2]))])
+        rot_xy = se2.transform_points(world_T_odom, odom_xyyaw[fix_idx, :2])
+        world_T_odom[:2] = np.median(gnss_xy_world[fix_idx] - rot_xy, axis=0)
+
+    # graph nodes: every POSE_NODE_SPACING_M of travel (or POSE_NODE_PERIOD_S); frames in
+    # between follow the odometry. Chosen once, on the uploaded odometry.
+    dist0 = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
+    nodes = every_travel_or_time(np.r_[0.0, np.cumsum(dist0)], timestamps_s, params.POSE_NODE_SPACING_M,
+                                 params.POSE_NODE_PERIOD_S, keep_last=True)
+    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, params)
+    node_poses = se2.compose(world_T_odom[None, :], odom_xyyaw[nodes])
+
+    # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
+    node_poses = graph.solve("huber", fix_idx, node_poses)
+    inlier, _ = graph.reject(node_poses, has_fix, has_fix)
+    # odometry calibration against the kept fixes, then the graph on the corrected odometry
+    scale, yaw_bias = 1.0, 0.0
+    if params.CAL_ENABLED:
+        scale, yaw_bias = calibrate_odometry(timestamps_s, odom_xyyaw, graph.frame_poses(node_poses),
+                                             gnss_xy_world, sigma, inlier, params)
+        if scale != 1.0 or yaw_bias != 0.0:
+            incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
+            incr[:, :2] *= scale
+            incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
+            corrected = integrate_increments(odom_xyyaw[0], incr)
+            graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params)
+    # GNSS latency: estimated on the calibrated smoothing, kept when significant
+    latency = 0.0
+    if params.GNSS_LATENCY_ESTIMATE:
+        latency = estimate_latency_s(timestamps_s, graph.odom, gnss_xy_world, inlier,
+                                     params.GNSS_LATENCY_WINDOW_S, params.GNSS_LATENCY_MAX_S)
+        if latency != 0.0:
+            graph = _NodeGraph(nodes, timestamps_s, graph.odom, gnss_xy_world, sigma, heading_yaw, params, latency)
+    # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
+    # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
+    node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
+    for _ in range(params.GNSS_REJECTION_ROUNDS):
+        inlier, changed = graph.reject(node_poses, has_fix, inlier)
+        if not changed:
+            break
+        node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
+    poses = graph.frame_poses(node_poses)
+
+    gnss_var = np.where(inlier, np.square(sigma), np.inf)
+    sigma_xy = _marginal_sigma_xy(gnss_var, graph.step_var)
+    log.debug("pose graph: %d frames, %d nodes, %d fixes, %d rejected, scale %.4f, yaw bias %.4f deg/s",
+              n, len(nodes), len(fix_idx), int((~inlier[fix_idx]).sum()), scale, np.degrees(yaw_bias))
+    log.debug("gnss latency %.3f s", latency)
+    return SmoothedPoses(poses, sigma_xy, sigma, inlier, world_T_odom, scale, yaw_bias, latency)
+
+
+class _NodeGraph:
+    """The Eq. 2 graph on node frames. Each frame's GNSS fix is attached to its node through
+    the odometry lever node_T_frame (``PoseTranslationPrior2D`` takes no lever arm, so the fix
+    is moved by it, with the node's current yaw); frames in between follow the odometry."""
+
+    def __init__(self, nodes: np.ndarray, timestamps_s: np.ndarray, odom_xyyaw: np.ndarray,
+                 gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray,
+                 params: SingleTripParams, gnss_latency_s: float = 0.0) -> None:
+        n = len(timestamps_s)
+        self.params = params
+        self.odom = odom_xyyaw
+        self.nodes = nodes
+        self.gnss_xy = gnss_xy_world
+        self.sigma = sigma
+        incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
+        dist = np.linalg.norm(incr[:, :2], axis=1)
+        dt = np.diff(timestamps_s)
+        sig_xy = params.ODOM_SIGMA_XY_FLOOR_M + params.ODOM_SIGMA_XY_PER_M * dist
+        sig_yaw = (params.ODOM_SIGMA_YAW_FLOOR_RAD + params.ODOM_SIGMA_YAW_PER_M * dist
+                   + params.ODOM_SIGMA_YAW_PER_S * dt)
+        # lateral drift of the yaw uncertainty adds to the translation random walk (marginals)
+        self.step_var = np.square(sig_xy) + np.square(sig_yaw * dist * 10.0)
+        self.travel = np.r_[0.0, np.cumsum(dist)]
+        self.node_of = np.searchsorted(nodes, np.arange(n), side="right") - 1
+        self.node_T_frame = se2.between(odom_xyyaw[nodes[self.node_of]], odom_xyyaw)
+        # a fix stamped t measured the position at t - latency: its lever goes to that instant
+        self.node_T_fix = (self.node_T_frame if gnss_latency_s == 0.0 else se2.between(
+            odom_xyyaw[nodes[self.node_of]], interpolate_poses(timestamps_s, odom_xyyaw, timestamps_s - gnss_latency_s)))
+        self.node_incr = se2.between(odom_xyyaw[nodes[:-1]], odom_xyyaw[nodes[1:]])
+        cum_xy = np.r_[0.0, np.cumsum(np.square(sig_xy))]
+        cum_yaw = np.r_[0.0, np.cumsum(np.square(sig_yaw))]
+        self.node_sig_xy = np.sqrt(cum_xy[nodes[1:]] - cum_xy[nodes[:-1]])
+        self.node_sig_yaw = np.sqrt(cum_yaw[nodes[1:]] - cum_yaw[nodes[:-1]])
+        self.node_heading = heading_yaw[nodes]
+
+    def build(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        p = self.params
+        g = gtsam.NonlinearFactorGraph()
+        for k in range(len(self.nodes) - 1):
+            model = gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([self.node_sig_xy[k], self.node_sig_xy[k], self.node_sig_yaw[k]]))
+            g.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*self.node_incr[k]), model))
+        yaw = node_poses[self.node_of[gnss_idx], 2]
+        c, s = np.cos(yaw), np.sin(yaw)
+        lever = self.node_T_fix[gnss_idx]
+        z = self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
+                                                      s * lever[:, 0] + c * lever[:, 1]])
+        if kernel == "huber":
+            est = gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS)
+        else:
+            est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS)
+        for zi, t in zip(z, gnss_idx, strict=True):
+            base = gtsam.noiseModel.Isotropic.Sigma(2, float(self.sigma[t]))
+            g.add(gtsam.PoseTranslationPrior2D(int(self.node_of[t]), zi, gtsam.noiseModel.Robust.Create(est, base)))
+        head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
+        head_base = gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD)
+        for k in np.flatnonzero(np.isfinite(self.node_heading)):
+            g.add(gtsam.PoseRotationPrior2D(int(k), gtsam.Rot2(float(self.node_heading[k])),
+                                            gtsam.noiseModel.Robust.Create(head_est, head_base)))
+        return g
+
+    def solve(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
+        values = gtsam.Values()
+        for k in range(len(self.nodes)):
+            values.insert(k, gtsam.Pose2(*node_poses[k]))
+        values = _optimize(self.build(kernel, gnss_idx, node_poses), values, self.params)
+        return gtsam.utilities.extractPose2(values)
+
+    def frame_poses(self, node_poses: np.ndarray) -> np.ndarray:
+        """Every frame from its node by odometry; the small misclosure to the next node is
+        spread linearly along the travel in between."""
+        nodes, node_of, travel = self.nodes, self.node_of, self.travel
+        out = se2.compose(node_poses[node_of], self.node_T_frame)
+        if len(nodes) < 2:
+            return out
+        pred_next = se2.compose(node_poses[:-1], self.node_incr)
+        mis = node_poses[1:] - pred_next
+        mis[:, 2] = se2.wrap_angle(mis[:, 2])
+        seg = np.minimum(node_of, len(nodes) - 2)
+        span = np.maximum(travel[nodes[seg + 1]] - travel[nodes[seg]], 1e-9)
+        alpha = np.clip((travel - travel[nodes[seg]]) / span, 0.0, 1.0)
+        alpha[node_of == len(nodes) - 1] = 0.0
+        out = out + alpha[:, None] * mis[seg]
+        out[:, 2] = se2.wrap_angle(out[:, 2])
+        return out
+
+    def fix_positions(self, node_poses: np.ndarray) -> np.ndarray:
+        """(N, 2) world positions of the instants the fixes refer to (frame time - latency)."""
+        return se2.compose(node_poses[self.node_of], self.node_T_fix)[:, :2]
+
+    def reject(self, node_poses: np.ndarray, has_fix: np.ndarray, inlier: np.ndarray) -> tuple[np.ndarray, bool]:
+        """GNSS fixes kept: normalised residual norm under ``GNSS_OUTLIER_SIGMAS`` x the trip's
+        scale (median normalised residual over the Rayleigh median 1.1774)."""
+        p = self.params
+        pos = self.fix_positions(node_poses)
+        fix_idx = np.flatnonzero(has_fix)
+        r = np.full(len(has_fix), np.inf)
+        r[fix_idx] = np.linalg.norm(pos[fix_idx] - self.gnss_xy[fix_idx], axis=1) / self.sigma[fix_idx]
+        scale = max(float(np.median(r[inlier])) / 1.1774, p.GNSS_SCALE_MIN)
+        new = has_fix & (r <= p.GNSS_OUTLIER_SIGMAS * scale)
+        if new.sum() < max(2, int(p.GNSS_MIN_INLIER_SHARE * len(fix_idx))):
+            return inlier, False
+        return new, bool(np.any(new != inlier))

@@ -1,0 +1,67 @@
+"""The app factory: ``create_app(settings)``. At start: migrations, the bootstrap admin key, and
+the job runner of the deployment (in-process pool, or the outbox relay to Celery)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services.api.deps import AppContext
+from services.api.errors import install_error_handlers
+from services.api.metrics import Metrics
+from services.api.routes import jobs, keys, ops, trips
+from services.db import repo
+from services.db.engine import make_engine, make_session_factory, migrate
+from services.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def start_context(settings: Settings) -> AppContext:
+    """Connect, migrate, install the admin key, start the job runner."""
+    if not settings.database_url:
+        settings.ensure_data_dir()
+    engine = make_engine(settings.sqlalchemy_url)
+    migrate(engine)
+    session_factory = make_session_factory(engine)
+    with session_factory.begin() as session:
+        repo.ensure_bootstrap_admin(session, secret=settings.admin_secret())
+    celery = None
+    if settings.embedded_jobs:
+        from workers.embedded import EmbeddedRunner
+
+        runner = EmbeddedRunner(settings, session_factory)
+    else:
+        from workers.celery_app import make_celery
+        from workers.outbox import OutboxRelay
+
+        celery = make_celery(settings)
+        runner = OutboxRelay(settings, session_factory, celery)
+    runner.start()
+    log.info("CSR API ready: database %s, jobs %s", engine.dialect.name,
+             "in-process" if settings.embedded_jobs else "Celery on Redis")
+    return AppContext(settings, engine, session_factory, Metrics(session_factory), runner, celery)
+
+
+def stop_context(ctx: AppContext) -> None:
+    ctx.runner.stop()
+    ctx.engine.dispose()
+
+
+def create_app(settings: Settings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        app.state.ctx = start_context(settings)
+        try:
+            yield
+        finally:
+            stop_context(app.state.ctx)
+
+    app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan)
+    install_error_handlers(app)
+    for module in (ops, trips, keys, jobs):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,53 @@
+"""``Annotated`` dependencies: the app context, a database session, the authenticated caller by role."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import Depends, Header, Request
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.api.metrics import Metrics
+from services.auth import Caller, authenticate, authorize
+from services.settings import Settings
+
+
+@dataclass
+class AppContext:
+    settings: Settings
+    engine: Engine
+    session_factory: sessionmaker[Session]
+    metrics: Metrics
+    runner: Any  # EmbeddedRunner | OutboxRelay: woken after new jobs are committed
+    celery: Any | None = None
+
+
+def get_ctx(request: Request) -> AppContext:
+    return request.app.state.ctx
+
+
+Ctx = Annotated[AppContext, Depends(get_ctx)]
+
+
+def get_session(ctx: Ctx) -> Iterator[Session]:
+    with ctx.session_factory() as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+
+
+def require(*roles: str) -> Callable[..., Caller]:
+    def dependency(ctx: Ctx, authorization: Annotated[str | None, Header()] = None) -> Caller:
+        return authorize(authenticate(ctx.session_factory, authorization), roles)
+
+    return dependency
+
+
+Admin = Annotated[Caller, Depends(require("admin"))]
+Reader = Annotated[Caller, Depends(require("reader", "admin"))]
+Uploader = Annotated[Caller, Depends(require("vehicle", "admin"))]
+AnyRole = Annotated[Caller, Depends(require("vehicle", "reader", "admin"))]

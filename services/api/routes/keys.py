@@ -1,0 +1,43 @@
+"""``POST /v1/keys`` and ``DELETE /v1/keys/{id}`` (admin)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Response
+from pydantic import BaseModel, ConfigDict, StringConstraints, model_validator
+
+from services.api.deps import Admin, SessionDep
+from services.api.errors import ApiError
+from services.db import repo
+
+router = APIRouter(prefix="/v1/keys", tags=["keys"])
+
+
+class KeyRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    role: Literal["vehicle", "reader", "admin"]
+    vehicle_id: Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9._:-]{1,64}$")] | None = None
+
+    @model_validator(mode="after")
+    def _vehicle_id_iff_vehicle(self) -> KeyRequest:
+        if (self.role == "vehicle") != (self.vehicle_id is not None):
+            raise ValueError("vehicle_id is required for role vehicle and not allowed for other roles")
+        return self
+
+
+@router.post("", status_code=201)
+def create_key(request: KeyRequest, _: Admin, session: SessionDep) -> dict:
+    with session.begin():
+        row, secret = repo.create_key(session, role=request.role, vehicle_id=request.vehicle_id)
+    return {"id": row.id, "key": secret, "role": row.role, "vehicle_id": row.vehicle_id}
+
+
+@router.delete("/{key_id}", status_code=204)
+def revoke_key(key_id: str, _: Admin, session: SessionDep) -> Response:
+    with session.begin():
+        revoked = repo.revoke_key(session, key_id=key_id)
+    if not revoked:
+        raise ApiError(404, "not_found", f"no active key {key_id!r}", location="id")
+    return Response(status_code=204)

@@ -1,0 +1,113 @@
+"""``POST /v1/trips`` (upload), ``GET /v1/trips/{id}``, ``GET /v1/trips/{id}/poses``."""
+
+from __future__ import annotations
+
+import time
+from datetime import UTC, datetime
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from csr_core.errors import UploadError
+from services.api.body import read_limited, too_large
+from services.api.deps import AnyRole, Ctx, Reader, SessionDep, Uploader
+from services.api.errors import ApiError, as_api_error
+from services.auth import may_read_trip
+from services.db import repo
+from services.db.models import Trip
+from services.uploads import accept_upload
+
+router = APIRouter(prefix="/v1/trips", tags=["trips"])
+
+_JSON_TYPES = ("application/json",)
+_ENCODINGS = {"": False, "identity": False, "gzip": True, "x-gzip": True}
+
+
+def _iso_utc(moment: datetime) -> str:
+    return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).isoformat()
+
+
+def trip_json(trip: Trip, *, tiles: list | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "id": trip.id,
+        "vehicle_id": trip.vehicle_id,
+        "trip_id": trip.trip_id,
+        "status": trip.status,
+        "schema_version": trip.schema_version,
+        "started_at": trip.started_at,
+        "n_frames": trip.n_frames,
+        "body_bytes": trip.body_bytes,
+        "received_at": _iso_utc(trip.received_at),
+        "updated_at": _iso_utc(trip.updated_at),
+        "length_km": trip.length_km,
+        "error": trip.error,
+    }
+    if tiles is not None:
+        out["tiles"] = [f"{t.z}/{t.x}/{t.y}" for t in tiles]
+        out["tiles_pending"] = sum(t.processed_job_id is None for t in tiles)
+    return out
+
+
+def _check_headers(request: Request, max_body_bytes: int) -> bool:
+    """415 for a wrong content type or encoding, 413 for a declared length over the limit;
+    returns whether the body is gzip."""
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type not in _JSON_TYPES:
+        raise ApiError(415, "content_type", f"Content-Type must be application/json, not {content_type or 'missing'!r}")
+    encoding = request.headers.get("content-encoding", "").strip().lower()
+    if encoding not in _ENCODINGS:
+        raise ApiError(415, "content_encoding", f"Content-Encoding must be gzip or absent, not {encoding!r}")
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > max_body_bytes:
+        raise too_large("as sent", max_body_bytes)
+    return _ENCODINGS[encoding]
+
+
+@router.post("", status_code=202)
+async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONResponse:
+    settings, metrics = ctx.settings, ctx.metrics
+    try:
+        gzipped = _check_headers(request, settings.max_body_bytes)
+        body = await read_limited(request.stream(), max_bytes=settings.max_body_bytes)
+        started = time.perf_counter()
+        accepted = await run_in_threadpool(
+            accept_upload, session_factory=ctx.session_factory, settings=settings, caller=caller, body=body,
+            gzipped=gzipped,
+        )
+    except (ApiError, UploadError) as exc:
+        metrics.rejects.labels(as_api_error(exc).error).inc()
+        raise
+    metrics.upload_seconds.observe(time.perf_counter() - started)
+    if accepted.created:
+        ctx.runner.wake()
+        metrics.uploads.labels("accepted").inc()
+        metrics.upload_bytes.labels("sent").inc(len(body))
+        metrics.upload_bytes.labels("decompressed").inc(accepted.json_bytes)
+    else:
+        metrics.uploads.labels("duplicate").inc()
+    location = f"/v1/trips/{accepted.trip.id}"
+    return JSONResponse(trip_json(accepted.trip), status_code=202 if accepted.created else 200,
+                        headers={"Location": location})
+
+
+def _load_trip(session: SessionDep, trip_pk: str) -> Trip:
+    trip = repo.get_trip(session, trip_pk=trip_pk)
+    if trip is None:
+        raise ApiError(404, "not_found", f"no trip {trip_pk!r}", location="id")
+    return trip
+
+
+@router.get("/{trip_pk}")
+def get_trip(trip_pk: str, caller: AnyRole, session: SessionDep) -> dict[str, Any]:
+    trip = _load_trip(session, trip_pk)
+    may_read_trip(caller, trip.vehicle_id)
+    return trip_json(trip, tiles=repo.tiles_of_trip(session, trip_pk=trip.id))
+
+
+@router.get("/{trip_pk}/poses")
+def get_poses(trip_pk: str, caller: Reader, session: SessionDep) -> dict[str, Any]:
+    trip = _load_trip(session, trip_pk)
+    # Alignment arrives with a later issue; until then no trip has final poses (contract: 409).
+    raise ApiError(409, "not_aligned", f"trip {trip.id} is {trip.status}: it has no aligned poses yet")

@@ -1,0 +1,238 @@
+"""Repository functions: keyword-only, typed, one short unit of work each. The caller owns the
+transaction (``with session.begin(): ...``) unless a function says otherwise."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+import uuid
+from collections.abc import Iterable, Sequence
+from datetime import datetime, timedelta
+
+from sqlalchemy import case, delete, func, or_, select, update
+from sqlalchemy.dialects.postgresql import insert as pg_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy.orm import Session
+
+from services.db.models import ApiKey, DirtyTile, Job, Trip, TripTile, TripUpload, utcnow
+
+ROLES = ("vehicle", "reader", "admin")
+BOOTSTRAP_ADMIN_ID = "admin-bootstrap"
+QUEUE_OF_KIND = {"ingest_trip": "ingest", "align_tile": "align"}
+QUEUES = ("ingest", "align", "merge")
+JOB_STATES = ("queued", "running", "done", "failed")
+
+
+def new_id() -> str:
+    return str(uuid.uuid4())
+
+
+def _insert(session: Session):
+    return pg_insert if session.get_bind().dialect.name == "postgresql" else sqlite_insert
+
+
+# --- keys ---------------------------------------------------------------------------------------
+
+
+def hash_key(secret: str) -> str:
+    return hashlib.sha256(secret.encode()).hexdigest()
+
+
+def ensure_bootstrap_admin(session: Session, *, secret: str) -> None:
+    """Make ``secret`` the (only) bootstrap admin key, replacing a previous one."""
+    row = session.get(ApiKey, BOOTSTRAP_ADMIN_ID)
+    digest = hash_key(secret)
+    if row is None:
+        session.add(ApiKey(id=BOOTSTRAP_ADMIN_ID, key_sha256=digest, role="admin", vehicle_id=None))
+    else:
+        row.key_sha256, row.role, row.revoked_at = digest, "admin", None
+
+
+def create_key(session: Session, *, role: str, vehicle_id: str | None) -> tuple[ApiKey, str]:
+    """A new key; returns the row and the secret (the only time it exists in clear)."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r}")
+    secret = "csr_" + secrets.token_urlsafe(32)
+    row = ApiKey(id="key_" + secrets.token_hex(8), key_sha256=hash_key(secret), role=role, vehicle_id=vehicle_id)
+    session.add(row)
+    return row, secret
+
+
+def revoke_key(session: Session, *, key_id: str) -> bool:
+    result = session.execute(
+        update(ApiKey).where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None)).values(revoked_at=utcnow())
+    )
+    return result.rowcount == 1
+
+
+def active_key(session: Session, *, secret: str) -> ApiKey | None:
+    digest = hash_key(secret)
+    row = session.scalars(select(ApiKey).where(ApiKey.key_sha256 == digest)).one_or_none()
+    if row is None or row.revoked_at is not None or not hmac.compare_digest(row.key_sha256, digest):
+        return None
+    return row
+
+
+# --- trips --------------------------------------------------------------------------------------
+
+
+def find_trip(session: Session, *, vehicle_id: str, trip_id: str) -> Trip | None:
+    return session.scalars(
+        select(Trip).where(Trip.vehicle_id == vehicle_id, Trip.trip_id == trip_id)
+    ).one_or_none()
+
+
+def get_trip(session: Session, *, trip_pk: str) -> Trip | None:
+    return session.get(Trip, trip_pk)
+
+
+def add_trip(
+    session: Session,
+    *,
+    vehicle_id: str,
+    trip_id: str,
+    content_sha256: str,
+    schema_version: str,
+    started_at: str,
+    n_frames: int,
+    body_bytes: int,
+    json_bytes: int,
+    raw_gzip: bytes,
+) -> tuple[Trip, Job]:
+    """A received trip, its raw upload and its ingest job (the outbox row), to be committed together."""
+    trip = Trip(
+        id=new_id(), vehicle_id=vehicle_id, trip_id=trip_id, content_sha256=content_sha256, status="received",
+        schema_version=schema_version, started_at=started_at, n_frames=n_frames, body_bytes=body_bytes,
+        json_bytes=json_bytes,
+    )
+    session.add(trip)
+    session.flush()  # the trip row first: the upload references it
+    session.add(TripUpload(trip_pk=trip.id, encoding="gzip", body=raw_gzip))
+    job = add_job(session, kind="ingest_trip", subject=trip.id)
+    return trip, job
+
+
+def raw_upload(session: Session, *, trip_pk: str) -> TripUpload | None:
+    return session.get(TripUpload, trip_pk)
+
+
+def tiles_of_trip(session: Session, *, trip_pk: str) -> list[TripTile]:
+    return list(session.scalars(
+        select(TripTile).where(TripTile.trip_pk == trip_pk).order_by(TripTile.z, TripTile.x, TripTile.y)
+    ))
+
+
+def set_trip_tiles(session: Session, *, trip_pk: str, tiles: Iterable[tuple[int, int, int]]) -> None:
+    """Replace the trip's tiles (idempotent: a re-run writes the same rows)."""
+    session.execute(delete(TripTile).where(TripTile.trip_pk == trip_pk))
+    rows = [{"trip_pk": trip_pk, "z": z, "x": x, "y": y} for z, x, y in tiles]
+    if rows:
+        session.execute(_insert(session)(TripTile), rows)
+
+
+def mark_tiles_dirty(session: Session, *, tiles: Sequence[tuple[int, int, int]]) -> None:
+    if not tiles:
+        return
+    now = utcnow()
+    stmt = _insert(session)(DirtyTile).values(
+        [{"z": z, "x": x, "y": y, "first_marked_at": now, "last_marked_at": now} for z, x, y in tiles]
+    )
+    session.execute(stmt.on_conflict_do_update(index_elements=["z", "x", "y"], set_={"last_marked_at": now}))
+
+
+# --- jobs ---------------------------------------------------------------------------------------
+
+
+def add_job(session: Session, *, kind: str, subject: str) -> Job:
+    job = Job(id=new_id(), kind=kind, queue=QUEUE_OF_KIND[kind], subject=subject, state="queued", attempts=0)
+    session.add(job)
+    return job
+
+
+def get_job(session: Session, *, job_id: str, for_update: bool = False) -> Job | None:
+    stmt = select(Job).where(Job.id == job_id)
+    if for_update:
+        stmt = stmt.with_for_update()
+    return session.scalars(stmt).one_or_none()
+
+
+def jobs_for_subject(session: Session, *, subject: str) -> list[Job]:
+    return list(session.scalars(select(Job).where(Job.subject == subject).order_by(Job.created_at)))
+
+
+def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetime | None) -> list[Job]:
+    """Outbox rows to hand to a runner: never dispatched, or (with ``redispatch_before``) queued so
+    long that the broker may have lost the message. Rows are locked (``SKIP LOCKED`` on PostgreSQL)
+    so that concurrent relays split them."""
+    pending = Job.dispatched_at.is_(None)
+    if redispatch_before is not None:
+        pending = or_(pending, (Job.state == "queued") & (Job.dispatched_at < redispatch_before))
+    stmt = (
+        select(Job)
+        .where(pending)
+        .where(Job.state.in_(("queued", "running")))
+        .order_by(Job.created_at)
+        .limit(limit)
+        .with_for_update(skip_locked=True)
+    )
+    return list(session.scalars(stmt))
+
+
+def reset_running_jobs(session: Session) -> int:
+    """Embedded start-up: jobs left running by a previous process of this deployment run again."""
+    return session.execute(
+        update(Job).where(Job.state == "running").values(state="queued", dispatched_at=None)
+    ).rowcount
+
+
+def job_summary(session: Session) -> dict[str, int]:
+    counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
+    dirty = session.scalar(select(func.count()).select_from(DirtyTile)) or 0
+    return {
+        "queued": int(counts.get("queued", 0)),
+        "running": int(counts.get("running", 0)),
+        "failed": int(counts.get("failed", 0)),
+        "dirty_tiles": int(dirty),
+    }
+
+
+def job_counts(session: Session) -> list[tuple[str, str, int]]:
+    """``(queue, state, count)`` for the metrics."""
+    return [tuple(r) for r in session.execute(select(Job.queue, Job.state, func.count()).group_by(Job.queue, Job.state))]
+
+
+def job_duration_stats(session: Session, *, buckets: Sequence[float]) -> dict[str, tuple[list[int], int, float]]:
+    """Per job kind: cumulative counts at each bucket bound, total count and sum of finished durations."""
+    columns = [func.sum(case((Job.duration_s <= b, 1), else_=0)) for b in buckets]
+    rows = session.execute(
+        select(Job.kind, func.count(), func.sum(Job.duration_s), *columns)
+        .where(Job.duration_s.is_not(None))
+        .group_by(Job.kind)
+    ).all()
+    return {r[0]: ([int(v or 0) for v in r[3:]], int(r[1]), float(r[2] or 0.0)) for r in rows}
+
+
+def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | None) -> list[Job]:
+    """Create a tile job for each dirty tile without one whose last new trip is older than
+    ``last_marked_before`` (``None``: every dirty tile, now). Safe against concurrent schedulers."""
+    stmt = select(DirtyTile).where(DirtyTile.job_id.is_(None))
+    if last_marked_before is not None:
+        stmt = stmt.where(DirtyTile.last_marked_at <= last_marked_before)
+    jobs = []
+    for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
+        job = add_job(session, kind="align_tile", subject=f"{tile.z}/{tile.x}/{tile.y}")
+        taken = session.execute(
+            update(DirtyTile)
+            .where(DirtyTile.z == tile.z, DirtyTile.x == tile.x, DirtyTile.y == tile.y, DirtyTile.job_id.is_(None))
+            .values(job_id=job.id)
+        ).rowcount
+        if taken:
+            jobs.append(job)
+        else:
+            session.expunge(job)
+    return jobs
+
+
+def quiet_before(quiet_period_s: float) -> datetime:
+    return utcnow() - timedelta(seconds=quiet_period_s)

@@ -1,0 +1,91 @@
+"""Service configuration: one pydantic-settings class, built once by the entry point (never at import).
+
+Every field is read from the environment with the ``CSR_`` prefix (``CSR_DATABASE_URL`` ...).
+With no ``CSR_DATABASE_URL`` the service runs on the embedded default: a SQLite file under
+``CSR_DATA_DIR``. With no ``CSR_REDIS_URL`` jobs run in-process on a background thread pool;
+with it they go through Celery on Redis.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+from functools import cache
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+log = logging.getLogger(__name__)
+
+MIB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="CSR_", extra="ignore")
+
+    database_url: str | None = Field(None, description="postgresql+psycopg://... (PostGIS); unset: SQLite in data_dir")
+    redis_url: str | None = Field(None, description="redis://...; unset: jobs run in-process")
+    admin_key: SecretStr | None = Field(None, description="bootstrap admin key; unset: generated into data_dir/admin.key")
+    data_dir: Path = Path("./data")
+    max_body_bytes: int = Field(32 * MIB, gt=0, description="limit on the body as sent")
+    max_decompressed_bytes: int = Field(256 * MIB, gt=0, description="limit on the body after gzip decompression")
+    tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
+    quiet_period_s: float = Field(300.0, ge=0, description="a dirty tile is processed this long after its last new trip")
+    embedded_workers: int = Field(2, ge=1, description="threads of the in-process job pool (no CSR_REDIS_URL)")
+    job_time_limit_s: int = Field(1800, gt=0, description="hard limit of one job (Celery task_time_limit)")
+    visibility_timeout_s: int = Field(3600, gt=0, description="Redis re-delivers an unacknowledged job after this")
+    redispatch_after_s: float = Field(3600.0, gt=0, description="re-send a queued job whose message may be lost")
+    poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
+    worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
+    test_ingest_delay_s: float = Field(0.0, ge=0, description="TEST ONLY: sleep in the first attempt of an ingest job")
+
+    @field_validator("database_url")
+    @classmethod
+    def _known_database(cls, value: str | None) -> str | None:
+        if value is not None and not value.startswith(("postgresql+psycopg://", "sqlite:///")):
+            raise ValueError("CSR_DATABASE_URL must start with postgresql+psycopg:// or sqlite:///")
+        return value or None
+
+    @model_validator(mode="after")
+    def _limits_consistent(self) -> Settings:
+        if self.redis_url and self.visibility_timeout_s <= self.job_time_limit_s:
+            raise ValueError(
+                f"CSR_VISIBILITY_TIMEOUT_S ({self.visibility_timeout_s}) must exceed CSR_JOB_TIME_LIMIT_S "
+                f"({self.job_time_limit_s}), or Redis re-delivers jobs that are still running"
+            )
+        return self
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'csr.sqlite3').resolve()}"
+
+    @property
+    def embedded_jobs(self) -> bool:
+        """Jobs run on the in-process pool (no broker configured)."""
+        return not self.redis_url
+
+    def ensure_data_dir(self) -> Path:
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        return self.data_dir
+
+    def admin_secret(self) -> str:
+        """The bootstrap admin key: ``CSR_ADMIN_KEY``, else one generated once into ``data_dir/admin.key``."""
+        if self.admin_key is not None and self.admin_key.get_secret_value():
+            return self.admin_key.get_secret_value()
+        path = self.ensure_data_dir() / "admin.key"
+        if not path.exists():
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write("csr_" + secrets.token_urlsafe(32) + "\n")
+            log.warning("CSR_ADMIN_KEY is not set: generated an admin key into %s", path.resolve())
+        return path.read_text().strip()
+
+
+@cache
+def get_settings() -> Settings:
+    """The process's settings, read from the environment on first use."""
+    return Settings()

@@ -1,0 +1,48 @@
+"""`csr bench` end to end on the toy set (seconds), and the BENCHMARKS.md section writer."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import orjson
+import pytest
+
+from csr_core.bench.tables import BEGIN, END, replace_section
+
+pytestmark = pytest.mark.integration
+
+CSR = [str(Path(sys.executable).parent / "csr")]
+OTHER = "# Benchmarks\n\nIntro.\n\n<!-- ingest:begin -->\ningest table\n<!-- ingest:end -->\n\nOutro.\n"
+
+
+def test_replace_section_touches_only_its_markers():
+    once = replace_section(OTHER, "first")
+    assert once.startswith(OTHER) and f"{BEGIN}\nfirst\n{END}" in once
+    twice = replace_section(once, "second")
+    assert twice.count(BEGIN) == 1 and "first" not in twice and "second" in twice
+    assert twice.replace(f"{BEGIN}\nsecond\n{END}\n", "").rstrip("\n") == OTHER.rstrip("\n")
+
+
+def test_bench_toy_set_end_to_end(tmp_path):
+    doc = tmp_path / "BENCHMARKS.md"
+    doc.write_text(OTHER)
+    figs = tmp_path / "figs"
+    proc = subprocess.run(CSR + ["bench", "--set", "toy", "--out", str(tmp_path / "bench"), "--write", str(doc),
+                                 "--figures", str(figs)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = doc.read_text()
+    assert text.startswith(OTHER) and text.count(BEGIN) == 1
+    for heading in ("Table II", "Table III", "Table IV", "Table I)"):
+        assert heading in text
+    assert "RoadMap-style (ICP)" in text and "GNSS-only" in text and "small_gicp" in text
+    pngs = sorted(figs.glob("*.png"))
+    assert len(pngs) == 3 and all(p.stat().st_size > 10_000 and p.read_bytes()[:4] == b"\x89PNG" for p in pngs)
+    for p in pngs:
+        assert f"({p.relative_to(tmp_path)})" in text
+    results = orjson.loads((tmp_path / "bench" / "results.json").read_bytes())
+    assert {r["method"] for r in results} == {"pipeline", "gnss_only", "roadmap_icp"}
+    for r in results:
+        assert r["returncode"] == 0 and r["km"] > 0.5 and r["peak_rss_mb"] > 10
+        assert 0 < r["evaluation"]["aligned"]["ate_rmse"] < 3

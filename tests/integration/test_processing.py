@@ -1,0 +1,138 @@
+"""Contract section 3 and the jobs of issue 2: ingest (track, length, tiles), dirty tiles,
+``/v1/jobs/summary``, ``POST /v1/process``, the quiet period, ``/healthz`` and ``/metrics``."""
+
+from __future__ import annotations
+
+import secrets
+
+import pytest
+
+from csr_core.geo import tiles_touched
+from services.cli.bench_ingest import straight_trip
+from tests.integration.conftest import Deployment, make_deployment, unique_trip, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def _trip(dep: Deployment, trip_pk: str) -> dict:
+    with dep.admin() as http:
+        return http.get(f"/v1/trips/{trip_pk}").raise_for_status().json()
+
+
+def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tiles(deployment: Deployment):
+    doc = straight_trip(vehicle_id="veh-km", trip_id="km-" + secrets.token_hex(4), length_m=1000.0)
+    response = deployment.upload(doc, gzipped=True)
+    assert response.status_code == 202, response.text
+    trip_pk = response.json()["id"]
+    trip = wait_until(lambda: (t := _trip(deployment, trip_pk))["status"] == "processing" and t,
+                      timeout_s=60, what="ingest")
+    assert trip["length_km"] == pytest.approx(1.0, abs=0.005)
+    lonlat = [(f["gnss"]["lon"], f["gnss"]["lat"]) for f in doc["frames"]]
+    expected_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(lonlat, zoom=16)]
+    assert trip["tiles"] == expected_tiles and len(expected_tiles) >= 2
+    assert trip["tiles_pending"] == len(expected_tiles)
+
+    if deployment.engine.dialect.name == "postgresql":
+        geometry = deployment.rows(
+            "SELECT ST_GeometryType(track), ST_SRID(track), ST_NPoints(track), "
+            "ST_Length(track::geography) FROM trips WHERE id = :p", p=trip_pk)[0]
+        assert geometry[:3] == ("ST_LineString", 4326, len(doc["frames"]))
+        assert geometry[3] == pytest.approx(1000.0, abs=5.0)
+        indexdef = deployment.scalar("SELECT indexdef FROM pg_indexes WHERE indexname = 'ix_trips_track'")
+        assert "USING gist (track)" in indexdef
+    else:
+        track = deployment.scalar("SELECT track FROM trips WHERE id = :p", p=trip_pk)
+        assert track.startswith("SRID=4326;LINESTRING(") and track.count(",") == len(doc["frames"]) - 1
+
+    summary = deployment.wait_idle()
+    assert summary["dirty_tiles"] >= len(expected_tiles)
+    with deployment.admin() as http:
+        scheduled = http.post("/v1/process").json()
+    assert scheduled["scheduled"] == summary["dirty_tiles"]
+    assert set(expected_tiles) <= {job["tile"] for job in scheduled["jobs"]}
+    done = wait_until(lambda: (s := deployment.summary())["dirty_tiles"] == 0 and s["queued"] == 0
+                      and s["running"] == 0 and s, timeout_s=60, what="tile jobs")
+    assert done["failed"] == 0
+    trip = _trip(deployment, trip_pk)
+    assert trip["tiles_pending"] == 0
+    assert trip["status"] == "processing"  # the placeholder tile job does not align (later issues)
+    with deployment.admin() as http:
+        poses = http.get(f"/v1/trips/{trip_pk}/poses")
+    assert poses.status_code == 409 and poses.json()["error"] == "not_aligned"
+    states = deployment.rows("SELECT kind, state, attempts FROM jobs WHERE subject = :p", p=trip_pk)
+    assert [tuple(r) for r in states] == [("ingest_trip", "done", 1)]
+
+
+def test_process_with_nothing_dirty_schedules_nothing(deployment: Deployment):
+    deployment.wait_idle()
+    with deployment.admin() as http:
+        http.post("/v1/process")
+        wait_until(lambda: deployment.summary()["dirty_tiles"] == 0, what="dirty tiles cleared")
+        assert http.post("/v1/process").json() == {"scheduled": 0, "jobs": []}
+
+
+def test_unknown_trip_is_404(deployment: Deployment):
+    with deployment.admin() as http:
+        for path in ("/v1/trips/nope", "/v1/trips/nope/poses"):
+            response = http.get(path)
+            assert response.status_code == 404 and response.json()["error"] == "not_found"
+
+
+def test_trip_without_any_gnss_fix_fails_visibly(deployment: Deployment):
+    doc = unique_trip()
+    for frame in doc["frames"]:
+        frame["gnss"]["status"] = "none"
+    trip_pk = deployment.upload(doc).json()["id"]
+    trip = wait_until(lambda: (t := _trip(deployment, trip_pk))["status"] == "failed" and t, what="failed ingest")
+    assert "GNSS fix" in trip["error"]
+    assert deployment.scalar("SELECT state FROM jobs WHERE subject = :p", p=trip_pk) == "failed"
+    assert deployment.summary()["failed"] >= 1
+
+
+def test_healthz_and_metrics(deployment: Deployment):
+    with deployment.client() as anonymous:
+        health = anonymous.get("/healthz").json()
+    assert health["status"] == "ok"
+    assert health["jobs"] == ("distributed" if deployment.distributed else "embedded")
+    deployment.upload(b"{oops")
+    deployment.upload(unique_trip())
+    deployment.wait_idle()
+    with deployment.admin() as http:
+        response = http.get("/metrics")
+    assert response.headers["content-type"].startswith("text/plain")
+    text = response.text
+    for needle in ('csr_uploads_total{result="accepted"}', 'csr_upload_bytes_total{form="sent"}',
+                   'csr_upload_rejects_total{reason="json"}', 'csr_queue_depth{queue="ingest"} 0.0',
+                   'csr_job_duration_seconds_count{kind="ingest_trip"}', "csr_dirty_tiles",
+                   "csr_upload_duration_seconds_bucket"):
+        assert needle in text, needle
+
+
+def test_quiet_period_processes_dirty_tiles_without_a_trigger(tmp_path, pg, shared_redis_url):
+    dep = make_deployment("embedded", tmp_path, pg, shared_redis_url, CSR_QUIET_PERIOD_S="1")
+    try:
+        dep.start_server()
+        trip_pk = dep.upload(unique_trip()).json()["id"]
+        wait_until(lambda: _trip(dep, trip_pk)["tiles_pending"] == 0 and _trip(dep, trip_pk)["tiles"],
+                   timeout_s=30, what="tile job after the quiet period")
+        assert dep.summary() == {"queued": 0, "running": 0, "failed": 0, "dirty_tiles": 0}
+    finally:
+        dep.stop()
+
+
+def test_embedded_server_killed_mid_job_finishes_the_job_after_restart(tmp_path, pg, shared_redis_url):
+    dep = make_deployment("embedded", tmp_path, pg, shared_redis_url)
+    try:
+        server = dep.start_server(CSR_TEST_INGEST_DELAY_S="60")
+        trip_pk = dep.upload(unique_trip()).json()["id"]
+        wait_until(lambda: dep.scalar("SELECT state FROM jobs WHERE subject = :p", p=trip_pk) == "running",
+                   what="ingest job running")
+        server.kill_group()
+        dep.start_server()
+        trip = wait_until(lambda: (t := _trip(dep, trip_pk))["status"] == "processing" and t, what="ingest after restart")
+        assert trip["tiles"]
+        jobs = dep.rows("SELECT state, attempts FROM jobs WHERE subject = :p", p=trip_pk)
+        assert [tuple(r) for r in jobs] == [("done", 2)]
+        assert dep.scalar("SELECT count(*) FROM trips") == 1
+    finally:
+        dep.stop()

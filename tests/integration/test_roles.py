@@ -1,0 +1,128 @@
+"""Contract section 2: every endpoint against every kind of caller, on both deployments."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import orjson
+import pytest
+
+from tests.integration.conftest import Deployment, unique_trip
+
+pytestmark = pytest.mark.integration
+
+CALLERS = ("none", "unknown", "revoked", "vehicle", "vehicle_other", "reader", "admin")
+
+
+@dataclass
+class World:
+    keys: dict[str, str | None]
+    trip_pk: str  # a trip of vehicle veh-a
+
+
+@pytest.fixture(scope="module")
+def world(deployment: Deployment) -> World:
+    with deployment.admin() as http:
+        def key(**body) -> str:
+            response = http.post("/v1/keys", json=body)
+            assert response.status_code == 201, response.text
+            return response.json()
+        vehicle, other, reader, revoked = (key(role="vehicle", vehicle_id="veh-a"), key(role="vehicle", vehicle_id="veh-b"),
+                                           key(role="reader"), key(role="reader"))
+        assert http.delete(f"/v1/keys/{revoked['id']}").status_code == 204
+    trip = deployment.upload(unique_trip("veh-a"), key=vehicle["key"])
+    assert trip.status_code == 202
+    keys = {"none": None, "unknown": "csr_not-a-key", "revoked": revoked["key"], "vehicle": vehicle["key"],
+            "vehicle_other": other["key"], "reader": reader["key"], "admin": deployment.admin_key}
+    return World(keys, trip.json()["id"])
+
+
+def _call(dep: Deployment, world: World, endpoint: str, caller: str):
+    key = world.keys[caller]
+    with dep.client(key) as http:
+        if endpoint == "GET /healthz":
+            return http.get("/healthz")
+        if endpoint == "GET /metrics":
+            return http.get("/metrics")
+        if endpoint == "POST /v1/trips":
+            return http.post("/v1/trips", content=orjson.dumps(unique_trip("veh-a")),
+                             headers={"Content-Type": "application/json"})
+        if endpoint == "GET /v1/trips/{id}":
+            return http.get(f"/v1/trips/{world.trip_pk}")
+        if endpoint == "GET /v1/trips/{id}/poses":
+            return http.get(f"/v1/trips/{world.trip_pk}/poses")
+        if endpoint == "GET /v1/jobs/summary":
+            return http.get("/v1/jobs/summary")
+        if endpoint == "POST /v1/process":
+            return http.post("/v1/process")
+        if endpoint == "POST /v1/keys":
+            return http.post("/v1/keys", json={"role": "reader"})
+        if endpoint == "DELETE /v1/keys/{id}":
+            with dep.admin() as admin:
+                victim = admin.post("/v1/keys", json={"role": "reader"}).json()["id"]
+            return http.delete(f"/v1/keys/{victim}")
+    raise AssertionError(endpoint)
+
+
+#                          none unknown revoked vehicle vehicle_other reader admin
+MATRIX = {
+    "GET /healthz":            (200, 200, 200, 200, 200, 200, 200),
+    "GET /metrics":            (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/trips":          (401, 401, 401, 202, 403, 403, 202),
+    "GET /v1/trips/{id}":      (401, 401, 401, 200, 403, 200, 200),
+    "GET /v1/trips/{id}/poses": (401, 401, 401, 403, 403, 409, 409),
+    "GET /v1/jobs/summary":    (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/process":        (401, 401, 401, 403, 403, 403, 202),
+    "POST /v1/keys":           (401, 401, 401, 403, 403, 403, 201),
+    "DELETE /v1/keys/{id}":    (401, 401, 401, 403, 403, 403, 204),
+}
+CASES = [(endpoint, caller, expected[i]) for endpoint, expected in MATRIX.items() for i, caller in enumerate(CALLERS)]
+
+
+def test_the_matrix_names_every_route(deployment: Deployment):
+    with deployment.admin() as http:
+        spec = http.get("/openapi.json").json()
+    routes = {f"{method.upper()} {path.replace('{trip_pk}', '{id}').replace('{key_id}', '{id}')}"
+              for path, item in spec["paths"].items() for method in item}
+    assert routes == set(MATRIX)
+
+
+@pytest.mark.parametrize("endpoint,caller,status", CASES, ids=[f"{e}-{c}" for e, c, _ in CASES])
+def test_role_matrix(deployment: Deployment, world: World, endpoint: str, caller: str, status: int):
+    response = _call(deployment, world, endpoint, caller)
+    assert response.status_code == status, response.text
+    if status in (401, 403):
+        body = response.json()
+        assert body["error"] == {401: "unauthorized", 403: "forbidden"}[status] and body["message"]
+    if status == 401:
+        assert response.headers["www-authenticate"] == "Bearer"
+
+
+def test_keys_are_stored_hashed(deployment: Deployment):
+    with deployment.admin() as http:
+        created = http.post("/v1/keys", json={"role": "vehicle", "vehicle_id": "veh-h"}).json()
+    stored = deployment.rows("SELECT key_sha256, role, vehicle_id FROM api_keys WHERE id = :i", i=created["id"])
+    assert len(stored) == 1
+    digest, role, vehicle_id = stored[0]
+    assert created["key"] not in digest and len(digest) == 64
+    assert (role, vehicle_id) == ("vehicle", "veh-h")
+    dump = " ".join(str(v) for row in deployment.rows("SELECT * FROM api_keys") for v in row)
+    assert created["key"] not in dump and deployment.admin_key not in dump
+
+
+@pytest.mark.parametrize("body", [{"role": "vehicle"}, {"role": "reader", "vehicle_id": "v"}, {"role": "root"}, {}])
+def test_invalid_key_requests_are_422(deployment: Deployment, body: dict):
+    with deployment.admin() as http:
+        response = http.post("/v1/keys", json=body)
+    assert response.status_code == 422
+    assert response.json()["error"] == "invalid_request"
+
+
+def test_revoked_key_stops_working_at_once(deployment: Deployment):
+    with deployment.admin() as http:
+        created = http.post("/v1/keys", json={"role": "reader"}).json()
+        with deployment.client(created["key"]) as reader:
+            assert reader.get("/v1/jobs/summary").status_code == 200
+            assert http.delete(f"/v1/keys/{created['id']}").status_code == 204
+            assert reader.get("/v1/jobs/summary").status_code == 401
+        assert http.delete(f"/v1/keys/{created['id']}").status_code == 404

@@ -1,0 +1,127 @@
+"""Simulator sensor models: GNSS statistics, odometry errors, noiseless perception = truth."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import shapely
+
+from csr_core import se2
+from csr_core.sim import load_world
+from csr_core.sim.gnss import simulate_gnss
+from csr_core.sim.odometry import simulate_odometry
+from csr_core.sim.perception import build_truth_index, perceive_trip
+from csr_core.sim.profiles import GnssParams, OdometryParams, get_profile, hard, noiseless, standard
+from csr_core.sim.routes import drive, random_route
+from csr_core.types import ElementType, GnssStatus
+
+pytestmark = pytest.mark.unit
+
+SINGLE = 3
+
+
+def _single_only(params: GnssParams) -> GnssParams:
+    stay = tuple(tuple(0.0 for _ in range(4)) for _ in range(4))
+    return dataclasses.replace(params, initial_probs=(0.0, 0.0, 0.0, 1.0), transition_probs=stay)
+
+
+def _straight(n: int, speed_mps: float, dt_s: float = 0.1):
+    t = np.arange(n) * dt_s
+    poses = np.column_stack([speed_mps * t, np.zeros(n), np.zeros(n)])
+    return t, poses, np.full(n, speed_mps)
+
+
+def test_single_status_error_matches_the_model_parameters():
+    params = _single_only(standard().gnss)
+    model = params.status_models[SINGLE]
+    t, poses, speed = _straight(30000, 0.0)  # at rest: no latency lag; 3000 s, ~30 bias time constants
+    errors, stds = [], []
+    for seed in range(6):
+        g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(seed))
+        assert (g.status == GnssStatus.SINGLE).all()
+        errors.append(g.error_xy_m)
+        stds.append(g.std_m)
+    err = np.vstack(errors)
+    expected = np.hypot(model.bias_sigma_m, model.white_sigma_m)
+    np.testing.assert_allclose(err.std(axis=0), expected, rtol=0.2)
+    np.testing.assert_allclose(np.median(np.concatenate(stds)), expected, rtol=0.05)  # honest std_m
+    # Gauss-Markov: correlation after one time constant is about 1/e
+    e = errors[0][:, 0] - errors[0][:, 0].mean()
+    lag = int(model.bias_tau_s / 0.1)
+    rho = np.corrcoef(e[:-lag], e[lag:])[0, 1]
+    assert 0.15 < rho < 0.6
+
+
+def test_latency_shows_as_along_track_lag():
+    params = dataclasses.replace(_single_only(standard().gnss), latency_sigma_s=0.0)
+    t, poses, speed = _straight(6000, 20.0)
+    g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(1))
+    along = g.error_xy_m[10:, 0]
+    assert np.mean(along) == pytest.approx(-20.0 * params.latency_mean_s, abs=0.5)
+    assert np.nanmedian(np.abs((g.heading_deg - 90.0 + 180) % 360 - 180)) < 1.0  # course east = 90 deg
+
+
+def test_hard_profile_canyons_give_jumps_and_outages():
+    params = hard().gnss
+    t, poses, speed = _straight(6000, 10.0)
+    zone = np.array([[3000.0, 0.0, 5000.0]])
+    g = simulate_gnss(t, poses, speed, params, zone, np.random.default_rng(2))
+    assert (g.status == GnssStatus.NONE).any()
+    assert (g.status[g.status != GnssStatus.NONE] == GnssStatus.SINGLE).all()
+    assert np.isnan(g.std_m[g.status == GnssStatus.NONE]).all()
+    assert np.nanmax(np.linalg.norm(g.error_xy_m, axis=1)) > 3.0
+
+
+def test_odometry_scale_error_and_noiseless_identity():
+    t, poses, _ = _straight(1000, 10.0)
+    poses[:, 1] = 5 * np.sin(poses[:, 0] / 50.0)
+    poses[:, 2] = np.arctan2(np.gradient(poses[:, 1]), np.gradient(poses[:, 0]))
+    odom, info = simulate_odometry(t, poses, OdometryParams(0.0, 0.0, 0.0, 0.0), np.random.default_rng(0))
+    rel = se2.between(np.repeat(poses[:1], len(poses), 0), poses)
+    np.testing.assert_allclose(odom, rel, atol=1e-9)
+    odom, info = simulate_odometry(t, poses, OdometryParams(0.01, 0.0, 0.0, 0.0), np.random.default_rng(3))
+    ratio = np.linalg.norm(np.diff(odom[:, :2], axis=0), axis=1).sum() / np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1).sum()
+    assert ratio == pytest.approx(1 + info["scale_error"], rel=1e-9)
+    assert info["scale_error"] != 0.0
+
+
+@pytest.mark.parametrize("world_name", ["urban", "highway"])
+def test_noiseless_perception_reproduces_truth_geometry(world_name):
+    world = load_world(world_name)
+    prof = noiseless()
+    rng = np.random.default_rng(5)
+    route = random_route(world, rng, 250.0, prof.traffic)
+    truth = drive(route, rng, prof.traffic)
+    index = build_truth_index(world, prof.perception)
+    frames = perceive_trip(index, truth.poses_xyyaw_world, prof.perception, rng)
+    truth_lines = {
+        t: shapely.MultiLineString([e.points_xy_world for e in world.elements_of(t)])
+        for t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+    }
+    if world.elements_of(ElementType.CROSSWALK):
+        truth_lines[ElementType.CROSSWALK] = shapely.MultiPolygon(
+            [shapely.Polygon(e.points_xy_world) for e in world.elements_of(ElementType.CROSSWALK)]).boundary
+    p = prof.perception
+    n_seen = 0
+    for pose, items in zip(truth.poses_xyyaw_world, frames):
+        for item in items:
+            pts_v = np.asarray(item["points"])
+            assert 2 <= len(pts_v) <= 200
+            assert (pts_v[:, 0] >= p.range_x_m[0] - 1e-6).all() and (pts_v[:, 0] <= p.range_x_m[1] + 1e-6).all()
+            assert (np.abs(pts_v[:, 1]) <= p.range_y_m[1] + 1e-6).all()
+            pts_w = se2.transform_points(pose, pts_v)
+            d = shapely.distance(shapely.points(pts_w), truth_lines[ElementType(item["type"])])
+            assert d.max() < 0.01, (item["type"], d.max())
+            if item.get("style") == "dashed":
+                assert np.linalg.norm(np.diff(pts_v, axis=0), axis=1).sum() <= p.dash_length_m + 0.01
+            n_seen += 1
+    assert n_seen > 100
+
+
+def test_profiles_hold_every_parameter_and_are_frozen():
+    for name in ("standard", "hard", "noiseless"):
+        prof = get_profile(name)
+        d = prof.to_dict()
+        assert d["name"] == name and {"gnss", "odometry", "perception", "traffic"} <= d.keys()
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            prof.gnss.latency_mean_s = 1.0  # type: ignore[misc]

@@ -1,0 +1,144 @@
+"""What each job does, for both runners (Celery tasks and the in-process pool).
+
+A job takes its id, re-reads its state from the database and writes its result in one
+transaction that also marks it done; a job already done is not run again, so a re-delivered
+or duplicated message never counts twice.
+
+- ``ingest_trip``: decode the stored upload (csr_core), compute the GNSS track, its length and
+  the tiles it touches, mark those tiles dirty.
+- ``align_tile``: PLACEHOLDER until the alignment issue lands. It takes the tile's unprocessed
+  trips, records that this job processed them and clears the dirty flag. It does not align
+  anything: trips stay ``processing`` and ``GET /v1/trips/{id}/poses`` answers 409.
+"""
+
+from __future__ import annotations
+
+import gzip
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import orjson
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from csr_core.geo import LocalFrame, polyline_length_m, tiles_touched
+from csr_core.upload import decode_trip
+from services.db import repo
+from services.db.models import DirtyTile, Job, Trip, TripTile, ewkt_linestring, utcnow
+from services.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class JobFailed(Exception):
+    """The job's input cannot be processed; recorded on the job (and the trip) as its failure."""
+
+
+@dataclass(frozen=True, slots=True)
+class IngestResult:
+    length_km: float
+    track_ewkt: str
+    tiles: list[tuple[int, int, int]]
+
+
+def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: str) -> str:
+    """Run one job to its end; returns the job's final state (or ``missing``)."""
+    with session_factory.begin() as session:
+        job = repo.get_job(session, job_id=job_id, for_update=True)
+        if job is None:
+            log.warning("job %s does not exist", job_id)
+            return "missing"
+        if job.state in ("done", "failed"):
+            log.info("job %s is already %s: nothing to do", job_id, job.state)
+            return job.state
+        job.state, job.attempts, job.started_at = "running", job.attempts + 1, utcnow()
+        job.dispatched_at = job.dispatched_at or job.started_at
+        kind, subject, attempt = job.kind, job.subject, job.attempts
+    started = time.perf_counter()
+    try:
+        if kind == "ingest_trip":
+            result = _compute_ingest(session_factory, trip_pk=subject, zoom=settings.tile_zoom)
+            if settings.test_ingest_delay_s and attempt == 1:
+                time.sleep(settings.test_ingest_delay_s)
+            return _finish(session_factory, job_id, started, lambda s: _persist_ingest(s, subject, result))
+        if kind == "align_tile":
+            z, x, y = (int(v) for v in subject.split("/"))
+            return _finish(session_factory, job_id, started, lambda s: _persist_tile(s, job_id, z, x, y))
+        raise JobFailed(f"unknown job kind {kind!r}")
+    except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
+        log.exception("job %s (%s %s) failed", job_id, kind, subject)
+        with session_factory.begin() as session:
+            job = repo.get_job(session, job_id=job_id, for_update=True)
+            if job is None or job.state in ("done", "failed"):
+                return job.state if job else "missing"
+            _close(job, "failed", started, error=f"{type(exc).__name__}: {exc}")
+            if kind == "ingest_trip":
+                session.execute(
+                    update(Trip).where(Trip.id == subject).values(status="failed", error=str(exc), updated_at=utcnow())
+                )
+        return "failed"
+
+
+def _close(job: Job, state: str, started: float, *, error: str | None = None) -> None:
+    job.state, job.error, job.finished_at = state, error, utcnow()
+    job.duration_s = time.perf_counter() - started
+
+
+def _finish(session_factory: sessionmaker[Session], job_id: str, started: float, persist) -> str:
+    with session_factory.begin() as session:
+        job = repo.get_job(session, job_id=job_id, for_update=True)
+        if job is None or job.state in ("done", "failed"):
+            # another delivery of the same message finished first: write nothing
+            return job.state if job else "missing"
+        persist(session)
+        _close(job, "done", started)
+    return "done"
+
+
+def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoom: int) -> IngestResult:
+    with session_factory() as session:
+        upload = repo.raw_upload(session, trip_pk=trip_pk)
+        if upload is None:
+            raise JobFailed(f"trip {trip_pk} has no stored upload")
+        body = upload.body
+    trip = decode_trip(orjson.loads(gzip.decompress(body)))
+    lonlat_deg = trip.gnss_lonlat_deg[trip.has_fix]
+    if len(lonlat_deg) < 2:
+        raise JobFailed("the trip has fewer than two frames with a GNSS fix")
+    # consecutive duplicate fixes add nothing to the track
+    keep = np.concatenate([[True], np.any(np.diff(lonlat_deg, axis=0) != 0, axis=1)])
+    lonlat_deg = lonlat_deg[keep]
+    if len(lonlat_deg) < 2:
+        lonlat_deg = np.repeat(lonlat_deg, 2, axis=0)
+    frame = LocalFrame.around(lonlat_deg)
+    length_m = polyline_length_m(frame.to_local(lonlat_deg))
+    return IngestResult(
+        length_km=length_m / 1000.0, track_ewkt=ewkt_linestring(lonlat_deg), tiles=tiles_touched(lonlat_deg, zoom=zoom)
+    )
+
+
+def _persist_ingest(session: Session, trip_pk: str, result: IngestResult) -> None:
+    trip = session.get(Trip, trip_pk)
+    if trip is None:
+        raise JobFailed(f"trip {trip_pk} does not exist")
+    trip.length_km, trip.track, trip.updated_at = result.length_km, result.track_ewkt, utcnow()
+    if trip.status == "received":
+        trip.status = "processing"
+    repo.set_trip_tiles(session, trip_pk=trip_pk, tiles=result.tiles)
+    repo.mark_tiles_dirty(session, tiles=result.tiles)
+
+
+def _persist_tile(session: Session, job_id: str, z: int, x: int, y: int) -> None:
+    dirty = session.scalars(
+        select(DirtyTile).where(DirtyTile.z == z, DirtyTile.x == x, DirtyTile.y == y).with_for_update()
+    ).one_or_none()
+    session.execute(
+        update(TripTile)
+        .where(TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))
+        .values(processed_job_id=job_id)
+    )
+    if dirty is not None and dirty.job_id == job_id:
+        session.delete(dirty)
+
