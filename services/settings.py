@@ -33,7 +33,9 @@ class Settings(BaseSettings):
     max_decompressed_bytes: int = Field(256 * MIB, gt=0, description="limit on the body after gzip decompression")
     tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
     quiet_period_s: float = Field(300.0, ge=0, description="a dirty tile is processed this long after its last new trip")
-    embedded_workers: int = Field(2, ge=1, description="threads of the in-process job pool (no CSR_REDIS_URL)")
+    embedded_workers: int = Field(
+        2, ge=0, description="threads of the in-process job pool (no CSR_REDIS_URL); 0: jobs wait in the database"
+    )
     job_time_limit_s: int = Field(1800, gt=0, description="hard limit of one job (Celery task_time_limit)")
     visibility_timeout_s: int = Field(3600, gt=0, description="Redis re-delivers an unacknowledged job after this")
     redispatch_after_s: float = Field(3600.0, gt=0, description="re-send a queued job whose message may be lost")

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 from celery import Celery, signals
@@ -82,15 +81,25 @@ class WorkerRuntime:
     session_factory: sessionmaker[Session]
 
 
-@cache
-def _runtime_for(pid: int) -> WorkerRuntime:
-    settings = get_settings()
-    return WorkerRuntime(settings, make_session_factory(make_engine(settings.sqlalchemy_url)))
+_RUNTIMES: dict[int, WorkerRuntime] = {}
 
 
 def runtime() -> WorkerRuntime:
     """Settings and database sessions of this process (a forked pool child gets its own engine)."""
-    return _runtime_for(os.getpid())
+    pid = os.getpid()
+    if pid not in _RUNTIMES:
+        settings = get_settings()
+        _RUNTIMES[pid] = WorkerRuntime(settings, make_session_factory(make_engine(settings.sqlalchemy_url)))
+    return _RUNTIMES[pid]
+
+
+@signals.worker_process_init.connect
+def _forget_inherited_connections(**_: Any) -> None:
+    """In a new pool child: drop the parent's pooled connections without closing them (they are the parent's)."""
+    for pid, rt in list(_RUNTIMES.items()):
+        if pid != os.getpid():
+            rt.session_factory.kw["bind"].dispose(close=False)
+            del _RUNTIMES[pid]
 
 
 _relay = None

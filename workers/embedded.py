@@ -6,12 +6,15 @@ This is not Celery's eager mode: uploads return before their jobs run."""
 from __future__ import annotations
 
 import logging
+import time
 from concurrent.futures import ThreadPoolExecutor
 
+from sqlalchemy import update
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db import repo
-from services.db.models import utcnow
+from services.db.models import Job, utcnow
 from services.settings import Settings
 from workers.jobs import run_job
 from workers.loop import BackgroundLoop
@@ -19,6 +22,7 @@ from workers.loop import BackgroundLoop
 log = logging.getLogger(__name__)
 
 BATCH = 100  # outbox rows taken per round
+RETRY_AFTER_S = 5.0  # a job that met a database outage is queued again after this
 
 
 class EmbeddedRunner(BackgroundLoop):
@@ -26,7 +30,7 @@ class EmbeddedRunner(BackgroundLoop):
 
     def __init__(self, settings: Settings, session_factory: sessionmaker[Session]) -> None:
         super().__init__(settings, session_factory)
-        self._pool = ThreadPoolExecutor(settings.embedded_workers, thread_name_prefix="csr-job")
+        self._pool = ThreadPoolExecutor(max(1, settings.embedded_workers), thread_name_prefix="csr-job")
 
     def start(self) -> None:
         with self.session_factory.begin() as session:
@@ -40,6 +44,8 @@ class EmbeddedRunner(BackgroundLoop):
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     def tick(self) -> None:
+        if self.settings.embedded_workers == 0:  # jobs wait in the database for a process that runs them
+            return
         with self.session_factory.begin() as session:
             jobs = repo.jobs_to_dispatch(session, limit=BATCH, redispatch_before=None)
             now = utcnow()
@@ -54,5 +60,17 @@ class EmbeddedRunner(BackgroundLoop):
     def _run_one(self, job_id: str) -> None:
         try:
             run_job(self.session_factory, self.settings, job_id)
+        except OperationalError:
+            log.warning("job %s: database unavailable; it runs again later", job_id, exc_info=True)
+            self._requeue_later(job_id)
         finally:
             self.wake()
+
+    def _requeue_later(self, job_id: str) -> None:
+        time.sleep(RETRY_AFTER_S)
+        try:
+            with self.session_factory.begin() as session:
+                session.execute(update(Job).where(Job.id == job_id, Job.state == "running")
+                                .values(state="queued", dispatched_at=None))
+        except OperationalError:
+            log.warning("job %s stays running until the next start", job_id)

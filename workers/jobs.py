@@ -2,7 +2,8 @@
 
 A job takes its id, re-reads its state from the database and writes its result in one
 transaction that also marks it done; a job already done is not run again, so a re-delivered
-or duplicated message never counts twice.
+or duplicated message never counts twice. A bad input fails the job (recorded on it); a
+database outage (``OperationalError``) propagates so that the runner retries the job.
 
 - ``ingest_trip``: decode the stored upload (csr_core), compute the GNSS track, its length and
   the tiles it touches, mark those tiles dirty.
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import orjson
 from sqlalchemy import select, update
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from csr_core.geo import LocalFrame, polyline_length_m, tiles_touched
@@ -67,6 +69,8 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
             z, x, y = (int(v) for v in subject.split("/"))
             return _finish(session_factory, job_id, started, lambda s: _persist_tile(s, job_id, z, x, y))
         raise JobFailed(f"unknown job kind {kind!r}")
+    except OperationalError:  # the database is unreachable: transient, the runner retries the job
+        raise
     except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
         log.exception("job %s (%s %s) failed", job_id, kind, subject)
         with session_factory.begin() as session:

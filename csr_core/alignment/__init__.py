@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from csr_core.alignment.association import PairMatch, associate
-from csr_core.alignment.fine import frame_residuals, refine_frames
+from csr_core.alignment.fine import frame_points, frame_residuals, refine_frames
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
 from csr_core.alignment.submaps import Submap, prior_patches, split_submaps, submap_pairs
@@ -114,12 +114,13 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         for k, t in enumerate(trips):
             poses[t.trip.key] = frame_poses_from_submaps(t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw)
         timings["pose_graph_s"] = time.perf_counter() - clock - sum(timings.values())
+    fps = [frame_points(t) for t in trips]
     if params.fine:
         # 5. fine alignment: the same flow with single-frame perception as the primitive
-        poses = refine_frames(trips, poses, prior_map.features if prior_map else (), noise, params)
+        poses = refine_frames(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
         timings["fine_s"] = time.perf_counter() - clock - sum(timings.values())
     # 6. per-frame residuals, failed trips, and the match pairs kept for validation
-    residuals = frame_residuals(trips, poses, prior_map.features if prior_map else (), noise, params)
+    residuals = frame_residuals(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
     failed = _failed_trips(trips, submaps, pairs, matches, inlier, prior_map is not None) if params.coarse else {}
     records = tuple(_record(m, submaps, trips, bool(ok)) for m, ok in zip(matches, inlier))
     timings["total_s"] = time.perf_counter() - clock

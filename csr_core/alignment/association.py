@@ -90,8 +90,9 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
     if forced_matches is None:
         # hypotheses: the GNSS initial pose, and the road-boundary pre-alignment
         best = None
-        shifts = [np.zeros(2), boundary_prealignment(a, b, direction, params.max_prealign_shift_m)]
-        for shift in shifts[: 1 if not np.any(shifts[1]) else 2]:
+        prealign = boundary_prealignment(a, b, direction, params.max_prealign_shift_m)
+        shifts = [prealign] if np.linalg.norm(prealign) < 0.25 * noise.sigma_p_m else [np.zeros(2), prealign]
+        for shift in shifts:
             s_node = node_similarity(a, b.shifted(shift), noise, params)
             matches = rrwm_match(s_node, e_a, e_b, noise.sigma_e_m, params)
             obj = eq4_objective(matches, s_node, e_a, e_b, noise.sigma_e_m, params)

@@ -99,25 +99,24 @@ class FramePoints:
 
 
 def frame_points(trip: TripReconstruction) -> FramePoints:
-    """All detections' vertices (at most ``MAX_POINTS_PER_DETECTION`` each, evenly spread)."""
-    pts, fr, ty, el = [], [], [], []
+    """All detections' vertices (at most about ``MAX_POINTS_PER_DETECTION`` each, evenly spread)."""
     codes = {t: n for n, t in enumerate(ElementType)}
-    n_el = 0
+    pts, fr, ty = [], [], []
     for t, elems in enumerate(trip.trip.elements):
         for e in elems:
             p = e.points_xy_vehicle
             if len(p) < 2:
                 continue
             if len(p) > MAX_POINTS_PER_DETECTION:
-                p = p[np.linspace(0, len(p) - 1, MAX_POINTS_PER_DETECTION).round().astype(int)]
+                p = p[:: -(-len(p) // MAX_POINTS_PER_DETECTION)]
             pts.append(p)
-            fr.append(np.full(len(p), t))
-            ty.append(np.full(len(p), codes[e.type]))
-            el.append(np.full(len(p), n_el))
-            n_el += 1
+            fr.append(t)
+            ty.append(codes[e.type])
     if not pts:
         return FramePoints(np.zeros((0, 2)), np.zeros(0, int), np.zeros(0, int), np.zeros(0, int))
-    return FramePoints(np.vstack(pts), np.concatenate(fr), np.concatenate(ty), np.concatenate(el))
+    counts = np.fromiter((len(p) for p in pts), int, len(pts))
+    return FramePoints(np.vstack(pts), np.repeat(np.asarray(fr), counts), np.repeat(np.asarray(ty), counts),
+                       np.repeat(np.arange(len(pts)), counts))
 
 
 def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping, exclude_owner: int,
@@ -251,14 +250,14 @@ def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, ma
     return gtsam.utilities.extractPose2(res)
 
 
-def refine_frames(trips: Sequence[TripReconstruction], poses: Mapping[str, np.ndarray],
+def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
                   prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams) -> dict[str, np.ndarray]:
+    """Fine alignment of every trip (``fps``: each trip's :func:`frame_points`)."""
     current = {k: np.asarray(v, float).copy() for k, v in poses.items()}
     prior = [(f.type, resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
               f.type.is_polygon) for f in prior_features]
     if len(trips) < 2 and not prior:
         return current
-    fps = [frame_points(t) for t in trips]
     for _ in range(params.fine_iterations):
         owners = {k: _aligned_instances(t, current[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
         if prior:
@@ -269,7 +268,7 @@ def refine_frames(trips: Sequence[TripReconstruction], poses: Mapping[str, np.nd
     return current
 
 
-def frame_residuals(trips: Sequence[TripReconstruction], poses: Mapping[str, np.ndarray],
+def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
                     prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams) -> dict[str, np.ndarray]:
     """Per-frame alignment residual: RMS point-to-line distance (metres) of the frame's gated
     perceived points to the other trips' aligned elements and the prior map; NaN where none."""
@@ -280,7 +279,7 @@ def frame_residuals(trips: Sequence[TripReconstruction], poses: Mapping[str, np.
     maps = build_segment_maps(owners)
     out = {}
     for k, t in enumerate(trips):
-        fp = frame_points(t)
+        fp = fps[k]
         n = t.trip.n_frames
         res = np.full(n, np.nan)
         if len(fp.frame):

@@ -30,7 +30,7 @@ from csr_core.types import ElementType
 
 
 
-def rrwm(K: np.ndarray, n1: int, n2: int, max_iter: int = 30, sk_iter: int = 10, alpha: float = 0.2,
+def rrwm(K: np.ndarray, n1: int, n2: int, max_iter: int = 30, sk_iter: int = 6, alpha: float = 0.2,
          beta: float = 30.0) -> np.ndarray:
     """Reweighted random walks for graph matching (Cho et al. 2010), ``(n1, n2)`` soft assignment.
 

@@ -3,7 +3,8 @@
 Nodes are matching pairs. Two pairs that relate the same two trips (in either order) at places
 closer than ``clique_window_m`` measure the same slowly varying relative GNSS error of those
 trips, so they are *comparable*, and consistent when their corrections (the displacement of the
-circle centre and the rotation) agree within ``clique_consistency_m + clique_drift_m_per_m * d``.
+circle centre and the rotation) agree within their covariances plus
+``clique_consistency_m + clique_drift_m_per_m * d`` (Mahalanobis, chi-square 99.9 %).
 An edge joins every consistent or non-comparable pair of nodes, so an absent edge is a proven
 contradiction; the maximum weight clique (weights ``int(100 c)``, networkx exact branch and
 bound) is the maximum consistent set. Because only pairs of the same two trips are ever
@@ -26,7 +27,8 @@ from csr_core import se2
 from csr_core.alignment.association import PairMatch
 from csr_core.alignment.params import AlignmentParams
 
-YAW_CONSISTENCY_RAD = 0.02
+YAW_CONSISTENCY_RAD = 0.01
+CHI2_2DOF_999 = 13.8
 
 
 def correction_of(p: PairMatch, reverse: bool) -> np.ndarray:
@@ -37,13 +39,22 @@ def correction_of(p: PairMatch, reverse: bool) -> np.ndarray:
 
 
 def consistent(p: PairMatch, q: PairMatch, params: AlignmentParams) -> bool:
+    """Pairwise consistency of two registrations of the same two trips: the difference of the
+    corrections, Mahalanobis with both registrations' covariances plus the drift allowance
+    (a straight-road registration says nothing along the road, and must not contradict)."""
     dist = float(np.linalg.norm(p.centre_xy_world - q.centre_xy_world))
     if dist > params.clique_window_m:
         return True  # not comparable
     dp = correction_of(p, False)
     dq = correction_of(q, p.trip_i != q.trip_i)
     tol = params.clique_consistency_m + params.clique_drift_m_per_m * dist
-    return bool(np.linalg.norm(dp[:2] - dq[:2]) <= tol and abs(se2.wrap_angle(dp[2] - dq[2])) <= YAW_CONSISTENCY_RAD + tol / 200.0)
+    cov_p, cov_q = np.linalg.inv(p.information_local), np.linalg.inv(q.information_local)
+    S = cov_p[:2, :2] + cov_q[:2, :2] + tol**2 * np.eye(2)
+    d = dp[:2] - dq[:2]
+    if float(d @ np.linalg.solve(S, d)) > CHI2_2DOF_999:
+        return False
+    dyaw = abs(float(se2.wrap_angle(dp[2] - dq[2])))
+    return dyaw <= 3.0 * np.sqrt(cov_p[2, 2] + cov_q[2, 2]) + YAW_CONSISTENCY_RAD
 
 
 def max_consistent_set(pairs: Sequence[PairMatch], params: AlignmentParams) -> list[int]:

@@ -40,8 +40,8 @@ class AlignmentParams:
     pair_opposite_directions: bool = True  # headings compared modulo pi (two-way roads)
     keyframe_spacing_m: float = 2.0  # node spacing of the frame graph
     min_submap_path_m: float = 10.0  # a trip must drive this far inside a circle to get a sub-map
-    max_partners_per_submap: int = 3  # P_sub-sub pairs: each sub-map with its next k in the circle
-    element_resample_m: float = 1.0
+    max_partners_per_submap: int = 2  # P_sub-sub pairs: each sub-map with its next k in the circle
+    element_resample_m: float = 2.0
     min_element_length_m: float = 3.0
 
     # --- Eq. 3 global topology (multiples of sigmas) -----------------------------------------
@@ -64,13 +64,13 @@ class AlignmentParams:
     sigma_e_k: float = 3.0  # sigma_e = k * sqrt(2) * lateral sigma
     sigma_e_floor_m: float = 0.25
     tau_s: float = 0.3  # x_kk' = 0 iff s_kk' < tau_s
-    rrwm_max_iter: int = 30
+    rrwm_max_iter: int = 20
     max_elements_per_submap: int = 28  # keeps the (n1 n2)^2 affinity matrix small
     max_prealign_shift_m: float = 6.0
 
     # --- registration (GNC-TLS) -------------------------------------------------------------
     gnc_inlier_k: float = 3.0  # TLS threshold = k * point sigma
-    gnc_max_outer: int = 12
+    gnc_max_outer: int = 10
     min_matched_elements: int = 2
     max_registration_rms_k: float = 3.0
     degenerate_sigma_xy_m: float = 5.0  # regulariser on unobservable directions

@@ -40,27 +40,22 @@ class Registration:
     n_points: int
 
 
-def _nearest_on_polyline(points: np.ndarray, poly: np.ndarray, closed: bool):
-    """Foot, normal and validity of each point's nearest segment on one polyline (the two
-    segments around the nearest vertex are compared; vertices are ~1 m apart)."""
-    n = len(poly)
-    d2 = ((points[:, None, :] - poly[None, :, :]) ** 2).sum(-1)
+def _nearest_on_polylines(points: np.ndarray, owner: np.ndarray, padded: np.ndarray, lengths: np.ndarray):
+    """For each point, its nearest segment on polyline ``owner`` of ``padded (K, L, 2)`` (NaN
+    padded, ``lengths (K,)`` vertices each, ~1-2 m apart; the two segments around the nearest
+    vertex are compared): foot, normal, and validity (False beyond the polyline's ends)."""
+    tgt = padded[owner]  # (P, L, 2)
+    d2 = np.nan_to_num(((points[:, None, :] - tgt) ** 2).sum(-1), nan=np.inf)
     v = np.argmin(d2, axis=1)
-    if closed:
-        cand = np.stack([(v - 1) % n, v], axis=1)  # segment s joins vertex s and s+1
-        seg_b = lambda s_: (s_ + 1) % n  # noqa: E731
-    else:
-        cand = np.stack([np.clip(v - 1, 0, n - 2), np.clip(v, 0, n - 2)], axis=1)
-        seg_b = lambda s_: s_ + 1  # noqa: E731
+    n = lengths[owner]
     P = len(points)
-    sa = cand.ravel()
-    foot, normal, u_raw, dist = point_to_segments(np.repeat(points, 2, axis=0), poly[sa], poly[seg_b(sa)])
+    seg = np.stack([np.clip(v - 1, 0, n - 2), np.clip(v, 0, n - 2)], axis=1).ravel()
+    rows = np.repeat(np.arange(P), 2)
+    foot, normal, u_raw, dist = point_to_segments(np.repeat(points, 2, axis=0), tgt[rows, seg], tgt[rows, seg + 1])
     pick = np.argmin(dist.reshape(P, 2), axis=1)
     sel = np.arange(P) * 2 + pick
-    best = sa[sel]
-    valid = np.ones(P, bool)
-    if not closed:  # beyond the ends of the target polyline: not a lateral constraint
-        valid = ~(((best == 0) & (u_raw[sel] < 0.0)) | ((best == n - 2) & (u_raw[sel] > 1.0)))
+    best = seg[sel]
+    valid = ~(((best == 0) & (u_raw[sel] < 0.0)) | ((best == n - 2) & (u_raw[sel] > 1.0)))
     return foot[sel], normal[sel], valid
 
 
@@ -95,6 +90,13 @@ def register_elements(
             fixed_foot.append(np.full((len(p), 2), np.nan))
             fixed_normal.append(np.full((len(p), 2), np.nan))
     owner = np.concatenate([np.full(len(p), m) for m, p in enumerate(src)])
+    lengths = np.array([2 if closed_target[k] else len(target.points[k]) for k, _ in matches])
+    padded = np.full((len(matches), max(int(lengths.max()), 2), 2), np.nan)
+    for m, (k, _) in enumerate(matches):
+        if not closed_target[k]:
+            padded[m, : lengths[m]] = target.points[k]
+        else:
+            padded[m, :2] = 0.0
     src_pts = np.vstack(src)
     fixed_foot, fixed_normal = np.vstack(fixed_foot), np.vstack(fixed_normal)
     is_fixed = np.isfinite(fixed_foot[:, 0])
@@ -107,15 +109,8 @@ def register_elements(
     w = np.ones(len(src_pts))
     for outer in range(params.gnc_max_outer + 1):
         moved = se2.transform_points(delta, src_pts)
-        foot = np.empty_like(moved)
-        normal = np.empty_like(moved)
-        valid = np.ones(len(moved), bool)
-        for m, (k, _) in enumerate(matches):
-            sel = owner == m
-            if closed_target[k]:
-                foot[sel], normal[sel] = fixed_foot[sel], fixed_normal[sel]
-            else:
-                foot[sel], normal[sel], valid[sel] = _nearest_on_polyline(moved[sel], target.points[k], False)
+        foot, normal, valid = _nearest_on_polylines(moved, owner, padded, lengths)
+        foot[is_fixed], normal[is_fixed], valid[is_fixed] = fixed_foot[is_fixed], fixed_normal[is_fixed], True
         r = np.einsum("ij,ij->i", normal, moved - foot)
         r2 = np.where(valid, r**2, 0.0)
         if mu is None:

@@ -13,11 +13,12 @@ GNSS error (the order dependence RoadMap-style accumulation has).
 
 Registration library: **small_gicp** (``small_gicp.align``, ``registration_type="ICP"``). Why:
 it is maintained (2024-), by the author of interactive_slam (the tool the paper's human
-interaction layer cites), a small wheel (~1 MB, numpy only), fast, with its KdTree exposed; Open3D would add a ~400 MB dependency for the same
-point-to-point ICP. Point-to-point because the points are planar (z = 0): GICP / point-to-plane
-need surface normals, which a plane of lines does not give. Semantics enter as a trick: each
-element type lives at its own height (``z = 100 m * type index``), so correspondences never mix
-types while the estimated transform is still projected to SE(2).
+interaction layer cites), a small numpy-only wheel (~1 MB), fast, with its KdTree exposed;
+Open3D would add a dependency of several hundred MB for the same point-to-point ICP.
+Point-to-point because the points are planar (z = 0): GICP / point-to-plane need surface
+normals, which a plane of lines does not give. Semantics enter as a trick: each element type
+lives at its own height (``z = 100 m * type index``), so correspondences never mix types; the
+estimated transform is projected to SE(2).
 """
 
 from __future__ import annotations

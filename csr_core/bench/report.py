@@ -45,7 +45,7 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         "track; no merging across trips).",
         "- **RoadMap-style (ICP)**: GNSS placement, then each trip's semantic points, in 75 m chunks, "
         "registered to the map accumulated from earlier trips by point-to-point ICP from **small_gicp** "
-        "(maintained, light numpy-only wheel, by the author of interactive_slam; Open3D would add ~400 MB for "
+        "(maintained, light numpy-only wheel, by the author of interactive_slam; Open3D would add several hundred MB for "
         "the same ICP). Element types are kept apart by giving each its own height. Chunk corrections are "
         "interpolated along the trip; same naive fusion.",
         "",

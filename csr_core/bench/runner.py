@@ -161,13 +161,26 @@ def _dir_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
+RUN_FILE = "bench_run.json"  # the measured command run, kept next to its outputs for --reuse-runs
+
+
 def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[str] = (), variant: str = "",
-               spec: ScenarioSpec | None = None) -> Record:
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
+               spec: ScenarioSpec | None = None, reuse: bool = False) -> Record:
+    """``csr reconstruct`` one method on one scenario and evaluate it. With ``reuse``, a previous
+    successful run in ``out_dir`` (same command) is evaluated again instead of re-run."""
     argv = csr_command() + ["reconstruct", str(scenario_dir), "--out", str(out_dir), "--method", method,
                             "--no-progress", *extra]
-    run = run_measured(argv)
+    run_file = out_dir / RUN_FILE
+    previous = orjson.loads(run_file.read_bytes()) if reuse and run_file.exists() else None
+    if previous and previous["returncode"] == 0 and previous["argv"][1:] == argv[1:]:
+        run = CommandRun(0, previous["wall_s"], previous["peak_rss_mb"], "")
+    else:
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        run = run_measured(argv)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        run_file.write_bytes(orjson.dumps({"argv": argv, "returncode": run.returncode, "wall_s": run.wall_s,
+                                           "peak_rss_mb": run.peak_rss_mb}))
     uploaded = sum(p.stat().st_size for p in (scenario_dir / "trips").glob("*.json.gz"))
     evaluated, report = None, {}
     if run.returncode == 0:
@@ -183,7 +196,8 @@ def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[s
         variant=variant,
         run=run,
         uploaded_bytes=uploaded,
-        output_bytes=_dir_bytes(out_dir / "poses") + (out_dir / "map.geojson").stat().st_size if run.returncode == 0 else 0,
+        output_bytes=(_dir_bytes(out_dir / "poses") + (out_dir / "map.geojson").stat().st_size
+                      if run.returncode == 0 else 0),
         km=evaluated.trip_length_km if evaluated else float("nan"),
         report=report,
         evaluated=evaluated,
@@ -191,7 +205,7 @@ def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[s
 
 
 def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, ablation: bool = True,
-              progress: Callable[[str], None] | None = None) -> list[Record]:
+              progress: Callable[[str], None] | None = None, reuse: bool = False) -> list[Record]:
     """Simulate (cached), reconstruct with every method and evaluate. Records in set order."""
     records: list[Record] = []
     for spec in scenario_set(set_name):
@@ -199,7 +213,8 @@ def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, a
         for method in methods:
             if progress:
                 progress(f"{spec.name}: {method}")
-            records.append(run_method(scenario_dir, out_root / "runs" / spec.name / method, method, spec=spec))
+            records.append(run_method(scenario_dir, out_root / "runs" / spec.name / method, method, spec=spec,
+                                      reuse=reuse))
         pipeline = next((r for r in records if r.scenario == spec.name and r.method == "pipeline"), None)
         stages = set(pipeline.report.get("diagnostics", {}).get("stages", [])) if pipeline else set()
         if ablation and {"coarse", "fine"} <= stages:
@@ -210,5 +225,5 @@ def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, a
                     progress(f"{spec.name}: pipeline ({variant})")
                 slug = variant.replace(" ", "_")
                 records.append(run_method(scenario_dir, out_root / "runs" / spec.name / f"pipeline-{slug}",
-                                          "pipeline", extra, variant, spec))
+                                          "pipeline", extra, variant, spec, reuse))
     return records

@@ -176,7 +176,7 @@ def karlsruhe(path: str | Path | None = None) -> World:
     n_links = builder.add_hidden_links(max_gap_m=800.0, min_alignment=0.97)
     n_turns = builder.add_turnarounds(max_gap_m=15.0)
     log.debug("karlsruhe: %d hidden links between mapped patches, %d turnarounds", n_links, n_turns)
-    zones = np.array([[0.0, 0.0, 250.0], [-900.0, -100.0, 200.0]])
+    zones = np.array([[-1444.0, -144.0, 150.0], [-827.0, 332.0, 150.0]])  # two mapped junction areas
     world = builder.build("karlsruhe", frame.origin_lat, frame.origin_lon, zones)
     log.info("karlsruhe world: %s", world.summary())
     return world

@@ -20,6 +20,7 @@ the simulator writes millions of them.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,7 +47,6 @@ class TruthIndex:
     points_xy: np.ndarray  # (P, 2) world
     element_of_point: np.ndarray  # (P,) index into ``element_type`` etc.
     dash_of_point: np.ndarray  # (P,) dash number along the element; -1 where not dashed
-    painted: np.ndarray  # (P,) False in the gaps of dashed dividers
     element_type: np.ndarray  # (E,) type code
     element_style: tuple[str | None, ...]  # (E,)
     element_id: np.ndarray  # (E,) truth element id
@@ -57,7 +57,7 @@ class TruthIndex:
 
 
 def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
-    pts, elem, dash, painted, types, styles, ids = [], [], [], [], [], [], []
+    pts, elem, dash, types, styles, ids = [], [], [], [], [], []
     polys, poly_ids = [], []
     period = params.dash_length_m + params.dash_gap_m
     for e in world.elements:
@@ -65,26 +65,35 @@ def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
             polys.append(e.points_xy_world)
             poly_ids.append(e.element_id)
             continue
-        dense = geo.resample(e.points_xy_world, params.dense_step_m)
-        s = geo.arclength_m(dense)
         k = len(types)
         types.append(_TYPE_CODES.index(e.type))
         styles.append(e.style.value if e.style is not None else None)
         ids.append(e.element_id)
+        if e.style == DividerStyle.DASHED:
+            # only the painted dashes, each sampled exactly from its start to its end
+            length = float(geo.arclength_m(e.points_xy_world)[-1])
+            s_parts, dash_parts = [], []
+            for j, a in enumerate(np.arange(0.0, length, period)):
+                b = min(a + params.dash_length_m, length)
+                if b - a < 0.05:
+                    continue
+                n = max(int(np.ceil((b - a) / params.dense_step_m)), 1) + 1
+                s_parts.append(np.linspace(a, b, n))
+                dash_parts.append(np.full(n, j))
+            if not s_parts:
+                continue
+            dense = geo.interpolate_at(e.points_xy_world, np.concatenate(s_parts))
+            dash.append(np.concatenate(dash_parts))
+        else:
+            dense = geo.resample(e.points_xy_world, params.dense_step_m)
+            dash.append(np.full(len(dense), -1))
         pts.append(dense)
         elem.append(np.full(len(dense), k))
-        if e.style == DividerStyle.DASHED:
-            dash.append(np.floor(s / period).astype(np.int64))
-            painted.append(np.mod(s, period) < params.dash_length_m)
-        else:
-            dash.append(np.full(len(dense), -1))
-            painted.append(np.ones(len(dense), bool))
     points = np.vstack(pts) if pts else np.zeros((0, 2))
     return TruthIndex(
         points_xy=points,
         element_of_point=np.concatenate(elem) if elem else np.zeros(0, int),
         dash_of_point=np.concatenate(dash) if dash else np.zeros(0, int),
-        painted=np.concatenate(painted) if painted else np.zeros(0, bool),
         element_type=np.array(types, int),
         element_style=tuple(styles),
         element_id=np.array(ids, int),
@@ -108,7 +117,7 @@ class _FramePerceiver:
     def __init__(self, index: TruthIndex, params: PerceptionParams, rng: np.random.Generator, n_frames: int):
         self.index, self.p, self.rng = index, params, rng
         self.salt = int(rng.integers(1, 1 << 30))
-        self.box = (params.range_x_m[0], params.range_y_m[0], params.range_x_m[1], params.range_y_m[1])
+        self.box = np.array([params.range_x_m[0], params.range_y_m[0], params.range_x_m[1], params.range_y_m[1]])
         self.far_m = float(np.hypot(max(abs(params.range_x_m[0]), params.range_x_m[1]), params.range_y_m[1]))
         self.subsample = max(int(round(params.point_spacing_m / params.dense_step_m)), 1)
         self.min_run = int(np.ceil(params.min_visible_m / params.dense_step_m)) + 1
@@ -139,13 +148,13 @@ class _FramePerceiver:
         ix, p, rng = self.index, self.p, self.rng
         if candidates.size == 0:
             return
-        pose = poses_xyyaw[frames]
-        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-        d = ix.points_xy[candidates] - pose[:, :2]
+        f0 = int(frames[0])
+        cos_f, sin_f = np.cos(poses_xyyaw[f0:, 2]), np.sin(poses_xyyaw[f0:, 2])
+        c, s = cos_f[frames - f0], sin_f[frames - f0]
+        d = ix.points_xy[candidates] - poses_xyyaw[frames, :2]
         xv = c * d[:, 0] + s * d[:, 1]
         yv = -s * d[:, 0] + c * d[:, 1]
         ok = (xv >= self.box[0]) & (xv <= self.box[2]) & (yv >= self.box[1]) & (yv <= self.box[3])
-        ok &= ix.painted[candidates]
         sel, frame_of = candidates[ok], frames[ok]
         if sel.size == 0:
             return
@@ -259,8 +268,10 @@ class _FramePerceiver:
         for q in candidates.tolist():
             d = ix.polygons_xy[q] - pose[:2]
             v = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
-            inside = (v[:, 0] >= self.box[0]) & (v[:, 0] <= self.box[2]) & (v[:, 1] >= self.box[1]) & (v[:, 1] <= self.box[3])
-            if not inside.all():
+            below, above = v < self.box[:2], v > self.box[2:]
+            if below[:, 0].all() or below[:, 1].all() or above[:, 0].all() or above[:, 1].all():
+                continue  # entirely on one side of the range
+            if below.any() or above.any():
                 clipped = shapely.clip_by_rect(shapely.Polygon(v), *self.box)
                 if clipped.is_empty or clipped.geom_type != "Polygon" or clipped.area < 2.0:
                     continue
@@ -297,7 +308,7 @@ def perceive_trip(
         if len(index.points_xy):
             balls = index.tree.query_ball_point(centers[f0:f1], r=half_diag + 0.01, return_sorted=True)
             lens = np.fromiter((len(b) for b in balls), np.intp, f1 - f0)
-            cand = np.fromiter((i for b in balls for i in b), np.intp, int(lens.sum()))
+            cand = np.fromiter(itertools.chain.from_iterable(balls), np.intp, int(lens.sum()))
             perceiver.lines(np.repeat(np.arange(f0, f1), lens), poses_xyyaw_world, cand, frames)
     if len(index.polygons_xy):
         near = np.linalg.norm(centers[:, None, :] - index.polygon_centroids_xy[None, :, :], axis=2) < half_diag + 15.0

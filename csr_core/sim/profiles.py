@@ -39,10 +39,11 @@ class GnssParams:
         GnssStatusModel(bias_sigma_m=0.02, bias_tau_s=30.0, white_sigma_m=0.01, mean_dwell_s=60.0),
         GnssStatusModel(bias_sigma_m=0.20, bias_tau_s=30.0, white_sigma_m=0.04, mean_dwell_s=40.0),
         GnssStatusModel(bias_sigma_m=0.50, bias_tau_s=60.0, white_sigma_m=0.08, mean_dwell_s=90.0),
-        GnssStatusModel(bias_sigma_m=0.70, bias_tau_s=90.0, white_sigma_m=0.10, mean_dwell_s=120.0),
+        GnssStatusModel(bias_sigma_m=0.60, bias_tau_s=600.0, white_sigma_m=0.04, mean_dwell_s=120.0),
     )
     latency_mean_s: float = 0.08  # fix refers to the position this long before its timestamp (comma2k19: 0.083 s)
     latency_sigma_s: float = 0.02  # per-trip spread of the latency
+    latency_jitter_s: float = 0.01  # per-fix time-tag jitter (along-track noise = speed * jitter)
     std_report_log_sigma: float = 0.15  # reported std_m = honest std * exp(N(0, this))
     heading_sigma_deg_at_10mps: float = 1.0  # course noise, scales with 10 / speed
     heading_min_speed_mps: float = 1.0  # no course below this speed
@@ -72,7 +73,7 @@ class PerceptionParams:
     range_x_m: tuple[float, float] = (-15.0, 30.0)
     range_y_m: tuple[float, float] = (-15.0, 15.0)
     point_spacing_m: float = 2.0  # output vertex spacing along lines
-    dense_step_m: float = 0.5  # internal truth sampling (clipping resolution)
+    dense_step_m: float = 1.0  # internal truth sampling (clipping resolution at the range edge)
     min_visible_m: float = 1.0  # shorter visible pieces are not reported
     # noise: sigma = base + slope * distance from the vehicle (metres); boundaries are noisier
     line_white_base_m: float = 0.03
@@ -156,7 +157,7 @@ def noiseless() -> Profile:
     exact = GnssStatusModel(bias_sigma_m=0.0, bias_tau_s=30.0, white_sigma_m=0.0, mean_dwell_s=1e9)
     gnss = dataclasses.replace(
         GnssParams(), initial_probs=(1.0, 0.0, 0.0, 0.0), status_models=(exact,) * 4, latency_mean_s=0.0,
-        latency_sigma_s=0.0, std_report_log_sigma=0.0, heading_sigma_deg_at_10mps=0.0,
+        latency_sigma_s=0.0, latency_jitter_s=0.0, std_report_log_sigma=0.0, heading_sigma_deg_at_10mps=0.0,
     )
     odometry = OdometryParams(0.0, 0.0, 0.0, 0.0)
     perception = dataclasses.replace(
@@ -176,3 +177,29 @@ def get_profile(name: str) -> Profile:
         return PROFILES[name]()
     except KeyError:
         raise ValueError(f"unknown profile {name!r}; known: {sorted(PROFILES)}") from None
+
+
+def _flatten(prefix: str, value) -> list[tuple[str, object]]:
+    if dataclasses.is_dataclass(value):
+        out = []
+        for f in dataclasses.fields(value):
+            out += _flatten(f"{prefix}.{f.name}" if prefix else f.name, getattr(value, f.name))
+        return out
+    if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
+        out = []
+        for name, item in zip(STATUS_NAMES, value):
+            out += _flatten(f"{prefix}[{name}]", item)
+        return out
+    return [(prefix, value)]
+
+
+def parameter_table_markdown(names: tuple[str, ...] = ("standard", "hard", "noiseless")) -> str:
+    """Every parameter with its value in each profile, as a markdown table (for docs/simulator.md)."""
+    columns = [dict(_flatten("", get_profile(n))) for n in names]
+    lines = ["| parameter | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
+    for key in columns[0]:
+        if key == "name":
+            continue
+        cells = [str(c[key]).replace("|", "/") for c in columns]
+        lines.append(f"| `{key}` | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

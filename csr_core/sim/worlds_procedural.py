@@ -32,8 +32,8 @@ ROUNDABOUT_RING_SPEED_MPS = 8.0
 
 # --- urban grid -------------------------------------------------------------------------------
 
-URBAN_NX, URBAN_NY = 4, 3  # intersections along x and y
-URBAN_SPACING_X_M, URBAN_SPACING_Y_M = 220.0, 180.0
+URBAN_NX, URBAN_NY = 5, 4  # intersections along x and y
+URBAN_SPACING_X_M, URBAN_SPACING_Y_M = 210.0, 170.0
 URBAN_AVENUE_LANES, URBAN_AVENUE_LANE_W_M = 2, 3.25  # streets along x: lanes per direction
 URBAN_STREET_LANES, URBAN_STREET_LANE_W_M = 1, 3.5  # streets along y
 URBAN_SHOULDER_M = 0.5
@@ -78,7 +78,7 @@ def _intersection(builder: WorldBuilder, arms: list[_Arm], straight_mps: float, 
 
 
 def urban_grid() -> World:
-    """A 4 x 3 grid of signalised intersections: avenues 2+2 lanes (x), streets 1+1 lanes (y),
+    """A 5 x 4 grid of signalised intersections: avenues 2+2 lanes (x), streets 1+1 lanes (y),
     stop lines, crosswalks on every arm, curbs with rounded corners."""
     rng = np.random.default_rng(1001)  # fixed world geometry
     builder = WorldBuilder()
@@ -128,7 +128,7 @@ def urban_grid() -> World:
         ))
     for key in sorted(arms):
         _intersection(builder, arms[key], URBAN_SPEED_MPS, URBAN_TURN_SPEED_MPS)
-    canyons = np.array([[*nodes[(1, 1)], 130.0], [*nodes[(3, 2)], 110.0]])
+    canyons = np.array([[*nodes[(1, 1)], 130.0], [*nodes[(3, 2)], 110.0], [*nodes[(4, 0)], 90.0]])
     return builder.build("urban", *URBAN_ORIGIN_LATLON, canyons)
 
 
@@ -308,7 +308,7 @@ def roundabout() -> World:
             connect_lanes(builder, prev_lane, road.forward_lanes[0], ROUNDABOUT_RING_SPEED_MPS, "roundabout")
         else:
             connect_lanes(builder, road.backward_lanes[0], lane, ROUNDABOUT_RING_SPEED_MPS, "roundabout")
-    builder.add_element(ElementType.ROAD_BOUNDARY, geo.arc(np.zeros(2), r_in, 0.0, 2 * np.pi, 1.0)[:-1])
+    builder.add_element(ElementType.ROAD_BOUNDARY, geo.arc(np.zeros(2), r_in, 0.0, 2 * np.pi, 1.0))  # closed ring
     for k, (a, _, ref_d) in enumerate(arms):
         a_next, _, ref_next = arms[(k + 1) % len(arms)]
         a_next = a_next + 2 * np.pi if a_next <= a else a_next

@@ -17,14 +17,13 @@ from collections import Counter
 
 import numpy as np
 
-from csr_core import se2
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import smooth_poses
 from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
-from csr_core.single_trip.tracking import Track, orient_in_vehicle, track_elements
+from csr_core.single_trip.tracking import track_elements
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -56,23 +55,28 @@ def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin
             & (points_v[..., 1] >= y0 + margin) & (points_v[..., 1] <= y1 - margin))
 
 
-def _visibility_ratio(points_w: np.ndarray, track: Track, frames: np.ndarray, poses: np.ndarray,
-                      box: tuple[float, float, float, float], margin: float) -> float:
-    """Tracked frames that saw the track / tracked frames that had the instance in range."""
+def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
+                      travel: np.ndarray, box: tuple[float, float, float, float], margin: float) -> float:
+    """Tracked frames that saw the element / tracked frames that had it inside the BEV range
+    (shrunk by ``margin``), over the frames whose vehicle is within reach of it."""
     samples = resample_polyline(points_w, 2.0) if len(points_w) > 1 else points_w
-    p = poses[frames]
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    reach = max(abs(box[0]), abs(box[1]), abs(box[2]), abs(box[3]))
+    lo, hi = samples.min(0) - reach, samples.max(0) + reach
+    pos = poses[frames, :2]
+    cand = np.flatnonzero(((pos >= lo) & (pos <= hi)).all(1))
+    if len(cand) == 0:
+        return 1.0
+    p = poses[frames[cand]]
+    c, s = np.cos(p[:, 2])[:, None], np.sin(p[:, 2])[:, None]
     rel = samples[None, :, :] - p[:, None, :2]
-    xv = c[:, None] * rel[..., 0] + s[:, None] * rel[..., 1]
-    yv = -s[:, None] * rel[..., 0] + c[:, None] * rel[..., 1]
+    xv = c * rel[..., 0] + s * rel[..., 1]
+    yv = -s * rel[..., 0] + c * rel[..., 1]
     visible = _inside(np.stack([xv, yv], -1), box, margin).any(axis=1)
-    seen = np.zeros(len(frames), dtype=bool)
-    seen[track.frames] = True
-    return float((seen & visible).sum() + (seen & ~visible).sum() * 0) / max(int((visible | seen).sum()), 1)
+    seen = np.isin(cand, seen_frames)
+    return float(seen.sum()) / max(int((visible | seen).sum()), 1)
 
 
-def _style(track: Track, trip, frames: np.ndarray) -> DividerStyle | None:
-    styles = [trip.elements[frames[f]][j].style for f, j in track.observations]
+def _style(styles: list) -> DividerStyle | None:
     votes = Counter(s for s in styles if s is not None and s != DividerStyle.UNKNOWN)
     if votes:
         return votes.most_common(1)[0][0]
@@ -100,45 +104,58 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # 4. element tracking on frames spaced by travel/time
     box = bev_range_m(trip)
     frames = select_tracking_frames(poses, trip.timestamps_s, params.TRACK_STEP_M, params.TRACK_STEP_S)
-    elements_vehicle = [[(e.type, orient_in_vehicle(e.points_xy_vehicle)) for e in trip.elements[i]]
-                        for i in frames]
-    tracks = track_elements(frames, poses, travel, elements_vehicle, params)
+    pieces, tracks = track_elements(frames, poses, travel, trip.elements, params)
     t_track = time.perf_counter()
-    # 5. splicing; short-lived tracks and ghosts dropped
+    # 5. splicing; short-lived tracks (false positives) and ghosts dropped
     instances: list[TripInstance] = []
     lateral: dict[ElementType, list[np.ndarray]] = {}
     along: dict[ElementType, list[np.ndarray]] = {}
     n_dropped = 0
+    edge_margin = params.BEV_RANGE_MARGIN_M / 2
+    reach = max(abs(v) for v in box)
     for track in tracks:
         if len(track.frames) < params.TRACK_MIN_FRAMES:
             n_dropped += 1
             continue
-        obs_v = [elements_vehicle[f][j][1] for f, j in track.observations]
-        obs_pose = poses[frames[[f for f, _ in track.observations]]]
-        obs_w = [se2.transform_points(p, v) for p, v in zip(obs_pose, obs_v, strict=True)]
+        upload_frames = frames[pieces.frame[track.pieces]]
+        raw_v = [trip.elements[f][j].points_xy_vehicle for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
+        counts = np.fromiter((len(v) for v in raw_v), dtype=np.int64, count=len(raw_v))
+        offsets = np.r_[0, np.cumsum(counts)]
+        pts_v = np.concatenate(raw_v)
+        obs_id = np.repeat(np.arange(len(raw_v)), counts)
+        pose = poses[upload_frames][obs_id]
+        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+        pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
+                                 s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         if track.type.is_polygon:
-            whole = np.array([_inside(v, box, params.BEV_RANGE_MARGIN_M / 2).all() for v in obs_v])
-            outline, lat, alo = splice_polygon(obs_w, whole, obs_pose[:, 2])
+            whole = np.logical_and.reduceat(_inside(pts_v, box, edge_margin), offsets[:-1])
+            obs_w = np.split(pts_w, offsets[1:-1])
+            outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2])
             spliced.append((outline, lat, alo))
         else:
-            end_free = np.array([[_inside(v[0], box, params.BEV_RANGE_MARGIN_M / 2),
-                                  _inside(v[-1], box, params.BEV_RANGE_MARGIN_M / 2)] for v in obs_v])
-            for piece in splice_line(obs_w, end_free, params):
+            obs_ends = np.column_stack([offsets[:-1], offsets[1:] - 1])
+            end_free = _inside(pts_v[obs_ends], box, edge_margin)
+            # the vehicle path while the element was in reach guides the splice
+            t0 = np.searchsorted(travel, travel[upload_frames.min()] - reach)
+            t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
+            guide = poses[t0:t1 + 1, :2]
+            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params):
                 spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m))
         for points_w, lat, alo in spliced:
             length = float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) if len(points_w) > 1 else 0.0
             if not track.type.is_polygon and length < params.min_length_m(track.type):
                 n_dropped += 1
                 continue
-            ratio = _visibility_ratio(points_w, track, frames, poses, box, params.BEV_RANGE_MARGIN_M)
+            ratio = _visibility_ratio(points_w, track.frames, frames, poses, travel, box, params.BEV_RANGE_MARGIN_M)
             if ratio < params.TRACK_MIN_VISIBILITY_RATIO:
                 n_dropped += 1
                 continue
             lateral.setdefault(track.type, []).append(lat)
             along.setdefault(track.type, []).append(alo)
+            styles = [trip.elements[f][j].style for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
             instances.append(TripInstance(
-                type=track.type, points_xy_world=points_w, style=_style(track, trip, frames),
+                type=track.type, points_xy_world=points_w, style=_style(styles),
                 n_observations=len(track.frames), first_frame=int(frames[track.frames[0]]),
                 last_frame=int(frames[track.frames[-1]])))
     # 6. noise per element type from the residuals

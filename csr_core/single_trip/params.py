@@ -23,7 +23,7 @@ class SingleTripParams:
     GNSS_SIGMA_FLOOR_M: float = 0.05
     # GNSS errors (multipath, atmosphere) are correlated over seconds; fixes within this time
     # count as one independent fix in the graph (0: every fix independent).
-    GNSS_CORRELATION_S: float = 0.0
+    GNSS_CORRELATION_S: float = 10.0
     # GNSS latency (fix stamped t = position at t - L), estimated per trip; windows remove the bias
     GNSS_LATENCY_ESTIMATE: bool = True
     GNSS_LATENCY_WINDOW_S: float = 20.0
@@ -70,7 +70,7 @@ class SingleTripParams:
     KEYFRAME_PERIOD_S: float = 5.0  # a keyframe at least this often, even standing still
 
     # --- tracking (Qiao et al.) ----------------------------------------------------------------------
-    TRACK_STEP_M: float = 1.5  # frames are tracked once the vehicle moved this far (else all in time)
+    TRACK_STEP_M: float = 4.0  # frames are tracked once the vehicle moved this far (else all in time)
     TRACK_STEP_S: float = 1.0  # ... or this long
     TRACK_RESAMPLE_POINTS: int = 8  # points per detection in the association cost
     TRACK_DISTANCE_CAP_M: float = 3.0  # truncation of point distances in the Chamfer cost
@@ -78,7 +78,9 @@ class SingleTripParams:
     TRACK_GATE_SIGMAS: float = 3.0  # gate in sigmas of the combined lateral noise
     TRACK_LATERAL_WEIGHT: float = 0.3  # weight of the lateral-order term in the assignment cost
     TRACK_MAX_EXTRAPOLATION_M: float = 12.0  # a detection may extend a track by at most this
-    TRACK_MAX_MISSED_M: float = 15.0  # a track not updated over this much travel ends
+    TRACK_COARSE_MARGIN_M: float = 1.0  # pre-test of pairs on middle points: gate + this
+    TRACK_MAX_ANGLE_RAD: float = math.radians(20.0)  # pieces of one element are nearly parallel
+    TRACK_MAX_SKIP_FRAMES: int = 2  # links reach this many tracked frames ahead (missed detections)
     TRACK_MERGE_GATE_M: float = 0.6  # an unassigned piece collinear with a matched track joins it
 
     # --- ghosts and false positives -----------------------------------------------------------------
@@ -89,10 +91,13 @@ class SingleTripParams:
 
     # --- splicing ------------------------------------------------------------------------------------
     SPLICE_BIN_M: float = 1.0  # arclength bins of the robust lateral profile
-    SPLICE_SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the lateral profile along arclength
+    SPLICE_SMOOTH_SIGMA_M: float = 2.0
+    SPLICE_BACKBONE_SMOOTH_M: float = 4.0  # Gaussian smoothing of the first (raw) backbone  # Gaussian smoothing of the lateral profile along arclength
     SPLICE_OUTLIER_SIGMAS: float = 3.0
     SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
-    SPLICE_ITERATIONS: int = 2
+    SPLICE_ITERATIONS: int = 2  # passes when the backbone is the principal axis
+    SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
+    SPLICE_ALONG_GUIDE_MIN: float = 0.7  # |d arclength on the path| / chord: element runs along the path
     SPLICE_OUTPUT_SPACING_M: float = 1.0
 
     # --- noise prior (used where a type has too few residuals) -----------------------------------------

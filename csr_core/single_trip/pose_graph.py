@@ -141,16 +141,18 @@ def interpolate_poses(timestamps_s: np.ndarray, poses_xyyaw: np.ndarray, at_s: n
 
 
 def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                       inlier: np.ndarray, window_s: float, max_s: float, step_s: float = 0.01) -> float:
-    """GNSS latency L (s): the fix stamped t is the position at t - L.
+                       inlier: np.ndarray, window_s: float, max_s: float, step_s: float = 0.01
+                       ) -> tuple[float, float]:
+    """GNSS latency L (s) and odometry distance scale: the fix stamped t is the position at t - L.
 
-    For each candidate L, the (calibrated) odometry at t - L is rigidly fitted to the fixes in
-    windows of ``window_s`` (each window its own SE(2): the slowly varying GNSS bias and the
-    odometry drift drop out); L minimises the summed residual, refined by a parabola. Where
-    speed and heading do not change within windows, L has no effect there and is not seen."""
+    For each candidate L, the odometry at t - L is fitted to the fixes in windows of
+    ``window_s``, each window with its own rotation and translation (the slowly varying GNSS
+    bias and the odometry heading drift drop out) and one scale shared by all windows (closed
+    form); L minimises the summed residual, refined by a parabola. Where speed and heading do
+    not change within a window, L has no effect there and is not seen."""
     idx = np.flatnonzero(inlier)
     if len(idx) < 50:
-        return 0.0
+        return 0.0, 1.0
     t = timestamps_s[idx]
     wid = np.floor((t - t[0]) / window_s).astype(np.int64)
     n_w = int(wid.max()) + 1
@@ -159,8 +161,9 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
     mg = np.column_stack([np.bincount(wid, g[:, k], n_w) / cnt for k in range(2)])
     b = g - mg[wid]
     bb = np.bincount(wid, (b * b).sum(1), n_w)
-    grid = np.arange(-max_s, max_s + 1e-9, step_s)
+    grid = np.arange(0.0, max_s + 1e-9, step_s)  # a fix cannot come from the future
     cost = np.empty(len(grid))
+    scale = np.empty(len(grid))
     ox, oy = odom_xyyaw[:, 0], odom_xyyaw[:, 1]
     for i, lat in enumerate(grid):
         o = np.column_stack([np.interp(t - lat, timestamps_s, ox), np.interp(t - lat, timestamps_s, oy)])
@@ -169,14 +172,22 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
         cross = np.bincount(wid, a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], n_w)
         dot = np.bincount(wid, (a * b).sum(1), n_w)
         aa = np.bincount(wid, (a * a).sum(1), n_w)
-        cost[i] = float((aa + bb - 2.0 * np.hypot(cross, dot)).sum())
+        h = np.hypot(cross, dot).sum()
+        scale[i] = h / max(aa.sum(), 1e-12)
+        cost[i] = float(bb.sum() - h * scale[i])
     k = int(np.argmin(cost))
+    # keep L only where it explains the data: the cost drop against L = 0 must exceed 3 sigma
+    # of a chi-square(1) on the residual variance (else L is unobservable: straight, constant speed)
+    dof = max(2 * len(idx) - 4 * n_w - 2, 1)
+    if cost[0] - cost[k] <= 9.0 * cost[k] / dof:
+        return 0.0, float(scale[0])
+    lat = float(grid[k])
     if 0 < k < len(grid) - 1:
         c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
         den = c0 - 2 * c1 + c2
         if den > 0:
-            return float(grid[k] + 0.5 * step_s * (c0 - c2) / den)
-    return float(grid[k])
+            lat = float(grid[k] + 0.5 * step_s * (c0 - c2) / den)
+    return lat, float(scale[k])
 
 
 def calibrate_odometry(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, smoothed_xyyaw: np.ndarray,
@@ -266,24 +277,24 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
     node_poses = graph.solve("huber", fix_idx, node_poses)
     inlier, _ = graph.reject(node_poses, has_fix, has_fix)
-    # odometry calibration against the kept fixes, then the graph on the corrected odometry
-    scale, yaw_bias = 1.0, 0.0
+    # odometry calibration against the kept fixes: yaw-rate bias from the smoothed yaw, then
+    # GNSS latency and odometry scale jointly from windowed fits; the graph on the result
+    scale, yaw_bias, latency = 1.0, 0.0, 0.0
     if params.CAL_ENABLED:
-        scale, yaw_bias = calibrate_odometry(timestamps_s, odom_xyyaw, graph.frame_poses(node_poses),
-                                             gnss_xy_world, sigma, inlier, params)
-        if scale != 1.0 or yaw_bias != 0.0:
-            incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
+        _, yaw_bias = calibrate_odometry(timestamps_s, odom_xyyaw, graph.frame_poses(node_poses),
+                                         gnss_xy_world, sigma, inlier, params)
+        incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
+        incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
+        corrected = integrate_increments(odom_xyyaw[0], incr)
+        if timestamps_s[-1] - timestamps_s[0] >= params.CAL_MIN_DURATION_S:
+            latency, scale = estimate_latency_s(timestamps_s, corrected, gnss_xy_world, inlier,
+                                                params.GNSS_LATENCY_WINDOW_S, params.GNSS_LATENCY_MAX_S)
+            if not params.GNSS_LATENCY_ESTIMATE:
+                latency = 0.0
+            scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
             incr[:, :2] *= scale
-            incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
             corrected = integrate_increments(odom_xyyaw[0], incr)
-            graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params)
-    # GNSS latency: estimated on the calibrated smoothing, kept when significant
-    latency = 0.0
-    if params.GNSS_LATENCY_ESTIMATE:
-        latency = estimate_latency_s(timestamps_s, graph.odom, gnss_xy_world, inlier,
-                                     params.GNSS_LATENCY_WINDOW_S, params.GNSS_LATENCY_MAX_S)
-        if latency != 0.0:
-            graph = _NodeGraph(nodes, timestamps_s, graph.odom, gnss_xy_world, sigma, heading_yaw, params, latency)
+        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params, latency)
     # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
     # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
     node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)

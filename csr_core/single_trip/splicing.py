@@ -1,11 +1,11 @@
 """Splicing a track's observations into one trip-level instance (paper III-C).
 
-Lines: the observations (world frame) are ordered along a backbone grown from the first
-observation by the parts of later ones beyond its ends; every point is then projected on the
-backbone (arclength s, signed lateral offset d), the lateral profile d(s) is estimated per
-arclength bin by a median with outlier rejection (ghost points, mis-assignments), smoothed by
-a Gaussian kernel along s, and turned back into a polyline; twice, the second time on the
-first result. Gaps up to ``SPLICE_MAX_GAP_M`` (dashes, missed frames) are spanned, so a dashed
+Lines: every observation point (world frame) is projected on a backbone (arclength s, signed
+lateral offset d): the vehicle's own path while the element was seen when the element runs
+along it (any curvature: curves, roundabouts), else the principal axis of the points (stop
+lines, lines across the road), refined by a second pass on the first result. The lateral
+profile d(s) is estimated per arclength bin by a median with outlier rejection (ghost points,
+mis-assignments), smoothed by a Gaussian kernel along s, and turned back into a polyline. Gaps up to ``SPLICE_MAX_GAP_M`` (dashes, missed frames) are spanned, so a dashed
 divider stays one instance; longer gaps split the instance. A Gaussian kernel along arclength
 stands in for Qiao et al.'s Catmull-Rom fit: same role (a smooth curve through denoised
 control points), closed form and vectorised.
@@ -46,50 +46,6 @@ def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
     return np.column_stack([np.interp(q, s, points[:, 0]), np.interp(q, s, points[:, 1])])
 
 
-def orient_observations(polys: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Flip observations whose end-to-end direction opposes the previous one's (world frame).
-    Returns the oriented polylines and which were flipped (n_obs,)."""
-    out = []
-    flipped = np.zeros(len(polys), dtype=bool)
-    ref = None
-    for i, p in enumerate(polys):
-        d = p[-1] - p[0]
-        if ref is not None and float(d @ ref) < 0:
-            p = p[::-1]
-            d = -d
-            flipped[i] = True
-        if np.linalg.norm(d) > 0.5:
-            ref = d
-        out.append(p)
-    return out, flipped
-
-
-def grow_backbone(polys: list[np.ndarray], min_step_m: float = 0.5) -> np.ndarray:
-    """An ordered polyline covering all observations: the first one, extended at either end
-    by the points of later observations that lie beyond it along its end tangents."""
-    bb = polys[0]
-    for p in polys[1:]:
-        if len(bb) < 2:
-            bb = p
-            continue
-        for end in (1, 0):
-            if end:
-                a, b = bb[-2], bb[-1]
-            else:
-                a, b = bb[1], bb[0]
-            t = b - a
-            tn = np.linalg.norm(t)
-            if tn < 1e-9:
-                continue
-            t = t / tn
-            proj = (p - b) @ t
-            beyond = proj > min_step_m
-            if beyond.any():
-                ext = p[beyond][np.argsort(proj[beyond])]
-                bb = np.vstack([bb, ext]) if end else np.vstack([ext[::-1], bb])
-    return bb
-
-
 def _project(points: np.ndarray, backbone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
     sampled backbone (B, 2)."""
@@ -113,47 +69,91 @@ def _binned_median(bins: np.ndarray, values: np.ndarray, n_bins: int) -> tuple[n
     return med, counts
 
 
-def splice_line(polys: list[np.ndarray], end_free: np.ndarray, params: SingleTripParams) -> list[SplicedLine]:
-    """Observations (world, each (M_i, 2)) of one track -> one smoothed polyline per span
-    without a gap longer than ``SPLICE_MAX_GAP_M`` (usually one).
+def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, tangent_m: float = 3.0) -> np.ndarray:
+    """The polyline prolonged straight at both ends by ``length_m`` (tangent over ``tangent_m``)."""
+    if len(line) < 2:
+        return line
+    s = _arclength(line)
+    if s[-1] < 1e-6:
+        return line
+    q = np.arange(spacing_m, length_m + 1e-9, spacing_m)
+    i0 = min(int(np.searchsorted(s, tangent_m)), len(line) - 1)
+    i1 = max(int(np.searchsorted(s, s[-1] - tangent_m)) - 1, 0)
+    t0 = line[0] - line[i0]
+    t1 = line[-1] - line[i1]
+    t0 /= max(np.linalg.norm(t0), 1e-12)
+    t1 /= max(np.linalg.norm(t1), 1e-12)
+    head = line[0] + q[::-1, None] * t0
+    tail = line[-1] + q[:, None] * t1
+    return np.vstack([head, line, tail])
 
-    ``end_free`` (n_obs, 2) bool: the observation's first/last point is an element end seen
-    inside the BEV range (not a cut by the range); only those give along-track residuals.
+
+def _principal_backbone(points: np.ndarray, spacing_m: float) -> np.ndarray:
+    """A straight backbone along the principal axis of the points, covering them."""
+    mu = points.mean(0)
+    _, _, vt = np.linalg.svd(points - mu, full_matrices=False)
+    axis = vt[0]
+    proj = (points - mu) @ axis
+    q = np.arange(proj.min() - 1.0, proj.max() + 1.0 + spacing_m, spacing_m)
+    return mu + q[:, None] * axis
+
+
+def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
+                guide_xy: np.ndarray | None, params: SingleTripParams) -> list[SplicedLine]:
+    """Observations of one track -> smoothed polylines (usually one; a gap longer than
+    ``SPLICE_MAX_GAP_M`` splits).
+
+    ``points_w (P, 2)`` all observation points (world), ``obs_id (P,)`` their observation,
+    ``obs_ends (n_obs, 2)`` indices of each observation's first and last point, ``end_free
+    (n_obs, 2)`` whether those are element ends seen inside the BEV range (not cuts by the
+    range): only those give along-track residuals. ``guide_xy`` the vehicle path while the track
+    was seen: the backbone when the element runs along it (curves, roundabouts), else the
+    principal axis of the points, refined by a second pass.
     """
-    polys, flipped = orient_observations(polys)
-    end_free = np.where(flipped[:, None], end_free[:, ::-1], end_free)
-    pts = np.concatenate(polys)
-    obs_id = np.repeat(np.arange(len(polys)), [len(p) for p in polys])
-    backbone = resample_polyline(grow_backbone(polys), params.SPLICE_BIN_M / 2)
+    bin_m = params.SPLICE_BIN_M
+    n_obs = len(obs_ends)
+    iterations = params.SPLICE_ITERATIONS
+    backbone = None
+    if guide_xy is not None and len(guide_xy) >= 2:
+        guide = _extend_ends(resample_polyline(guide_xy, bin_m / 2), params.SPLICE_GUIDE_EXTENSION_M, bin_m / 2)
+        if len(guide) >= 3:
+            s_e, _ = _project(points_w[obs_ends.ravel()], guide)
+            s_e = s_e.reshape(-1, 2)
+            chord = np.linalg.norm(points_w[obs_ends[:, 1]] - points_w[obs_ends[:, 0]], axis=1)
+            along = np.abs(s_e[:, 1] - s_e[:, 0]) / np.maximum(chord, 1e-6)
+            long_obs = chord > 1.0
+            along_share = float(np.median(along[long_obs])) if long_obs.any() else 0.0
+            if along_share >= params.SPLICE_ALONG_GUIDE_MIN:
+                backbone = guide
+                iterations = 1
+    if backbone is None:
+        backbone = _principal_backbone(points_w, bin_m / 2)
     if len(backbone) < 3:
         return []
-    bin_m = params.SPLICE_BIN_M
     result = None
-    for _ in range(params.SPLICE_ITERATIONS):
-        s, d = _project(pts, backbone)
+    for it in range(iterations):
+        s, d = _project(points_w, backbone)
         s0 = s.min()
         bins = np.floor((s - s0) / bin_m).astype(np.int64)
         n_bins = int(bins.max()) + 1
-        med, counts = _binned_median(bins, d, n_bins)
+        med, _ = _binned_median(bins, d, n_bins)
         dev = np.abs(d - med[bins])
         sigma = max(1.4826 * float(np.median(dev)), 0.02)
         inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
         w = np.bincount(bins[inl], minlength=n_bins).astype(float)
         sum_d = np.bincount(bins[inl], weights=d[inl], minlength=n_bins)
         sm = params.SPLICE_SMOOTH_SIGMA_M / bin_m
-        num = gaussian_filter1d(sum_d, sm, mode="nearest")
-        den = gaussian_filter1d(w, sm, mode="nearest")
+        num = gaussian_filter1d(sum_d, sm, mode="constant")
+        den = gaussian_filter1d(w, sm, mode="constant")
         supported = w > 0
         centers = s0 + (np.arange(n_bins) + 0.5) * bin_m
-        # split at gaps longer than the limit
         idx = np.flatnonzero(supported)
         if len(idx) == 0:
             return []
         cuts = np.flatnonzero(np.diff(idx) * bin_m > params.SPLICE_MAX_GAP_M)
         spans = np.split(idx, cuts + 1)
-        d_s = np.where(den > 1e-6, num / np.maximum(den, 1e-12), np.nan)
-        good = np.isfinite(d_s)
-        d_s = np.interp(centers, centers[good], d_s[good])
+        good = den > 1e-6
+        d_s = np.interp(centers, centers[good], num[good] / den[good])
         s_b = _arclength(backbone)
         tan = np.gradient(backbone, axis=0)
         tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
@@ -161,7 +161,6 @@ def splice_line(polys: list[np.ndarray], end_free: np.ndarray, params: SingleTri
         result = []
         for span in spans:
             in_span = inl & (bins >= span[0]) & (bins <= span[-1])
-            # ends: median of the observation ends that cluster at the extreme
             s_lo, s_hi = _robust_ends(s[in_span], obs_id[in_span])
             q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
             q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
@@ -175,20 +174,33 @@ def splice_line(polys: list[np.ndarray], end_free: np.ndarray, params: SingleTri
             nn = np.maximum(np.hypot(nx, ny), 1e-12)
             line = np.column_stack([bx + dq * nx / nn, by + dq * ny / nn])
             result.append((line, in_span, s_lo, s_hi))
-        if len(result) == 1 and result[0][3] - result[0][2] >= 2 * bin_m:
+        if it + 1 < iterations and len(result) == 1 and result[0][3] - result[0][2] >= 2 * bin_m:
             backbone = resample_polyline(result[0][0], bin_m / 2)
     assert result is not None
     out = []
     for line, in_span, s_lo, s_hi in result:
         if s_hi - s_lo < bin_m / 2:
             continue
-        s_f, d_f = _project(pts[in_span], resample_polyline(line, bin_m / 4))
-        lat = d_f
-        s_line_end = _arclength(line)[-1]
-        along = _along_residuals(s_f, obs_id[in_span], end_free, s_line_end)
-        share = np.bincount(obs_id[in_span], minlength=len(polys)) / np.maximum(
-            np.bincount(obs_id, minlength=len(polys)), 1)
-        out.append(SplicedLine(line, lat, along, share))
+        dense = resample_polyline(line, bin_m / 4)
+        if len(dense) < 3:
+            continue
+        s_f, d_f = _project(points_w[in_span], dense)
+        # along-track: observation ends that are element ends, against the instance ends
+        s_all = np.full(len(points_w), np.nan)
+        s_all[in_span] = s_f
+        s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
+        lo_first = s_first <= s_last
+        s_lo_obs = np.where(lo_first, s_first, s_last)
+        s_hi_obs = np.where(lo_first, s_last, s_first)
+        free_lo = np.where(lo_first, end_free[:, 0], end_free[:, 1])
+        free_hi = np.where(lo_first, end_free[:, 1], end_free[:, 0])
+        length = _arclength(line)[-1]
+        win = 3.0
+        ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs) <= win)
+        ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - length) <= win)
+        along = np.r_[s_lo_obs[ok_lo], s_hi_obs[ok_hi] - length]
+        share = np.bincount(obs_id[in_span], minlength=n_obs) / np.maximum(np.bincount(obs_id, minlength=n_obs), 1)
+        out.append(SplicedLine(line, d_f, along, share))
     return out
 
 
@@ -204,24 +216,6 @@ def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tu
     s_lo = float(np.median(lo[lo <= lo.min() + window_m]))
     s_hi = float(np.median(hi[hi >= hi.max() - window_m]))
     return s_lo, max(s_hi, s_lo)
-
-
-def _along_residuals(s: np.ndarray, obs_id: np.ndarray, end_free: np.ndarray, s_end: float,
-                     window_m: float = 3.0) -> np.ndarray:
-    """Along-track residuals: observed element ends (not BEV cuts) against the instance ends."""
-    if len(s) == 0:
-        return np.zeros(0)
-    n = len(end_free)
-    lo = np.full(n, np.inf)
-    hi = np.full(n, -np.inf)
-    np.minimum.at(lo, obs_id, s)
-    np.maximum.at(hi, obs_id, s)
-    res = []
-    ok = np.isfinite(lo) & end_free[:, 0] & (np.abs(lo) <= window_m)
-    res.append(lo[ok])
-    ok = np.isfinite(hi) & end_free[:, 1] & (np.abs(hi - s_end) <= window_m)
-    res.append(hi[ok] - s_end)
-    return np.concatenate(res)
 
 
 def polygon_area(poly: np.ndarray) -> float:

@@ -1,242 +1,286 @@
-"""Element tracking across frames (paper III-C, after Qiao et al.): per element type, each
-tracked frame's detections are associated with the live tracks as an assignment problem
-(``scipy.optimize.linear_sum_assignment``) whose cost combines a one-sided Chamfer distance
-(detection -> track, with the track's end segments extended so that the next dash of a dashed
-divider still matches), the pose uncertainty accumulated since the track was last seen (it
-widens the gate) and lateral-order consistency (the offset of the element at the vehicle, in
-the vehicle frame, must agree). Unassigned pieces collinear with a matched track join it (one
-divider reported in pieces, dashes); the rest start tracks; tracks unseen for a while end.
+"""Element tracking across frames (paper III-C, after Qiao et al.), batched over the trip.
 
-Cost per frame: one batched (tracks x detections x points x segments) array per type.
+Every detection ("piece") of the tracked frames is resampled to ``k`` points and put in the
+world frame with its smoothed pose, all at once. Two kinds of links are then scored in one
+vectorised pass each:
+
+- within a frame, pieces of one type lying on each other's extension (a dashed divider seen
+  as separate dashes, a divider split where its style changes) are one detection;
+- between a frame and the next tracked frames (up to ``TRACK_MAX_SKIP_FRAMES`` later, so a
+  missed detection does not end the track), each piece is linked to its best successor and
+  from its best predecessor (a one-to-one assignment where the choices agree; where they
+  conflict both links are kept, which only happens between pieces of one element). The cost
+  combines a one-sided Chamfer distance (later piece -> earlier piece, end segments extended
+  so that the next dash still matches), the pose uncertainty accumulated over the travel
+  between the frames (it widens the gate) and lateral-order consistency (the offsets of both
+  pieces at the vehicle, in the later frame's vehicle frame, must agree).
+
+Tracks are the connected components of those links. Costs are pairwise arrays over candidate
+pairs (bounding boxes within reach), so a 1 km trip costs tens of milliseconds.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import ElementType
 
-_LATERAL_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
-_BIG = 1e6
+TYPE_CODES = {t: i for i, t in enumerate(ElementType)}
+_LATERAL_CODES = np.array([t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
+                           for t in ElementType])
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
+class Pieces:
+    """All detections of the tracked frames, flattened (Q pieces)."""
+
+    frame: np.ndarray  # (Q,) index into the tracked-frame list
+    element: np.ndarray  # (Q,) index of the element in its upload frame
+    type_code: np.ndarray  # (Q,) TYPE_CODES
+    points_v: np.ndarray  # (Q, k, 2) resampled, vehicle frame
+    points_w: np.ndarray  # (Q, k, 2) resampled, world frame
+
+
+@dataclass(frozen=True, slots=True)
 class Track:
     type: ElementType
-    observations: list[tuple[int, int]] = field(default_factory=list)  # (frame, element index)
-    frames: list[int] = field(default_factory=list)  # distinct frames, ascending
-    ref_world: np.ndarray | None = None  # (K, 2) latest geometry, oriented
-    last_travel_m: float = 0.0
+    pieces: np.ndarray  # (m,) indices into Pieces, by frame
+    frames: np.ndarray  # (f,) distinct tracked-frame indices, ascending
 
 
-def resample_polylines(polys: list[np.ndarray], k: int) -> np.ndarray:
-    """Each polyline (M_i, 2) -> k points uniformly spaced in arclength: (P, k, 2)."""
-    out = np.empty((len(polys), k, 2))
-    u = np.linspace(0.0, 1.0, k)
-    for i, p in enumerate(polys):
-        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-        s = np.r_[0.0, np.cumsum(seg)]
-        if s[-1] <= 0:
-            out[i] = p[0]
-            continue
-        q = u * s[-1]
-        out[i, :, 0] = np.interp(q, s, p[:, 0])
-        out[i, :, 1] = np.interp(q, s, p[:, 1])
-    return out
+def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray:
+    """Polylines given as concatenated ``points (P, 2)`` with ``offsets (Q+1,)`` -> (Q, k, 2),
+    each resampled to k points uniformly in arclength. Vectorised over all polylines."""
+    q = len(offsets) - 1
+    counts = np.diff(offsets)
+    piece = np.repeat(np.arange(q), counts)
+    step = np.r_[0.0, np.linalg.norm(np.diff(points, axis=0), axis=1)]
+    step[offsets[:-1]] = 0.0  # no step across pieces
+    s = np.cumsum(step)
+    s_local = s - s[offsets[:-1]][piece]
+    length = s_local[offsets[1:] - 1]
+    big = float(length.max()) + 1.0 if q else 1.0
+    key = piece * big + s_local
+    target = np.linspace(0.0, 1.0, k)[None, :] * length[:, None]  # (Q,k)
+    tkey = np.arange(q)[:, None] * big + target
+    right = np.searchsorted(key, tkey.ravel(), side="left").reshape(q, k)
+    right = np.clip(right, offsets[:-1, None] + 1, offsets[1:, None] - 1)
+    left = right - 1
+    span = np.maximum(s_local[right] - s_local[left], 1e-12)
+    w = np.clip((target - s_local[left]) / span, 0.0, 1.0)[..., None]
+    return points[left] * (1.0 - w) + points[right] * w
 
 
-def orient_in_vehicle(points_xy_vehicle: np.ndarray) -> np.ndarray:
-    """Orient a polyline so that its dominant vehicle-frame axis increases (x for lines along
-    the road, y for lines across it), so that observations of one element agree."""
-    d = points_xy_vehicle[-1] - points_xy_vehicle[0]
-    axis = 0 if abs(d[0]) >= abs(d[1]) else 1
-    return points_xy_vehicle[::-1] if d[axis] < 0 else points_xy_vehicle
-
-
-def point_to_polyline_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float,
-                               cap_m: float) -> np.ndarray:
-    """Truncated distance of points (D, P, 2) to polylines (T, K, 2) with their end segments
-    extended by up to ``max_extrapolation_m``: (T, D, P). Beyond the extension: ``cap_m``."""
-    a = polys[:, None, None, :-1, :]  # (T,1,1,S,2)
-    ab = np.diff(polys, axis=1)[:, None, None, :, :]
-    p = points[None, :, :, None, :]  # (1,D,P,1,2)
+def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
+    """Truncated distance of each point of ``points (M, P, 2)`` to the matching polyline of
+    ``polys (M, K, 2)``, the polyline extended at both ends along its chord (first to last
+    point: a noisy end segment of a short dash would swing) by up to ``max_extrapolation_m``;
+    farther: ``cap_m``. Returns (M, P)."""
+    a = polys[:, None, :-1, :]  # (M,1,S,2)
+    ab = np.diff(polys, axis=1)[:, None, :, :]
+    p = points[:, :, None, :]  # (M,P,1,2)
     len2 = np.maximum((ab * ab).sum(-1), 1e-12)
-    t = ((p - a) * ab).sum(-1) / len2  # (T,D,P,S)
-    n_seg = polys.shape[1] - 1
-    lo = np.zeros(n_seg)
-    hi = np.ones(n_seg)
-    lo[0] = -np.inf
-    hi[-1] = np.inf
-    tc = np.clip(t, lo, hi)
-    d = np.linalg.norm(p - (a + tc[..., None] * ab), axis=-1)
-    seg_len = np.sqrt(len2)
-    over = np.maximum(-tc, 0.0) * seg_len + np.maximum(tc - 1.0, 0.0) * seg_len
-    d = np.where(over > max_extrapolation_m, cap_m, d)
-    return np.minimum(d, cap_m).min(axis=-1)
+    t = np.clip(((p - a) * ab).sum(-1) / len2, 0.0, 1.0)  # (M,P,S)
+    diff = p - (a + t[..., None] * ab)
+    d = np.sqrt((diff * diff).sum(-1)).min(-1)  # (M,P)
+    chord = polys[:, -1] - polys[:, 0]
+    length = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
+    u = chord / length[:, None]  # (M,2)
+    rel0 = points - polys[:, None, 0]
+    rel1 = points - polys[:, None, -1]
+    along0 = (rel0 * u[:, None]).sum(-1)
+    along1 = (rel1 * u[:, None]).sum(-1)
+    lat0 = np.abs(rel0[..., 0] * u[:, None, 1] - rel0[..., 1] * u[:, None, 0])
+    lat1 = np.abs(rel1[..., 0] * u[:, None, 1] - rel1[..., 1] * u[:, None, 0])
+    before = (along0 < 0) & (along0 >= -max_extrapolation_m)
+    after = (along1 > 0) & (along1 <= max_extrapolation_m)
+    d = np.where(before, np.minimum(d, lat0), d)
+    d = np.where(after, np.minimum(d, lat1), d)
+    return np.minimum(d, cap_m)
 
 
 def lateral_at_vehicle(polys_vehicle: np.ndarray) -> np.ndarray:
-    """Signed lateral offset (P,) at x = 0 of polylines (P, K, 2) in the vehicle frame, by
-    interpolation, or extrapolation along the nearest end segment."""
+    """Signed lateral offset (M,) at x = 0 of polylines (M, K, 2) (vehicle frame, roughly along
+    x), interpolated or extrapolated along the end segment nearest to x = 0."""
     x, y = polys_vehicle[..., 0], polys_vehicle[..., 1]
-    out = np.empty(len(polys_vehicle))
-    for i in range(len(polys_vehicle)):
-        xi, yi = x[i], y[i]
-        order = np.argsort(xi)
-        xs, ys = xi[order], yi[order]
-        if xs[-1] - xs[0] < 1e-6:
-            out[i] = ys.mean()
-        elif xs[0] <= 0.0 <= xs[-1]:
-            out[i] = np.interp(0.0, xs, ys)
-        elif xs[0] > 0.0:
-            out[i] = ys[0] - xs[0] * (ys[1] - ys[0]) / max(xs[1] - xs[0], 1e-6)
-        else:
-            out[i] = ys[-1] - xs[-1] * (ys[-1] - ys[-2]) / max(xs[-1] - xs[-2], 1e-6)
-    return out
+    flip = x[:, -1] < x[:, 0]
+    x = np.where(flip[:, None], x[:, ::-1], x)
+    y = np.where(flip[:, None], y[:, ::-1], y)
+    k = x.shape[1]
+    i = np.clip((x < 0.0).sum(1), 1, k - 1)
+    rows = np.arange(len(x))
+    x0, x1, y0, y1 = x[rows, i - 1], x[rows, i], y[rows, i - 1], y[rows, i]
+    dx = x1 - x0
+    return np.where(np.abs(dx) > 1e-6, y0 + (0.0 - x0) * (y1 - y0) / np.where(np.abs(dx) > 1e-6, dx, 1.0),
+                    0.5 * (y0 + y1))
 
 
-def _near(refs: np.ndarray, dets: np.ndarray, margin_m: float) -> np.ndarray:
-    """(T, D) bool: bounding boxes of tracks and detections within ``margin_m``."""
-    rlo, rhi = refs.min(1), refs.max(1)
-    dlo, dhi = dets.min(1), dets.max(1)
-    gap = np.maximum(dlo[None] - rhi[:, None], rlo[:, None] - dhi[None])  # (T,D,2)
+def _ranges(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For sorted ``keys``: start and end (exclusive) of each element's run of equal keys."""
+    starts = np.searchsorted(keys, keys, side="left")
+    ends = np.searchsorted(keys, keys, side="right")
+    return starts, ends
+
+
+def _pairs_between(keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """All (a, b) with b's key equal to ``a_keys[a]`` (b indexes the sorted array)."""
+    lo = np.searchsorted(keys_sorted, a_keys, side="left")
+    hi = np.searchsorted(keys_sorted, a_keys, side="right")
+    c = hi - lo
+    a = np.repeat(order_a, c)
+    base = np.repeat(lo - np.r_[0, np.cumsum(c)[:-1]], c)
+    b = base + np.arange(int(c.sum()))
+    return a, b
+
+
+def _bbox_near(pw: np.ndarray, a: np.ndarray, b: np.ndarray, margin_m: float) -> np.ndarray:
+    lo, hi = pw.min(1), pw.max(1)
+    gap = np.maximum(lo[b] - hi[a], lo[a] - hi[b])
     return (gap <= margin_m).all(-1)
 
 
-def _union_resampled(polys_vehicle: list[np.ndarray], k: int) -> np.ndarray:
-    """Pieces of one element (vehicle frame) joined along their dominant axis, resampled (k, 2)."""
-    pts = np.concatenate(polys_vehicle)
-    ext = pts.max(0) - pts.min(0)
-    pts = pts[np.argsort(pts[:, 0 if ext[0] >= ext[1] else 1], kind="stable")]
-    return resample_polylines([pts], k)[0]
+def _coarse_near(pw: np.ndarray, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float,
+                 min_cos: float) -> np.ndarray:
+    """Cheap pre-test of pairs: bounding boxes within reach; chords nearly parallel (pieces
+    shorter than 2 m exempt); the middle point of one within ``gate_m`` plus both pieces'
+    sagitta (curvature) of the other's chord line."""
+    keep = _bbox_near(pw, a, b, ext_m)
+    a, b = a[keep], b[keep]
+    chord = pw[:, -1] - pw[:, 0]
+    length = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
+    u = chord / length[:, None]
+    mid = pw[:, pw.shape[1] // 2]
+    rel = pw - pw[:, :1]
+    sag = np.abs(rel[..., 0] * u[:, None, 1] - rel[..., 1] * u[:, None, 0]).max(1)
+    r1 = mid[b] - pw[a, 0]
+    lat1 = np.abs(r1[:, 0] * u[a, 1] - r1[:, 1] * u[a, 0])
+    r2 = mid[a] - pw[b, 0]
+    lat2 = np.abs(r2[:, 0] * u[b, 1] - r2[:, 1] * u[b, 0])
+    cos = np.abs((u[a] * u[b]).sum(1))
+    short = (length[a] < 2.0) | (length[b] < 2.0)
+    ok = (np.minimum(lat1, lat2) <= gate_m + sag[a] + sag[b]) & ((cos >= min_cos) | short | (sag[a] + sag[b] > 1.0))
+    keep[np.flatnonzero(keep)] = ok
+    return keep
 
 
-def group_collinear(polys: np.ndarray, gate_m: float, max_extrapolation_m: float, cap_m: float) -> list[list[int]]:
-    """Groups (connected components) of polylines (D, k, 2) lying on each other's extension:
-    mean distance of one's points to the other's (extended) polyline under ``gate_m``."""
-    n = len(polys)
-    if n == 1:
-        return [[0]]
-    parent = list(range(n))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    near = _near(polys, polys, max_extrapolation_m)
-    np.fill_diagonal(near, False)
-    rows = np.flatnonzero(near.any(1))
-    if len(rows):
-        m = point_to_polyline_distance(polys, polys[rows], max_extrapolation_m, cap_m).mean(-1)  # (R, D)
-        full = np.full((n, n), np.inf)
-        full[rows] = m
-        full = np.minimum(full, full.T)
-        ii, jj = np.nonzero(np.triu(full <= gate_m, 1) & near)
-        for i, j in zip(ii, jj, strict=True):
-            parent[find(int(i))] = find(int(j))
-    groups: dict[int, list[int]] = {}
-    for i in range(n):
-        groups.setdefault(find(i), []).append(i)
-    return list(groups.values())
+def collect_pieces(frames: np.ndarray, poses_xyyaw: np.ndarray, elements, k: int) -> Pieces:
+    """Flatten the detections of the tracked ``frames`` (indices into the upload) into Pieces."""
+    pts, f_idx, e_idx, codes = [], [], [], []
+    for f, frame in enumerate(frames):
+        for j, e in enumerate(elements[frame]):
+            pts.append(e.points_xy_vehicle)
+            f_idx.append(f)
+            e_idx.append(j)
+            codes.append(TYPE_CODES[e.type])
+    if not pts:
+        z = np.zeros(0, dtype=np.int64)
+        return Pieces(z, z, z, np.zeros((0, k, 2)), np.zeros((0, k, 2)))
+    counts = np.fromiter((len(p) for p in pts), dtype=np.int64, count=len(pts))
+    offsets = np.r_[0, np.cumsum(counts)]
+    pv = resample_flat(np.concatenate(pts).astype(float), offsets, k)
+    f_arr = np.asarray(f_idx, dtype=np.int64)
+    pose = poses_xyyaw[frames[f_arr]]
+    c, s = np.cos(pose[:, 2])[:, None], np.sin(pose[:, 2])[:, None]
+    pw = np.stack([c * pv[..., 0] - s * pv[..., 1] + pose[:, None, 0],
+                   s * pv[..., 0] + c * pv[..., 1] + pose[:, None, 1]], axis=-1)
+    return Pieces(f_arr, np.asarray(e_idx, dtype=np.int64), np.asarray(codes, dtype=np.int64), pv, pw)
 
 
-def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray,
-                   elements_vehicle: list[list[tuple[ElementType, np.ndarray]]],
-                   params: SingleTripParams) -> list[Track]:
-    """Track detections over the tracked ``frames`` (F,).
+def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray, elements,
+                   params: SingleTripParams) -> tuple[Pieces, list[Track]]:
+    """Track the detections of the tracked ``frames`` (F,) through the trip.
 
-    ``elements_vehicle[f]`` lists (type, oriented points_xy_vehicle (M, 2)) of frame ``frames[f]``
-    in upload order of that frame; observations refer to (frame, index in that list).
-    ``poses_xyyaw`` (N, 3) smoothed world_T_vehicle, ``travel_m`` (N,) path length.
-    Returns every track (finished or not), in creation order.
+    ``poses_xyyaw`` (N, 3) smoothed world_T_vehicle, ``travel_m`` (N,) path length, ``elements``
+    the trip's per-frame PerceivedElement tuples. Returns the pieces and the tracks (connected
+    components of the links), each with its pieces and distinct tracked frames.
     """
     k = params.TRACK_RESAMPLE_POINTS
     cap = params.TRACK_DISTANCE_CAP_M
-    tracks: list[Track] = []
-    live: dict[ElementType, list[int]] = {}
-    for f, frame in enumerate(frames):
-        elems = elements_vehicle[f]
-        if not elems:
+    ext = params.TRACK_MAX_EXTRAPOLATION_M
+    pc = collect_pieces(frames, poses_xyyaw, elements, k)
+    q = len(pc.frame)
+    if q == 0:
+        return pc, []
+    n_types = len(TYPE_CODES)
+    key = pc.frame * n_types + pc.type_code  # pieces are in (frame, upload) order
+    order = np.argsort(key, kind="stable")
+    keys_sorted = key[order]
+    rows, cols = [], []
+
+    # 1. pieces of one element within a frame: collinear within the merge gate
+    a, b_sorted = _pairs_between(keys_sorted, key, np.arange(q))
+    b = order[b_sorted]
+    m = a < b
+    a, b = a[m], b[m]
+    m = _coarse_near(pc.points_w, a, b, ext, params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
+                     np.cos(params.TRACK_MAX_ANGLE_RAD))
+    a, b = a[m], b[m]
+    if len(a):
+        d_ab = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
+        d_ba = pair_distance(pc.points_w[a], pc.points_w[b], ext, cap).mean(1)
+        m = np.minimum(d_ab, d_ba) <= params.TRACK_MERGE_GATE_M
+        rows.append(a[m])
+        cols.append(b[m])
+
+    # 2. links to the next tracked frames: best successor and best predecessor within the gate
+    pa, pb, pcost = [], [], []
+    for skip in range(1, params.TRACK_MAX_SKIP_FRAMES + 1):
+        a, b_sorted = _pairs_between(keys_sorted, key + skip * n_types, np.arange(q))
+        b = order[b_sorted]
+        if len(a) == 0:
             continue
-        pose = poses_xyyaw[frame]
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        rot = np.array([[c, -s], [s, c]])
-        by_type: dict[ElementType, list[int]] = {}
-        for j, (etype, _) in enumerate(elems):
-            by_type.setdefault(etype, []).append(j)
-        for etype, pieces in by_type.items():
-            # pieces of one element in this frame (dashes, a divider split where its style
-            # changes) form one detection: group pieces collinear within the merge gate
-            pieces_v = resample_polylines([elems[j][1] for j in pieces], k)  # (D,k,2) vehicle
-            groups = group_collinear(pieces_v, params.TRACK_MERGE_GATE_M, params.TRACK_MAX_EXTRAPOLATION_M, cap)
-            idx = [[pieces[g] for g in grp] for grp in groups]
-            dets_v = np.stack([pieces_v[grp[0]] if len(grp) == 1 else
-                               _union_resampled([elems[j][1] for j in members], k)
-                               for grp, members in zip(groups, idx, strict=True)])
-            dets_w = dets_v @ rot.T + pose[:2]
-            live_ids = [t for t in live.get(etype, [])
-                        if travel_m[frame] - tracks[t].last_travel_m <= params.TRACK_MAX_MISSED_M]
-            assigned: dict[int, list[int]] = {}
-            unassigned = list(range(len(idx)))
-            if live_ids:
-                refs = np.stack([tracks[t].ref_world for t in live_ids])  # (T,k,2)
-                near = _near(refs, dets_w, params.TRACK_MAX_EXTRAPOLATION_M + cap)
-                chamfer = np.full((len(live_ids), len(idx)), _BIG)
-                rows_n, cols_n = np.flatnonzero(near.any(1)), np.flatnonzero(near.any(0))
-                if len(rows_n) and len(cols_n):
-                    dist = point_to_polyline_distance(dets_w[cols_n], refs[rows_n],
-                                                      params.TRACK_MAX_EXTRAPOLATION_M, cap)
-                    chamfer[np.ix_(rows_n, cols_n)] = dist.mean(axis=-1)
-                # pose uncertainty since the track was last seen widens the gate (odometry drift
-                # over that travel, lateral error of the yaw drift at half the BEV depth)
-                gap = np.array([travel_m[frame] - tracks[t].last_travel_m for t in live_ids])
-                sig_rel = params.ODOM_SIGMA_XY_PER_M * gap + params.ODOM_SIGMA_YAW_PER_M * gap * 15.0
-                gate = np.sqrt(params.TRACK_GATE_M**2 + (params.TRACK_GATE_SIGMAS * sig_rel) ** 2)
-                cost = chamfer.copy()
-                if etype in _LATERAL_TYPES and len(rows_n) and len(cols_n):
-                    refs_v = (refs[rows_n] - pose[:2]) @ rot
-                    along = np.abs(refs_v[:, -1, 0] - refs_v[:, 0, 0]) >= np.abs(refs_v[:, -1, 1] - refs_v[:, 0, 1])
-                    y_t = lateral_at_vehicle(refs_v)
-                    y_d = lateral_at_vehicle(dets_v[cols_n])
-                    dy = np.minimum(np.abs(y_t[:, None] - y_d[None, :]), cap)
-                    cost[np.ix_(rows_n, cols_n)] += params.TRACK_LATERAL_WEIGHT * np.where(along[:, None], dy, 0.0)
-                cost = np.where(chamfer <= gate[:, None], cost, _BIG)
-                rows, cols = linear_sum_assignment(cost)
-                for r, cidx in zip(rows, cols, strict=True):
-                    if cost[r, cidx] < _BIG:
-                        assigned.setdefault(live_ids[r], []).append(int(cidx))
-                taken = {d for v in assigned.values() for d in v}
-                unassigned = [d for d in range(len(idx)) if d not in taken]
-                # groups collinear with a matched track (missed grouping) join it
-                still = []
-                for d in unassigned:
-                    r = int(np.argmin(chamfer[:, d]))
-                    if chamfer[r, d] <= params.TRACK_MERGE_GATE_M and live_ids[r] in assigned:
-                        assigned[live_ids[r]].append(d)
-                    else:
-                        still.append(d)
-                unassigned = still
-            for t, ds in assigned.items():
-                tr = tracks[t]
-                for d in ds:
-                    tr.observations.extend((f, j) for j in idx[d])
-                tr.frames.append(f)
-                tr.last_travel_m = float(travel_m[frame])
-                if len(ds) == 1:
-                    tr.ref_world = dets_w[ds[0]]
-                else:
-                    members = [j for d in ds for j in idx[d]]
-                    tr.ref_world = _union_resampled([elems[j][1] for j in members], k) @ rot.T + pose[:2]
-            for d in unassigned:
-                tr = Track(type=etype, observations=[(f, j) for j in idx[d]], frames=[f], ref_world=dets_w[d],
-                           last_travel_m=float(travel_m[frame]))
-                tracks.append(tr)
-                live_ids.append(len(tracks) - 1)
-            live[etype] = live_ids
-    return tracks
+        m = _coarse_near(pc.points_w, a, b, ext, params.TRACK_GATE_M + params.TRACK_COARSE_MARGIN_M,
+                         np.cos(params.TRACK_MAX_ANGLE_RAD))
+        a, b = a[m], b[m]
+        if len(a) == 0:
+            continue
+        chamfer = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
+        # pose uncertainty over the travel between the frames widens the gate
+        gap_m = np.abs(travel_m[frames[pc.frame[b]]] - travel_m[frames[pc.frame[a]]])
+        sig_rel = params.ODOM_SIGMA_XY_PER_M * gap_m + params.ODOM_SIGMA_YAW_PER_M * gap_m * 15.0
+        gate = np.sqrt(params.TRACK_GATE_M ** 2 + (params.TRACK_GATE_SIGMAS * sig_rel) ** 2)
+        ok = chamfer <= gate
+        a, b, chamfer = a[ok], b[ok], chamfer[ok]
+        # lateral order: offsets at the vehicle of both pieces, in the later frame's vehicle frame
+        lat = _LATERAL_CODES[pc.type_code[a]]
+        cost = chamfer + 0.05 * (skip - 1)
+        if lat.any():
+            pose_b = poses_xyyaw[frames[pc.frame[b[lat]]]]
+            rel = pc.points_w[a[lat]] - pose_b[:, None, :2]
+            c, s = np.cos(pose_b[:, 2])[:, None], np.sin(pose_b[:, 2])[:, None]
+            a_in_b = np.stack([c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1]], -1)
+            along = np.abs(a_in_b[:, -1, 0] - a_in_b[:, 0, 0]) >= np.abs(a_in_b[:, -1, 1] - a_in_b[:, 0, 1])
+            dy = np.abs(lateral_at_vehicle(a_in_b) - lateral_at_vehicle(pc.points_v[b[lat]]))
+            cost[lat] += params.TRACK_LATERAL_WEIGHT * np.where(along, np.minimum(dy, cap), 0.0)
+        pa.append(a)
+        pb.append(b)
+        pcost.append(cost)
+    if pa:
+        a, b, cost = np.concatenate(pa), np.concatenate(pb), np.concatenate(pcost)
+        best_succ = np.full(q, np.inf)
+        np.minimum.at(best_succ, a, cost)
+        best_pred = np.full(q, np.inf)
+        np.minimum.at(best_pred, b, cost)
+        keep = (cost <= best_succ[a]) | (cost <= best_pred[b])
+        rows.append(a[keep])
+        cols.append(b[keep])
+
+    r = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+    c = np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64)
+    graph = coo_matrix((np.ones(len(r)), (r, c)), shape=(q, q))
+    n_comp, labels = connected_components(graph, directed=False)
+    by_label = np.argsort(labels, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(labels, minlength=n_comp))]
+    types = list(ElementType)
+    tracks = []
+    for i in range(n_comp):
+        members = by_label[bounds[i]:bounds[i + 1]]
+        tracks.append(Track(type=types[int(pc.type_code[members[0]])], pieces=members,
+                            frames=np.unique(pc.frame[members])))
+    return pc, tracks

@@ -20,6 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="bench-out", help="work folder: scenarios cache, runs, results.json")
     p.add_argument("--write", metavar="MARKDOWN", help="rewrite the bench section of this file (e.g. BENCHMARKS.md)")
     p.add_argument("--figures", default="docs/figures", help="where the PNG figures go")
+    p.add_argument("--reuse-runs", action="store_true",
+                   help="re-evaluate earlier successful runs found in --out instead of re-running them")
     p.add_argument("--methods", default="pipeline,gnss_only,roadmap_icp", help="comma-separated methods")
     p.set_defaults(func=_run)
 
@@ -39,7 +41,8 @@ def _run(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         records = run_bench(args.set_name, out_root, methods,
-                            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr))
+                            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr),
+                            reuse=args.reuse_runs)
     except CsrError as exc:
         print(f"csr bench: {exc}", file=sys.stderr)
         return 2

@@ -57,3 +57,31 @@ def test_no_trips_or_no_fix_raise():
 def test_params_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         PipelineParams().coarse = False  # type: ignore[misc]
+
+
+def test_outputs_round_trip_through_the_scenario_readers(tmp_path):
+    from csr_core.scenario import geo_features_to_local, read_map_geojson, read_poses_dir, write_reconstruction
+    from csr_core.se2 import wrap_angle
+
+    trips, *_ = make_toy_trips(SPEC)
+    recon = reconstruct(trips, PipelineParams(method=Method.GNSS_ONLY))
+    failed_key = trips[1].key
+    partial = dataclasses.replace(recon, poses_xyyaw_world={trips[0].key: recon.poses_xyyaw_world[trips[0].key]},
+                                  failed={failed_key: "test failure"})
+    write_reconstruction(partial, trips, tmp_path, {"extra": 1})
+    tracks = read_poses_dir(tmp_path / "poses")
+    assert list(tracks) == [trips[0].key]  # the failed trip has no CSV
+    frame = world_frame(trips)
+    xy = frame.to_local(tracks[trips[0].key].lonlat_deg)
+    np.testing.assert_allclose(xy, recon.poses_xyyaw_world[trips[0].key][:, :2], atol=1e-3)
+    yaw = np.pi / 2 - np.radians(tracks[trips[0].key].heading_deg)
+    assert np.abs(wrap_angle(yaw - recon.poses_xyyaw_world[trips[0].key][:, 2])).max() < 1e-5
+    feats = geo_features_to_local(read_map_geojson(tmp_path / "map.geojson"), frame)
+    assert len(feats) == len(recon.map_features)
+    for a, b in zip(feats, recon.map_features, strict=True):
+        assert a.type == b.type
+        np.testing.assert_allclose(a.points_xy_world, b.points_xy_world, atol=1e-3)
+    import json
+
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["failed"] == {failed_key: "test failure"} and report["trips_with_poses"] == 1

@@ -1,0 +1,48 @@
+# Everyday commands. `make serve` and `make test` set up what is missing first.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+HOST ?= 127.0.0.1
+PORT ?= 8000
+
+.PHONY: setup serve worker test test-unit test-integration lint bench-ingest clean-data
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $@
+
+# The embedded default: SQLite under ./data, jobs in-process; admin key from CSR_ADMIN_KEY or ./data/admin.key
+serve: setup
+	$(BIN)/csr serve --host $(HOST) --port $(PORT)
+
+# The distributed deployment's worker (needs CSR_DATABASE_URL and CSR_REDIS_URL)
+worker: setup
+	$(BIN)/csr worker
+
+test: setup
+	$(BIN)/python -m services.devsetup
+	$(BIN)/python -m pytest
+
+test-unit: setup
+	$(BIN)/python -m pytest -m unit
+
+test-integration: setup
+	$(BIN)/python -m services.devsetup
+	$(BIN)/python -m pytest -m integration
+
+lint: setup
+	$(BIN)/ruff check services workers migrations tests csr_core
+	$(BIN)/mypy
+
+# Ingest throughput (BENCHMARKS.md); the distributed row uses a scratch database on the local PostGIS
+bench-ingest: setup
+	$(BIN)/python -m services.devsetup
+	psql -h 127.0.0.1 -U postgres -qc 'DROP DATABASE IF EXISTS csr_bench' -c 'CREATE DATABASE csr_bench'
+	psql -h 127.0.0.1 -U postgres -d csr_bench -qc 'CREATE EXTENSION postgis'
+	CSR_BENCH_DATABASE_URL=postgresql+psycopg://postgres@127.0.0.1:5432/csr_bench $(BIN)/csr bench-ingest --write BENCHMARKS.md
+
+clean-data:
+	rm -rf data

@@ -1,0 +1,100 @@
+"""Single-trip pose smoothing (Eq. 2): known answers on hand-made trips."""
+
+import numpy as np
+import pytest
+
+from csr_core.errors import ReconstructionError
+from csr_core.geo import LocalFrame
+from csr_core.single_trip import reconstruct_trip
+from csr_core.single_trip.keyframes import select_keyframes
+from csr_core.single_trip.params import DEFAULT
+from csr_core.single_trip.pose_graph import estimate_latency_s, integrate_increments, smooth_poses
+from csr_core.single_trip.synthetic import SynthSpec, make_trip
+from csr_core.types import GnssStatus
+
+pytestmark = pytest.mark.unit
+
+
+def _smooth(trip, frame):
+    xy = frame.to_local(trip.gnss_lonlat_deg)
+    return smooth_poses(trip.timestamps_s, xy, trip.gnss_status, trip.gnss_std_m, trip.gnss_heading_deg,
+                        trip.odom_xyyaw, DEFAULT), xy
+
+
+def test_local_frame_round_trip_is_far_below_a_millimetre():
+    rng = np.random.default_rng(1)
+    frame = LocalFrame(origin_lat=31.2, origin_lon=121.5)
+    xy = rng.uniform(-5000, 5000, size=(1000, 2))
+    back = frame.to_local(frame.to_lonlat(xy))
+    assert np.abs(back - xy).max() < 1e-6
+
+
+def test_noiseless_trip_reproduces_the_truth():
+    trip, true, frame = make_trip(SynthSpec(length_m=300.0, gnss_sigma_m=0.0, curvature_1pm=0.004))
+    smoothed, _ = _smooth(trip, frame)
+    err = np.linalg.norm(smoothed.poses_xyyaw_world[:, :2] - true[:, :2], axis=1)
+    assert err.max() < 1e-3
+    yaw_err = np.angle(np.exp(1j * (smoothed.poses_xyyaw_world[:, 2] - true[:, 2])))
+    assert np.abs(yaw_err).max() < 1e-4
+
+
+def test_straight_drive_is_not_bent_by_a_gnss_jump():
+    # 8 m jump for 10 s on a straight 600 m drive with 0.3 m GNSS noise
+    spec = SynthSpec(length_m=600.0, gnss_sigma_m=0.3, gnss_jumps=((200, 300, 6.0, -5.3),), seed=3)
+    trip, true, frame = make_trip(spec)
+    smoothed, gnss_xy = _smooth(trip, frame)
+    err = np.linalg.norm(smoothed.poses_xyyaw_world[:, :2] - true[:, :2], axis=1)
+    raw = np.linalg.norm(gnss_xy - true[:, :2], axis=1)
+    assert raw[200:301].min() > 6.0
+    assert err[200:301].max() < 0.5
+    assert not smoothed.gnss_inlier[200:301].any()
+    assert smoothed.gnss_inlier[:190].mean() > 0.95
+
+
+def test_gnss_outage_is_bridged_by_odometry():
+    spec = SynthSpec(length_m=600.0, gnss_sigma_m=0.2, gnss_outages=((250, 400),), curvature_1pm=0.002,
+                     odom_sigma_per_m=0.002, seed=4)
+    trip, true, frame = make_trip(spec)
+    assert (trip.gnss_status[250:401] == GnssStatus.NONE).all()
+    smoothed, _ = _smooth(trip, frame)
+    err = np.linalg.norm(smoothed.poses_xyyaw_world[:, :2] - true[:, :2], axis=1)
+    assert err[250:401].max() < 0.5
+    # the marginal sigma grows inside the outage and is largest in its middle
+    sig = smoothed.sigma_xy_m
+    assert sig[325] > sig[200] and sig[325] > sig[450]
+
+
+def test_trip_without_fix_raises():
+    spec = SynthSpec(length_m=100.0, gnss_outages=((0, 10_000),))
+    trip, _, frame = make_trip(spec)
+    with pytest.raises(ReconstructionError):
+        reconstruct_trip(trip, frame)
+
+
+def test_latency_and_odometry_scale_are_recovered():
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 200.0, 0.1)
+    # a winding drive with speed changes: latency is visible where the velocity changes
+    speed = 8.0 + 4.0 * np.sin(t / 15.0)
+    yaw = 0.6 * np.sin(t / 20.0)
+    incr = np.column_stack([speed * 0.1, np.zeros_like(t), np.r_[np.diff(yaw), 0.0]])[:-1]
+    true = integrate_increments(np.zeros(3), incr)
+    latency = 0.12
+    gnss = np.column_stack([np.interp(t - latency, t, true[:, 0]), np.interp(t - latency, t, true[:, 1])])
+    gnss += rng.normal(scale=0.05, size=gnss.shape)
+    odom = integrate_increments(np.zeros(3), incr * [1.01, 1.01, 1.0])
+    lat, scale = estimate_latency_s(t, odom, gnss, np.ones(len(t), bool), 20.0, 0.5)
+    assert lat == pytest.approx(latency, abs=0.01)
+    assert scale == pytest.approx(1 / 1.01, abs=5e-4)
+
+
+def test_keyframes_by_distance_and_time():
+    t = np.arange(0.0, 60.0, 0.1)
+    x = np.where(t < 30.0, t * 10.0, 300.0)  # drives 300 m, then stands 30 s
+    poses = np.column_stack([x, np.zeros_like(t), np.zeros_like(t)])
+    kf = select_keyframes(poses, t, distance_m=5.0, period_s=5.0)
+    moving = kf[t[kf] < 30.0]
+    assert np.allclose(np.diff(x[moving]), 5.0, atol=1.01)
+    standing = kf[t[kf] > 30.5]
+    assert np.allclose(np.diff(t[standing]), 5.0, atol=0.11)
+    assert kf[0] == 0 and kf[-1] == len(t) - 1
