@@ -12,10 +12,9 @@ scenario's :class:`csr_core.geo.LocalFrame` (tmerc centred on the scenario origi
 - Coverage: ``trips_with_poses / trips``; failed trips are left out of ATE and RPE.
 - Map, per element type: samples every 0.5 m along lines and along polygon outlines; truth
   samples kept only within 15 m of some true trajectory frame. Distances go to the other side's
-  polylines / outlines: exact point-to-segment distances (candidates from a cKDTree over the
-  other side's segments cut into 0.5 m pieces, a proof of exactness per point, shapely's exact
-  STRtree for the rest; see :func:`distances_to_segments`). Capped at 1 m; an empty side counts
-  as the cap.
+  polylines / outlines: exact point-to-segment distances, vectorized (candidate pairs from a
+  cKDTree over the other side's segments cut into short pieces; see
+  :func:`distances_to_segments`). Capped at 1 m; an empty side counts as the cap.
   CD = 0.5 (mean_pred min(d, 1) + mean_truth min(d, 1)); completeness = share of truth samples
   within 0.5 m of the prediction, correctness = share of predicted samples within 0.5 m of truth;
   mCD = mean CD over lane_divider, centerline, road_boundary.
@@ -36,7 +35,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import shapely
 from scipy.spatial import cKDTree
 
 from csr_core.types import ElementType, MapFeature
@@ -168,29 +166,62 @@ def _as_chains(features: Sequence[MapFeature]) -> list[np.ndarray]:
     return chains
 
 
-def _sample_distances(length_m: float, closed: bool, step_m: float) -> np.ndarray:
-    d = np.arange(0.0, length_m, step_m) if length_m > 0 else np.zeros(1)
-    if not closed and length_m - d[-1] > 1e-9:
-        d = np.append(d, length_m)
-    return d
+@dataclass(frozen=True, slots=True)
+class _FlatChains:
+    """All chains in one array: ``vertices (V, 2)``, ``chain (V,)`` ids, and a global arc length
+    ``s (V,)`` that grows along each chain and jumps by 1 m between chains (so interpolating by
+    ``s`` never crosses from one chain into the next)."""
+
+    vertices: np.ndarray
+    chain: np.ndarray
+    s: np.ndarray
+    start_s: np.ndarray  # (C,)
+    length_m: np.ndarray  # (C,)
+    closed: np.ndarray  # (C,) bool
+
+    def at(self, s_query: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(s_query, self.s, self.vertices[:, 0]),
+                                np.interp(s_query, self.s, self.vertices[:, 1])])
 
 
-def _interp_chain(chain: np.ndarray, s_chain: np.ndarray, d: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(d, s_chain, chain[:, 0]), np.interp(d, s_chain, chain[:, 1])])
+def _flatten(features: Sequence[MapFeature]) -> _FlatChains | None:
+    feats = [f for f in features if len(f.points_xy_world)]
+    chains = _as_chains(feats)
+    if not chains:
+        return None
+    sizes = np.array([len(c) for c in chains])
+    vertices = np.concatenate(chains)
+    chain = np.repeat(np.arange(len(chains)), sizes)
+    steps = np.linalg.norm(np.diff(vertices, axis=0), axis=1)
+    steps[chain[1:] != chain[:-1]] = 1.0  # gap between chains
+    s = np.concatenate([[0.0], np.cumsum(steps)])
+    first = np.cumsum(sizes) - sizes
+    last = first + sizes - 1
+    closed = np.array([f.type.is_polygon and len(f.points_xy_world) > 2 for f in feats])
+    return _FlatChains(vertices, chain, s, s[first], s[last] - s[first], closed)
 
 
-def _arc_length(chain: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(chain, axis=0), axis=1))])
+def _sample_positions(flat: _FlatChains, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Global arc positions of the samples every ``step_m`` (open lines: both ends; closed
+    outlines: the closing point not repeated) and their chain ids."""
+    length = flat.length_m
+    n_regular = np.where(length > 0, np.ceil(length / step_m - 1e-12), 1).astype(int)
+    n_regular = np.maximum(n_regular, 1)
+    add_end = ~flat.closed & (length - (n_regular - 1) * step_m > 1e-9)
+    counts = n_regular + add_end
+    chain = np.repeat(np.arange(len(length)), counts)
+    k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    d = np.minimum(k * step_m, length[chain])  # the extra end sample lands on the length
+    return flat.start_s[chain] + d, chain
 
 
 def sample_features(features: Sequence[MapFeature], step_m: float = SAMPLE_STEP_M) -> np.ndarray:
     """``(S, 2)`` samples every ``step_m`` along each line (both ends included) and along each
     polygon outline (closing point not repeated)."""
-    out = []
-    for f, chain in zip((f for f in features if len(f.points_xy_world)), _as_chains(features), strict=False):
-        s = _arc_length(chain)
-        out.append(_interp_chain(chain, s, _sample_distances(s[-1], f.type.is_polygon, step_m)))
-    return np.concatenate(out) if out else np.zeros((0, 2))
+    flat = _flatten(features)
+    if flat is None:
+        return np.zeros((0, 2))
+    return flat.at(_sample_positions(flat, step_m)[0])
 
 
 def _segments(chains: Sequence[np.ndarray]) -> np.ndarray:
@@ -222,19 +253,20 @@ def _point_segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.
     return np.linalg.norm(a + t[..., None] * ab - p, axis=-1)
 
 
-PIECE_M = 0.5
-K_CANDIDATES = (4, 24)  # candidates per point: first try, second try
+PIECE_M = 2.0  # segments are cut into pieces no longer than this for the candidate search
+K_FAST = 4  # nearest pieces tried first
 
 
 def distances_to_segments(points_xy: np.ndarray, segments: np.ndarray, cap_m: float = CD_CAP_M) -> np.ndarray:
     """``(S,)`` exact distance of each point to the nearest of ``segments (K, 2, 2)``, capped at
     ``cap_m`` (also the value for an empty segment set).
 
-    Segments are split into pieces <= 0.5 m; a cKDTree over piece midpoints gives each point its
-    k nearest pieces, whose exact point-to-segment distances are taken. That is exact whenever
-    the k-th candidate's midpoint is farther than the best distance found plus half a piece
-    (every unexamined piece is then farther). Points where that cannot be shown try again with
-    more candidates, and the rest go through shapely's exact ``STRtree.query_nearest``.
+    Segments are cut into pieces <= 2 m and indexed by their midpoints (cKDTree). First each
+    point tries its 4 nearest pieces; that is provably exact when the 4th midpoint is farther
+    than the best distance found plus half a piece. The other points (dense places: many lines
+    or copies close by) take every piece whose midpoint lies within ``cap_m`` + half a piece
+    (``sparse_distance_matrix``), which contains every piece within ``cap_m``. Exact either way
+    (``tests/unit/test_metrics.py`` checks it against shapely) and vectorized.
     """
     points_xy = np.asarray(points_xy, float).reshape(-1, 2)
     out = np.full(len(points_xy), cap_m)
@@ -242,28 +274,25 @@ def distances_to_segments(points_xy: np.ndarray, segments: np.ndarray, cap_m: fl
         return out
     pieces = _split_segments(np.asarray(segments, float), PIECE_M)
     half = 0.5 * float(np.linalg.norm(pieces[:, 1] - pieces[:, 0], axis=1).max())
+    radius = cap_m + half + 1e-9
     tree_mid = cKDTree(pieces.mean(axis=1))
-    unsure = np.ones(len(points_xy), bool)
-    for k_try in K_CANDIDATES:
-        k = min(k_try, len(pieces))
-        sel = np.flatnonzero(unsure)
-        mid_d, mid_i = tree_mid.query(points_xy[sel], k=k, distance_upper_bound=cap_m + half)
-        mid_d, mid_i = mid_d.reshape(len(sel), k), mid_i.reshape(len(sel), k)
-        valid = mid_i < len(pieces)
-        safe_i = np.where(valid, mid_i, 0)
-        d = _point_segment_distances(points_xy[sel, None, :], pieces[safe_i, 0], pieces[safe_i, 1])
-        best = np.minimum(np.where(valid, d, np.inf).min(axis=1), cap_m)
-        out[sel] = best
-        unsure[sel] = valid[:, -1] & (mid_d[:, -1] - half < best)
-        if not unsure.any():
-            break
-    if unsure.any():
-        tree = shapely.STRtree(shapely.linestrings(segments))
-        idx, dist = tree.query_nearest(shapely.points(points_xy[unsure]), max_distance=cap_m,
-                                       return_distance=True, all_matches=False)
-        exact = np.full(int(unsure.sum()), cap_m)
-        exact[idx[0]] = np.minimum(dist, cap_m)
-        out[unsure] = exact
+    # Fast path: the k nearest piece midpoints. Exact for a point whenever the k-th midpoint is
+    # farther than (best distance found + half a piece): every other piece is then farther.
+    k = min(K_FAST, len(pieces))
+    mid_d, mid_i = tree_mid.query(points_xy, k=k, distance_upper_bound=radius)
+    mid_d, mid_i = mid_d.reshape(len(points_xy), k), mid_i.reshape(len(points_xy), k)
+    valid = mid_i < len(pieces)
+    safe = np.where(valid, mid_i, 0)
+    d = _point_segment_distances(points_xy[:, None, :], pieces[safe, 0], pieces[safe, 1])
+    out = np.minimum(np.where(valid, d, np.inf).min(axis=1), cap_m)
+    unsure = np.flatnonzero(valid[:, -1] & (mid_d[:, -1] - half < out))
+    if len(unsure):
+        # Dense places (many lines or copies near a point): every pair within the radius.
+        pairs = cKDTree(points_xy[unsure]).sparse_distance_matrix(tree_mid, radius, output_type="ndarray")
+        i, j = pairs["i"], pairs["j"]
+        best = np.full(len(unsure), cap_m)
+        np.minimum.at(best, i, _point_segment_distances(points_xy[unsure][i], pieces[j, 0], pieces[j, 1]))
+        out[unsure] = np.minimum(out[unsure], best)
     return out
 
 
@@ -277,29 +306,26 @@ def truth_in_corridor(features: Sequence[MapFeature], true_frames_xy: np.ndarray
     made of the samples and the original vertices (so it lies exactly on the truth polylines).
     """
     true_frames_xy = np.asarray(true_frames_xy, float).reshape(-1, 2)
-    if len(true_frames_xy) == 0 or not features:
+    flat = _flatten(features)
+    if len(true_frames_xy) == 0 or flat is None:
         return np.zeros((0, 2)), np.zeros((0, 2, 2))
-    tree = cKDTree(true_frames_xy)
-    samples_out, segs_out = [], []
-    for f, chain in zip((f for f in features if len(f.points_xy_world)), _as_chains(features), strict=False):
-        s = _arc_length(chain)
-        d_samples = _sample_distances(s[-1], f.type.is_polygon, step_m)
-        d_all = np.concatenate([d_samples, s])
-        is_sample = np.concatenate([np.ones(len(d_samples), bool), np.zeros(len(s), bool)])
-        order = np.argsort(d_all, kind="stable")
-        d_all, is_sample = d_all[order], is_sample[order]
-        pts = _interp_chain(chain, s, d_all)
-        near = np.isfinite(tree.query(pts, distance_upper_bound=corridor_m + 1e-9)[0])
-        samples_out.append(pts[is_sample & near])
-        both = near[:-1] & near[1:]
-        if both.any():
-            segs_out.append(np.stack([pts[:-1][both], pts[1:][both]], axis=1))
-        elif near.any():
-            keep = pts[near]
-            segs_out.append(np.stack([keep, keep], axis=1))
-    samples = np.concatenate(samples_out) if samples_out else np.zeros((0, 2))
-    segs = np.concatenate(segs_out) if segs_out else np.zeros((0, 2, 2))
-    return samples, segs
+    sample_s, sample_chain = _sample_positions(flat, step_m)
+    all_s = np.concatenate([sample_s, flat.s])
+    all_chain = np.concatenate([sample_chain, flat.chain])
+    is_sample = np.concatenate([np.ones(len(sample_s), bool), np.zeros(len(flat.s), bool)])
+    order = np.lexsort((all_s, all_chain))
+    all_s, all_chain, is_sample = all_s[order], all_chain[order], is_sample[order]
+    pts = flat.at(all_s)
+    near = np.isfinite(cKDTree(true_frames_xy).query(pts, distance_upper_bound=corridor_m + 1e-9)[0])
+    link = near[:-1] & near[1:] & (all_chain[:-1] == all_chain[1:])
+    segs = np.stack([pts[:-1][link], pts[1:][link]], axis=1)
+    linked = np.zeros(len(pts), bool)
+    linked[:-1] |= link
+    linked[1:] |= link
+    alone = near & ~linked  # a kept point with no kept neighbour: a zero-length segment
+    if alone.any():
+        segs = np.concatenate([segs, np.stack([pts[alone], pts[alone]], axis=1)])
+    return pts[is_sample & near], segs
 
 
 @dataclass(frozen=True, slots=True)

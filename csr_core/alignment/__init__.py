@@ -97,6 +97,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     matches: list[PairMatch] = []
     pairs: list[tuple[int, int]] = []
     inlier = np.zeros(0, bool)
+    prior_shifts: list[float] = []
     if params.coarse:
         # 1. sub-map splitting, and matching pairs with other trips and the pre-built map (Fig. 4)
         circles, submaps = split_submaps(trips, params)
@@ -110,6 +111,8 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         # 3. incremental pose graph optimisation with adaptive weights (Eq. 9-12)
         graph = optimize_submap_poses(trips, submaps, matches, params)
         inlier = graph.registration_inlier
+        prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
+                        for s in submaps if s.is_prior]
         # 4. sub-map poses -> pose of every frame
         for k, t in enumerate(trips):
             poses[t.trip.key] = frame_poses_from_submaps(t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw)
@@ -128,6 +131,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         {k: v for k, v in poses.items() if k not in failed}, failed, records, residuals,
         {"timings": timings, "n_submaps": len(submaps), "n_candidate_pairs": len(pairs),
          "n_matches": len(matches), "n_pose_graph_inliers": int(inlier.sum()),
+         "prior_patch_shifts_m": prior_shifts,
          "unaligned_poses": {k: poses[k] for k in failed}},
     )
 

@@ -115,8 +115,17 @@ def node_similarity(a: ElementSet, b: ElementSet, noise: NoiseScales, params: Al
     d_o = 1.0 - overlap_matrix(a, b)
     w = params.node_position_weight
     s = w * np.exp(-0.5 * (d_p / noise.sigma_p_m) ** 2) + (1 - w) * np.exp(-0.5 * (d_o / params.sigma_o) ** 2)
-    same = np.asarray(a.types)[:, None] == np.asarray(b.types)[None, :]
-    return np.where(same, s, 0.0)
+    return np.where(same_type(a, b), s, 0.0)
+
+
+_CODES = {t: n for n, t in enumerate(ElementType)}
+
+
+def same_type(a: ElementSet, b: ElementSet) -> np.ndarray:
+    """``(n_a, n_b)`` bool. (Compare integer codes: ``np.asarray`` of str-enums truncates.)"""
+    ca = np.array([_CODES[t] for t in a.types], int)
+    cb = np.array([_CODES[t] for t in b.types], int)
+    return ca[:, None] == cb[None, :]
 
 
 def element_distances(a: ElementSet) -> np.ndarray:

@@ -14,14 +14,19 @@ import numpy as np
 
 from csr_core.types import ElementNoise, ElementType, GnssStatus, TripReconstruction
 
-#: Eq. 11's M_table: weight of a GNSS fix by receiver status (best 1.0, none 0.0).
-DEFAULT_GNSS_STATUS_WEIGHTS: dict[int, float] = {
-    int(GnssStatus.RTK_FIXED): 1.0,
-    int(GnssStatus.RTK_FLOAT): 0.6,
-    int(GnssStatus.DGPS): 0.35,
-    int(GnssStatus.SINGLE): 0.2,
-    int(GnssStatus.NONE): 0.0,
+#: Typical horizontal accuracy per fix status (metres, per axis), as published for automotive
+#: receivers (RTK fixed a few cm, float decimetres, DGPS sub-metre, single metre-level).
+TYPICAL_GNSS_SIGMA_M: dict[int, float] = {
+    int(GnssStatus.RTK_FIXED): 0.05,
+    int(GnssStatus.RTK_FLOAT): 0.3,
+    int(GnssStatus.DGPS): 0.7,
+    int(GnssStatus.SINGLE): 1.5,
 }
+#: Eq. 11's M_table: weight of a fix by receiver status, the inverse variance relative to
+#: ``gnss_sigma_base_xy_m`` (1 m), so that the absolute position is the information-weighted
+#: mean of the trips' fixes; no fix weighs nothing.
+DEFAULT_GNSS_STATUS_WEIGHTS: dict[int, float] = {s: (1.0 / v) ** 2 for s, v in TYPICAL_GNSS_SIGMA_M.items()} | {
+    int(GnssStatus.NONE): 0.0}
 
 #: used when a trip reports no noise for a type (metres)
 FALLBACK_LATERAL_SIGMA_M = 0.15
@@ -70,7 +75,7 @@ class AlignmentParams:
 
     # --- registration (GNC-TLS) -------------------------------------------------------------
     gnc_inlier_k: float = 3.0  # TLS threshold = k * point sigma
-    gnc_max_outer: int = 10
+    gnc_max_outer: int = 25
     min_matched_elements: int = 2
     max_registration_rms_k: float = 3.0
     degenerate_sigma_xy_m: float = 5.0  # regulariser on unobservable directions

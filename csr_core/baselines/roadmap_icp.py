@@ -8,8 +8,10 @@ it does not converge, under 30 % inliers, or a correction over 3 m / 5 deg). Eac
 correction becomes the displacement of the chunk's middle frame; displacements and yaw are
 interpolated along the trip (no jumps at chunk borders) and added to its poses; the trip's
 elements are re-placed with the corrected poses and its points join the map. The first trip,
-and any chunk over new ground, keeps its GNSS placement, so the map inherits the first trips'
-GNSS error (the order dependence RoadMap-style accumulation has).
+and any chunk over new ground, keeps its GNSS placement. Chained registration anchors every
+trip to the first trips' GNSS error; a last step (:func:`gnss_gauge`) moves all registered
+trips together to where GNSS puts them on average (measured: without it this baseline was
+worse than GNSS-only on every standard world).
 
 Registration library: **small_gicp** (``small_gicp.align``, ``registration_type="ICP"``). Why:
 it is maintained (2024-), by the author of interactive_slam (the tool the paper's human
@@ -27,6 +29,7 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from csr_core.baselines.gnss_only import gnss_only_poses
 from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M, fuse_naively, place_pieces, stitch_pieces
@@ -45,6 +48,7 @@ ICP_MAX_CORRESPONDENCE_M = (1.5, 0.75)  # coarse pass, then fine pass (lanes are
 MIN_INLIER_SHARE = 0.3
 MAX_CORRECTION_XY_M = 3.0
 MAX_CORRECTION_YAW_RAD = np.radians(5.0)
+GAUGE_RADIUS_M = 45.0
 _TYPE_INDEX = {t: i for i, t in enumerate(ElementType)}
 
 
@@ -117,6 +121,39 @@ def _interpolate_corrections(poses_xyyaw: np.ndarray, anchors: list[tuple[int, n
     return out
 
 
+def gnss_gauge(poses_by_key: dict[str, np.ndarray], gnss_by_key: dict[str, np.ndarray],
+               radius_m: float = GAUGE_RADIUS_M) -> dict[str, np.ndarray]:
+    """Move the registered trips, together, to where GNSS puts them on average.
+
+    Registration fixes where trips lie *relative to each other*, but chaining trips onto the
+    accumulated map anchors everything to the first trips' GNSS error. GNSS errors average out
+    over trips, so the absolute placement is taken as the local mean of ``registered - GNSS``
+    over all frames of all trips (Gaussian weights, sigma ``radius_m / 3``, every 5th frame as
+    support) and subtracted: the gauge a pose graph with GNSS priors would choose.
+    """
+    keys = list(poses_by_key)
+    if len(keys) < 2:
+        return poses_by_key
+    pos = np.concatenate([poses_by_key[k][:, :2] for k in keys])
+    corr = np.concatenate([poses_by_key[k][:, :2] - gnss_by_key[k][:, :2] for k in keys])
+    support = np.arange(0, len(pos), 5)
+    pairs = cKDTree(pos).sparse_distance_matrix(cKDTree(pos[support]), radius_m, output_type="ndarray")
+    w = np.exp(-0.5 * (pairs["v"] / (radius_m / 3.0)) ** 2)
+    num = np.zeros((len(pos), 2))
+    np.add.at(num, pairs["i"], w[:, None] * corr[support][pairs["j"]])
+    den = np.zeros(len(pos))
+    np.add.at(den, pairs["i"], w)
+    mean_corr = num / np.maximum(den, 1e-12)[:, None]
+    out, start = {}, 0
+    for k in keys:
+        n = len(poses_by_key[k])
+        p = poses_by_key[k].copy()
+        p[:, :2] -= mean_corr[start : start + n]
+        out[k] = p
+        start += n
+    return out
+
+
 def reconstruct_roadmap_icp(trips: Sequence[Trip], frame: LocalFrame, chunk_length_m: float = CHUNK_LENGTH_M,
                             spacing_m: float = KEYFRAME_SPACING_M) -> Reconstruction:
     import small_gicp
@@ -156,6 +193,7 @@ def reconstruct_roadmap_icp(trips: Sequence[Trip], frame: LocalFrame, chunk_leng
         trip_points = semantic_points_xyz(stitch_pieces(place_pieces(trip, p, spacing_m)))
         map_xyz = _voxel_downsample(np.concatenate([map_xyz, trip_points]))
     log.info("roadmap_icp: %d of %d chunks registered", n_registered, n_chunks)
+    poses = gnss_gauge(poses, gnss_poses)
     return Reconstruction(
         origin_lat=frame.origin_lat,
         origin_lon=frame.origin_lon,

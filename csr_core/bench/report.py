@@ -47,7 +47,8 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         "registered to the map accumulated from earlier trips by point-to-point ICP from **small_gicp** "
         "(maintained, light numpy-only wheel, by the author of interactive_slam; Open3D would add several hundred MB for "
         "the same ICP). Element types are kept apart by giving each its own height. Chunk corrections are "
-        "interpolated along the trip; same naive fusion.",
+        "interpolated along the trip; finally all trips are moved together to their mean GNSS placement "
+        "(chained registration otherwise inherits the first trip's GNSS error); same naive fusion.",
         "",
         "Because the baselines keep one copy of an element per trip, truth-side distances see the nearest "
         "copy (completeness is optimistic) while every copy counts on the predicted side (correctness).",

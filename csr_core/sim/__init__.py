@@ -10,4 +10,12 @@ from csr_core.sim.scenario import simulate_scenario
 from csr_core.sim.world import TruthElement, World
 from csr_core.sim.worlds import WORLD_NAMES, load_world
 
-__all__ = ["World", "TruthElement", "Profile", "get_profile", "load_world", "simulate_scenario", "WORLD_NAMES"]
+__all__ = [
+    "World",
+    "TruthElement",
+    "Profile",
+    "get_profile",
+    "load_world",
+    "simulate_scenario",
+    "WORLD_NAMES",
+]

@@ -33,7 +33,7 @@ def resample(points_xy: np.ndarray, step_m: float) -> np.ndarray:
     return np.column_stack([np.interp(s_new, s, points_xy[:, 0]), np.interp(s_new, s, points_xy[:, 1])])
 
 
-def interpolate_at(points_xy: np.ndarray, s_m: np.ndarray) -> np.ndarray:
+def interpolate_at(points_xy: np.ndarray, s_m: np.ndarray | list[float]) -> np.ndarray:
     """Points ``(K, 2)`` at arclengths ``s_m (K,)`` along the polyline (clamped)."""
     points_xy = np.asarray(points_xy, float)
     s = arclength_m(points_xy)
@@ -69,7 +69,9 @@ def curvature_1pm(points_xy: np.ndarray) -> np.ndarray:
     return np.gradient(yaw, s)
 
 
-def bezier_cubic(p0: np.ndarray, t0: np.ndarray, p1: np.ndarray, t1: np.ndarray, step_m: float = 1.0) -> np.ndarray:
+def bezier_cubic(
+    p0: np.ndarray, t0: np.ndarray, p1: np.ndarray, t1: np.ndarray, step_m: float = 1.0
+) -> np.ndarray:
     """Cubic Bezier from ``p0`` leaving along unit tangent ``t0`` to ``p1`` arriving along ``t1``.
 
     The handle length is a third of the chord (gentle, near-circular for 90 deg turns).
@@ -91,7 +93,9 @@ def bezier_quadratic(p0: np.ndarray, control: np.ndarray, p1: np.ndarray, step_m
     return resample(pts, step_m)
 
 
-def arc(center_xy: np.ndarray, radius_m: float, start_rad: float, end_rad: float, step_m: float = 1.0) -> np.ndarray:
+def arc(
+    center_xy: np.ndarray, radius_m: float, start_rad: float, end_rad: float, step_m: float = 1.0
+) -> np.ndarray:
     """Circular arc from ``start_rad`` to ``end_rad`` (CCW if end > start)."""
     n = max(int(np.ceil(abs(end_rad - start_rad) * radius_m / step_m)), 2) + 1
     a = np.linspace(start_rad, end_rad, n)

@@ -72,8 +72,13 @@ def _in_zones(points_xy: np.ndarray, zones_xyr: np.ndarray) -> np.ndarray:
     return (d < zones_xyr[None, :, 2]).any(axis=1)
 
 
-def _events(mask: np.ndarray, rate_per_s: float, duration_s: tuple[float, float], dt_s: float,
-            rng: np.random.Generator) -> list[tuple[int, int]]:
+def _events(
+    mask: np.ndarray,
+    rate_per_s: float,
+    duration_s: tuple[float, float],
+    dt_s: float,
+    rng: np.random.Generator,
+) -> list[tuple[int, int]]:
     """Start/stop frame pairs of events that start (Poisson) at frames where ``mask`` holds."""
     if rate_per_s <= 0:
         return []
@@ -89,8 +94,12 @@ def _events(mask: np.ndarray, rate_per_s: float, duration_s: tuple[float, float]
 
 
 def simulate_gnss(
-    timestamps_s: np.ndarray, poses_xyyaw_world: np.ndarray, speed_mps: np.ndarray, params: GnssParams,
-    canyon_zones_xyr: np.ndarray, rng: np.random.Generator,
+    timestamps_s: np.ndarray,
+    poses_xyyaw_world: np.ndarray,
+    speed_mps: np.ndarray,
+    params: GnssParams,
+    canyon_zones_xyr: np.ndarray,
+    rng: np.random.Generator,
 ) -> GnssTrack:
     """Receiver output for a true trajectory ``poses_xyyaw_world (N, 3)`` at ``timestamps_s (N,)``."""
     n = len(timestamps_s)
@@ -100,7 +109,11 @@ def simulate_gnss(
     sigma_b = np.array([models[k].bias_sigma_m for k in range(4)])[status]
     sigma_w = np.array([models[k].white_sigma_m for k in range(4)])[status]
     tau = np.array([models[k].bias_tau_s for k in range(4)])[status]
-    latency = max(float(rng.normal(params.latency_mean_s, params.latency_sigma_s)), 0.0) if params.latency_sigma_s > 0 else params.latency_mean_s
+    latency = (
+        max(float(rng.normal(params.latency_mean_s, params.latency_sigma_s)), 0.0)
+        if params.latency_sigma_s > 0
+        else params.latency_mean_s
+    )
     true_xy = poses_xyyaw_world[:, :2]
     t_fix = timestamps_s - latency
     if params.latency_jitter_s > 0:
@@ -128,7 +141,9 @@ def simulate_gnss(
     course_deg = np.mod(np.degrees(np.arctan2(v_xy[:, 0], v_xy[:, 1])), 360.0)
     noise_deg = params.heading_sigma_deg_at_10mps * 10.0 / np.maximum(speed_mps, 1.0) * rng.standard_normal(n)
     heading = np.mod(course_deg + noise_deg, 360.0)
-    heading = np.where((speed_mps >= params.heading_min_speed_mps) & (status != GnssStatus.NONE), heading, np.nan)
+    heading = np.where(
+        (speed_mps >= params.heading_min_speed_mps) & (status != GnssStatus.NONE), heading, np.nan
+    )
     heading = np.where(heading >= 359.9995, 0.0, heading)  # stays < 360 after rounding
     std = np.where(status == GnssStatus.NONE, np.nan, std)
     return GnssTrack(position, status.astype(np.uint8), std, heading, position - true_xy)

@@ -62,7 +62,9 @@ def load_reference(folder: Path | None = None) -> Reference:
     return Reference(t, xy, ublox_t[inside], fix_xy[inside])
 
 
-def error_stats(t_s: np.ndarray, xy_m: np.ndarray, fix_t_s: np.ndarray, fix_xy_m: np.ndarray) -> dict[str, float]:
+def error_stats(
+    t_s: np.ndarray, xy_m: np.ndarray, fix_t_s: np.ndarray, fix_xy_m: np.ndarray
+) -> dict[str, float]:
     """Error figures of fixes against a reference track (interpolated at the fix times)."""
     ref = np.column_stack([np.interp(fix_t_s, t_s, xy_m[:, k]) for k in range(2)])
     vel = np.column_stack([np.interp(fix_t_s, t_s, np.gradient(xy_m[:, k], t_s)) for k in range(2)])
@@ -92,10 +94,14 @@ def error_stats(t_s: np.ndarray, xy_m: np.ndarray, fix_t_s: np.ndarray, fix_xy_m
     }
 
 
-def model_stats(ref: Reference, params: GnssParams, n_runs: int, seed: int = 0) -> dict[str, dict[str, float]]:
+def model_stats(
+    ref: Reference, params: GnssParams, n_runs: int, seed: int = 0
+) -> dict[str, dict[str, float]]:
     """Figures of the model's ``single`` status on the reference track: median and 5-95 % over runs."""
     single_only = dataclasses.replace(
-        params, initial_probs=(0.0, 0.0, 0.0, 1.0), transition_probs=tuple((0.0,) * 4 for _ in range(4)),
+        params,
+        initial_probs=(0.0, 0.0, 0.0, 1.0),
+        transition_probs=tuple((0.0,) * 4 for _ in range(4)),
     )
     t0 = max(ref.t_s[0], ref.fix_t_s[0])
     t = np.arange(t0, ref.t_s[-1], 1.0 / single_only.rate_hz)
@@ -105,7 +111,9 @@ def model_stats(ref: Reference, params: GnssParams, n_runs: int, seed: int = 0) 
     speed = np.linalg.norm(vel, axis=1)
     runs = []
     for k in range(n_runs):
-        g = simulate_gnss(t - t0, poses, speed, single_only, np.zeros((0, 3)), np.random.default_rng([seed, k]))
+        g = simulate_gnss(
+            t - t0, poses, speed, single_only, np.zeros((0, 3)), np.random.default_rng([seed, k])
+        )
         runs.append(error_stats(ref.t_s, ref.xy_m, t, g.position_xy_world))
     keys = runs[0].keys()
     return {

@@ -40,8 +40,11 @@ JOIN_TOL_M = 0.5
 CROSSWALK_DEPTH_M = 3.0
 
 _DIVIDER_STYLE = {
-    "dashed": DividerStyle.DASHED, "solid": DividerStyle.SOLID, "solid_solid": DividerStyle.DOUBLE,
-    "solid_dashed": DividerStyle.DOUBLE, "dashed_solid": DividerStyle.DOUBLE,
+    "dashed": DividerStyle.DASHED,
+    "solid": DividerStyle.SOLID,
+    "solid_solid": DividerStyle.DOUBLE,
+    "solid_dashed": DividerStyle.DOUBLE,
+    "dashed_solid": DividerStyle.DOUBLE,
 }
 _BOUNDARY_TYPES = ("curbstone", "road_border", "guard_rail")
 _MARKING_TYPES = ("zebra_marking", "pedestrian_marking")
@@ -85,24 +88,34 @@ def _midline(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 def karlsruhe(path: str | Path | None = None) -> World:
     """Parse the Lanelet2 example map into a :class:`World` (origin: centre of its nodes)."""
     root = ET.parse(path or osm_path()).getroot()
-    node_lonlat = {n.get("id"): (float(n.get("lon")), float(n.get("lat"))) for n in root.iter("node")}
+    node_lonlat = {
+        n.get("id", ""): (float(n.get("lon", "nan")), float(n.get("lat", "nan"))) for n in root.iter("node")
+    }
     frame = LocalFrame.around(np.array(list(node_lonlat.values())))
     ids = list(node_lonlat)
     xy_all = frame.to_local(np.array([node_lonlat[i] for i in ids]))
     node_xy = {i: xy_all[k] for k, i in enumerate(ids)}
     ways: dict[str, _Way] = {}
     for w in root.iter("way"):
-        refs = tuple(nd.get("ref") for nd in w.findall("nd"))
+        refs = tuple(nd.get("ref", "") for nd in w.findall("nd"))
         refs = tuple(r for r in refs if r in node_xy)
         if len(refs) < 2:
             continue
         t = _tags(w)
-        ways[w.get("id")] = _Way(w.get("id"), refs, np.array([node_xy[r] for r in refs]), t.get("type", ""), t.get("subtype", ""))
+        ways[w.get("id", "")] = _Way(
+            w.get("id", ""),
+            refs,
+            np.array([node_xy[r] for r in refs]),
+            t.get("type", ""),
+            t.get("subtype", ""),
+        )
 
     builder = WorldBuilder()
     for way in ways.values():  # file order: deterministic
         if way.type in ("line_thin", "line_thick"):
-            builder.add_element(ElementType.LANE_DIVIDER, way.xy, _DIVIDER_STYLE.get(way.subtype, DividerStyle.UNKNOWN))
+            builder.add_element(
+                ElementType.LANE_DIVIDER, way.xy, _DIVIDER_STYLE.get(way.subtype, DividerStyle.UNKNOWN)
+            )
         elif way.type in _BOUNDARY_TYPES:
             builder.add_element(ElementType.ROAD_BOUNDARY, way.xy)
         elif way.type == "stop_line":
@@ -114,7 +127,9 @@ def karlsruhe(path: str | Path | None = None) -> World:
         t = _tags(rel)
         if t.get("type") != "lanelet":
             continue
-        members = {m.get("role"): m.get("ref") for m in rel.findall("member") if m.get("type") == "way"}
+        members = {
+            m.get("role", ""): m.get("ref", "") for m in rel.findall("member") if m.get("type") == "way"
+        }
         left, right = ways.get(members.get("left", "")), ways.get(members.get("right", ""))
         if left is None or right is None:
             continue
@@ -131,7 +146,9 @@ def karlsruhe(path: str | Path | None = None) -> World:
         if way.type == "zebra_marking" and way.way_id not in paired_markings:
             line = geo.resample(way.xy, 0.5)
             half = CROSSWALK_DEPTH_M / 2.0
-            builder.add_element(ElementType.CROSSWALK, np.vstack([geo.offset(line, half), geo.offset(line, -half)[::-1]]))
+            builder.add_element(
+                ElementType.CROSSWALK, np.vstack([geo.offset(line, half), geo.offset(line, -half)[::-1]])
+            )
 
     # lanes: one per lanelet and direction
     lanes = []  # (lane id, left way, right way, left_xy, right_xy, reversed)
@@ -144,13 +161,22 @@ def karlsruhe(path: str | Path | None = None) -> World:
         side = d[0] * v[1] - d[1] * v[0]
         if side < 0:
             lxy, rxy, centre = lxy[::-1], rxy[::-1], centre[::-1]
-        width = float(np.median(np.linalg.norm(geo.interpolate_at(lxy, np.linspace(0, geo.arclength_m(lxy)[-1], 5))
-                                               - geo.interpolate_at(rxy, np.linspace(0, geo.arclength_m(rxy)[-1], 5)), axis=1)))
+        width = float(
+            np.median(
+                np.linalg.norm(
+                    geo.interpolate_at(lxy, np.linspace(0, geo.arclength_m(lxy)[-1], 5))
+                    - geo.interpolate_at(rxy, np.linspace(0, geo.arclength_m(rxy)[-1], 5)),
+                    axis=1,
+                )
+            )
+        )
         speed = HIGHWAY_SPEED_MPS if t.get("subtype") == "highway" else URBAN_SPEED_MPS
         lid = builder.add_lane(centre, speed, width, "lanelet_" + t.get("subtype", "road"))
         lanes.append((lid, left.way_id, right.way_id, lxy, rxy))
         if t.get("one_way", "yes") == "no":
-            rid = builder.add_lane(centre[::-1], speed, width, "lanelet_" + t.get("subtype", "road"), with_element=False)
+            rid = builder.add_lane(
+                centre[::-1], speed, width, "lanelet_" + t.get("subtype", "road"), with_element=False
+            )
             lanes.append((rid, right.way_id, left.way_id, rxy[::-1], lxy[::-1]))
 
     # successors: end of one lane meets the start of another (both bounds)
@@ -165,7 +191,7 @@ def karlsruhe(path: str | Path | None = None) -> World:
             if np.linalg.norm(olx[0] - lx[-1]) < JOIN_TOL_M and np.linalg.norm(orx[0] - rx[-1]) < JOIN_TOL_M:
                 builder.connect(lid, oid)
     # neighbours: a shared, non-solid bound between two lanes of the same direction
-    by_left = {}
+    by_left: dict[str, list[tuple[int, np.ndarray]]] = {}
     for lid, lw, _, lx, _ in lanes:
         by_left.setdefault(lw, []).append((lid, lx))
     for lid, _, rw, _, rx in lanes:

@@ -18,9 +18,22 @@ def simulate_odometry(
 ) -> tuple[np.ndarray, dict]:
     """``odom_xyyaw (N, 3)`` (metres, radians; odom frame) and the drawn per-trip errors."""
     n = len(timestamps_s)
-    scale_error = float(np.clip(rng.normal(0.0, params.scale_error_sigma), -3 * params.scale_error_sigma,
-                                3 * params.scale_error_sigma)) if params.scale_error_sigma > 0 else 0.0
-    yaw_bias_rad_s = float(np.radians(rng.normal(0.0, params.yaw_rate_bias_sigma_deg_s))) if params.yaw_rate_bias_sigma_deg_s > 0 else 0.0
+    scale_error = (
+        float(
+            np.clip(
+                rng.normal(0.0, params.scale_error_sigma),
+                -3 * params.scale_error_sigma,
+                3 * params.scale_error_sigma,
+            )
+        )
+        if params.scale_error_sigma > 0
+        else 0.0
+    )
+    yaw_bias_rad_s = (
+        float(np.radians(rng.normal(0.0, params.yaw_rate_bias_sigma_deg_s)))
+        if params.yaw_rate_bias_sigma_deg_s > 0
+        else 0.0
+    )
     inc = se2.between(poses_xyyaw_world[:-1], poses_xyyaw_world[1:])  # (N-1, 3) vehicle-frame increments
     dist = np.linalg.norm(inc[:, :2], axis=1)
     dt = np.diff(timestamps_s)

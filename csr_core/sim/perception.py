@@ -5,9 +5,11 @@ Per frame, every truth element inside the BEV range (vehicle frame x in ``range_
 - lines are resampled every ``point_spacing_m``; dashed dividers are reported dash by dash
   ("as seen": ``dash_length_m`` painted, ``dash_gap_m`` gap, phase fixed on the truth polyline,
   so the same dashes appear in every frame and every trip);
-- noise: a per-element offset (the same for all points of the element in that frame, i.e.
-  correlated along the element) plus white noise per point, both with sigma
-  ``base + per_m * distance``; road boundaries ``boundary_noise_factor`` times noisier;
+- noise: a per-frame BEV distortion (small yaw and longitudinal scale, common to all elements
+  of the frame), a per-element offset (the same for all points of the element: correlated
+  along it) made of a per-trip part (``track_bias_sigma_m``, the same in every frame) and a
+  per-frame part (sigma ``base + per_m * distance``), plus white noise per point (likewise);
+  road boundaries ``boundary_noise_factor`` times noisier;
 - missed detections (more likely far away), false positives (short spurious lines), ghosts (a
   divider/boundary copy shifted sideways by about one lane width for a few frames);
 - crosswalks are polygons clipped to the range (first point not repeated), stop lines short lines;
@@ -33,7 +35,12 @@ from csr_core.sim.profiles import PerceptionParams
 from csr_core.sim.world import World
 from csr_core.types import DividerStyle, ElementType
 
-_TYPE_CODES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+_TYPE_CODES = (
+    ElementType.LANE_DIVIDER,
+    ElementType.ROAD_BOUNDARY,
+    ElementType.CENTERLINE,
+    ElementType.STOP_LINE,
+)
 _DIVIDER, _BOUNDARY, _CENTERLINE, _STOP = range(4)
 _TYPE_NAMES = tuple(t.value for t in _TYPE_CODES)
 _GHOST_KEY, _FALSE_KEY = 1 << 28, 1 << 29
@@ -53,11 +60,20 @@ class TruthIndex:
     tree: cKDTree
     polygons_xy: tuple[np.ndarray, ...]  # world outlines
     polygon_centroids_xy: np.ndarray  # (Q, 2)
+    polygon_radius_m: np.ndarray  # (Q,) largest vertex distance from the centroid
     polygon_ids: np.ndarray  # (Q,)
+    polygon_vertices_xy: np.ndarray  # (V, 2) all outlines, concatenated
+    polygon_first_vertex: np.ndarray  # (Q,) index of each polygon's first vertex there
+    polygon_n_vertices: np.ndarray  # (Q,)
 
 
 def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
-    pts, elem, dash, types, styles, ids = [], [], [], [], [], []
+    pts: list[np.ndarray] = []
+    elem: list[np.ndarray] = []
+    dash: list[np.ndarray] = []
+    types: list[int] = []
+    styles: list[str | None] = []
+    ids: list[int] = []
     polys, poly_ids = [], []
     period = params.dash_length_m + params.dash_gap_m
     for e in world.elements:
@@ -90,6 +106,8 @@ def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
         pts.append(dense)
         elem.append(np.full(len(dense), k))
     points = np.vstack(pts) if pts else np.zeros((0, 2))
+    centroids = np.array([p.mean(axis=0) for p in polys]).reshape(-1, 2)
+    n_vertices = np.array([len(p) for p in polys], np.intp)
     return TruthIndex(
         points_xy=points,
         element_of_point=np.concatenate(elem) if elem else np.zeros(0, int),
@@ -99,14 +117,25 @@ def build_truth_index(world: World, params: PerceptionParams) -> TruthIndex:
         element_id=np.array(ids, int),
         tree=cKDTree(points if len(points) else np.zeros((1, 2))),
         polygons_xy=tuple(polys),
-        polygon_centroids_xy=np.array([p.mean(axis=0) for p in polys]).reshape(-1, 2),
+        polygon_centroids_xy=centroids,
+        polygon_radius_m=np.array(
+            [np.linalg.norm(p - c, axis=1).max() for p, c in zip(polys, centroids, strict=True)]
+        ),
         polygon_ids=np.array(poly_ids, int),
+        polygon_vertices_xy=np.vstack(polys) if polys else np.zeros((0, 2)),
+        polygon_first_vertex=(np.cumsum(n_vertices) - n_vertices).astype(np.intp),
+        polygon_n_vertices=n_vertices,
     )
 
 
-def _line_sigma(params: PerceptionParams, type_code: np.ndarray, dist_m: np.ndarray, offset: bool) -> np.ndarray:
-    base, per_m = (params.line_offset_base_m, params.line_offset_per_m) if offset else (
-        params.line_white_base_m, params.line_white_per_m)
+def _line_sigma(
+    params: PerceptionParams, type_code: np.ndarray, dist_m: np.ndarray, offset: bool
+) -> np.ndarray:
+    base, per_m = (
+        (params.line_offset_base_m, params.line_offset_per_m)
+        if offset
+        else (params.line_white_base_m, params.line_white_per_m)
+    )
     factor = np.where(type_code == _BOUNDARY, params.boundary_noise_factor, 1.0)
     return (base + per_m * dist_m) * factor
 
@@ -117,7 +146,9 @@ class _FramePerceiver:
     def __init__(self, index: TruthIndex, params: PerceptionParams, rng: np.random.Generator, n_frames: int):
         self.index, self.p, self.rng = index, params, rng
         self.salt = int(rng.integers(1, 1 << 30))
-        self.box = np.array([params.range_x_m[0], params.range_y_m[0], params.range_x_m[1], params.range_y_m[1]])
+        self.box = np.array(
+            [params.range_x_m[0], params.range_y_m[0], params.range_x_m[1], params.range_y_m[1]]
+        )
         self.far_m = float(np.hypot(max(abs(params.range_x_m[0]), params.range_x_m[1]), params.range_y_m[1]))
         self.subsample = max(int(round(params.point_spacing_m / params.dense_step_m)), 1)
         self.min_run = int(np.ceil(params.min_visible_m / params.dense_step_m)) + 1
@@ -129,7 +160,47 @@ class _FramePerceiver:
             self.ghost_event[i : i + n] = k
         self.ghost_side = rng.choice([-1.0, 1.0], size=max(len(starts), 1))
         self.ghost_target: dict[int, int] = {}
+        self.frame_yaw_rad = np.radians(params.frame_yaw_sigma_deg) * rng.standard_normal(n_frames)
+        self.frame_scale = params.frame_scale_sigma * rng.standard_normal(n_frames)
+        n_tracks = len(index.element_type) + len(index.polygons_xy)
+        self.track_bias = params.track_bias_sigma_m * rng.standard_normal((n_tracks, 2))
         self.false_count = 0
+
+    def _extend_to_range_edge(self, xv, yv, sel, elem, dash, starts, lengths, frame_of, poses_xyyaw) -> None:
+        """Move the first / last point of each visible piece onto the range edge where the truth
+        line continues outside (in place), so pieces end exactly at the BEV border."""
+        ix = self.index
+        n_points = len(ix.points_xy)
+        for end_idx, step in ((starts, -1), (starts + lengths - 1, 1)):
+            nb = sel[end_idx] + step
+            valid = (nb >= 0) & (nb < n_points)
+            nb_c = np.clip(nb, 0, n_points - 1)
+            valid &= (ix.element_of_point[nb_c] == elem[end_idx]) & (ix.dash_of_point[nb_c] == dash[end_idx])
+            k = end_idx[valid]
+            if k.size == 0:
+                continue
+            pose = poses_xyyaw[frame_of[k]]
+            c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+            d = ix.points_xy[nb_c[valid]] - pose[:, :2]
+            out = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+            inside = np.column_stack([xv[k], yv[k]])
+            delta = out - inside
+            # largest step from the inside point towards the outside one that stays in the box
+            t = np.ones(k.size)
+            for axis, lo, hi in ((0, self.box[0], self.box[2]), (1, self.box[1], self.box[3])):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t_hi = np.where(out[:, axis] > hi, (hi - inside[:, axis]) / delta[:, axis], 1.0)
+                    t_lo = np.where(out[:, axis] < lo, (lo - inside[:, axis]) / delta[:, axis], 1.0)
+                t = np.minimum(t, np.minimum(t_hi, t_lo))
+            t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, 1.0)
+            xv[k] = inside[:, 0] + t * delta[:, 0]
+            yv[k] = inside[:, 1] + t * delta[:, 1]
+
+    def _distort(self, xy: np.ndarray, frame_of: np.ndarray | int) -> np.ndarray:
+        """Per-frame BEV distortion: a small yaw (camera/IMU extrinsic jitter) and a longitudinal
+        scale (ground-plane pitch), ``xy (M, 2)`` vehicle frame."""
+        yaw, scale = self.frame_yaw_rad[frame_of], self.frame_scale[frame_of]
+        return np.column_stack([(1.0 + scale) * xy[:, 0] - yaw * xy[:, 1], xy[:, 1] + yaw * xy[:, 0]])
 
     def _score(self, dist_m: np.ndarray) -> np.ndarray:
         p = self.p
@@ -138,8 +209,13 @@ class _FramePerceiver:
             s = s + p.score_sigma * self.rng.standard_normal(len(dist_m))
         return np.round(np.clip(s, 0.05, 0.99), 3)
 
-    def lines(self, frames: np.ndarray, poses_xyyaw: np.ndarray, candidates: np.ndarray,
-              out: list[list[dict[str, Any]]]) -> None:
+    def lines(
+        self,
+        frames: np.ndarray,
+        poses_xyyaw: np.ndarray,
+        candidates: np.ndarray,
+        out: list[list[dict[str, Any]]],
+    ) -> None:
         """Perceive line elements for a batch of frames at once, appending to ``out[frame]``.
 
         ``candidates (T,)`` are dense truth point indices near each frame, ``frames (T,)`` their
@@ -164,6 +240,7 @@ class _FramePerceiver:
         starts = np.flatnonzero(np.concatenate([[True], brk]))
         n_runs = starts.size
         lengths = np.diff(np.append(starts, sel.size))
+        self._extend_to_range_edge(xv, yv, sel, elem, dash, starts, lengths, frame_of, poses_xyyaw)
         run_of = np.repeat(np.arange(n_runs), lengths)
         pos = np.arange(sel.size) - starts[run_of]
         keep = ((pos % self.subsample) == 0) | (pos == lengths[run_of] - 1)
@@ -174,12 +251,19 @@ class _FramePerceiver:
         run_dist = np.hypot(xv[mid], yv[mid])
         # which runs are reported
         report = lengths >= self.min_run
-        p_miss = np.where(run_type == _STOP, p.small_miss_prob,
-                          p.miss_prob_base + p.miss_prob_at_range_end * run_dist / self.far_m)
+        p_miss = np.where(
+            run_type == _STOP,
+            p.small_miss_prob,
+            p.miss_prob_base + p.miss_prob_at_range_end * run_dist / self.far_m,
+        )
         if p_miss.any():
             report &= rng.random(n_runs) >= p_miss
-        # noise: per-run offset (correlated along the element) + per-point white noise
-        xy = np.column_stack([xv, yv])
+        # noise: per-frame BEV distortion (yaw, longitudinal scale), per-element offset (correlated
+        # along the element; a per-trip part and a per-frame part), per-point white noise
+        xy = self._distort(np.column_stack([xv, yv]), frame_of)
+        if p.track_bias_sigma_m > 0:
+            factor = np.where(run_type == _BOUNDARY, p.boundary_noise_factor, 1.0)
+            xy += (self.track_bias[run_elem] * factor[:, None])[run_of]
         off_sigma = _line_sigma(p, run_type, run_dist, offset=True)
         if off_sigma.any():
             xy += (off_sigma[:, None] * rng.standard_normal((n_runs, 2)))[run_of]
@@ -191,7 +275,9 @@ class _FramePerceiver:
         kept_idx = np.flatnonzero(keep)
         bounds = np.searchsorted(run_of[kept_idx], np.arange(n_runs + 1)).tolist()
         kept_xy = xy[kept_idx]
-        style_wrong = (rng.random(n_runs) < p.style_error_prob) if p.style_error_prob > 0 else np.zeros(n_runs, bool)
+        style_wrong = (
+            (rng.random(n_runs) < p.style_error_prob) if p.style_error_prob > 0 else np.zeros(n_runs, bool)
+        )
         keys = ((ix.element_id[run_elem] * _DASH_KEYS + np.maximum(dash[starts], 0)) ^ self.salt).tolist()
         run_elem_l, run_type_l, run_frame_l = run_elem.tolist(), run_type.tolist(), run_frame.tolist()
         style_wrong_l = style_wrong.tolist()
@@ -212,12 +298,23 @@ class _FramePerceiver:
         if ghost_frames.size:
             for f in np.unique(run_frame[ghost_frames]).tolist():
                 in_f = np.flatnonzero(run_frame == f)
-                out[f].extend(self._ghost(f, run_elem[in_f], run_type[in_f], report[in_f], kept_xy,
-                                          np.asarray(bounds)[in_f], np.asarray(bounds)[in_f + 1]))
+                out[f].extend(
+                    self._ghost(
+                        f,
+                        run_elem[in_f],
+                        run_type[in_f],
+                        report[in_f],
+                        kept_xy,
+                        np.asarray(bounds)[in_f],
+                        np.asarray(bounds)[in_f + 1],
+                    )
+                )
 
     def _ghost(self, frame, run_elem, run_type, report, kept_xy, b0, b1) -> list[dict[str, Any]]:
         event = int(self.ghost_event[frame])
-        eligible = np.flatnonzero(report & ((run_type == _DIVIDER) | (run_type == _BOUNDARY)) & (b1 - b0 >= 2))
+        eligible = np.flatnonzero(
+            report & ((run_type == _DIVIDER) | (run_type == _BOUNDARY)) & (b1 - b0 >= 2)
+        )
         if event < 0 or eligible.size == 0:
             return []
         if event not in self.ghost_target:
@@ -242,7 +339,9 @@ class _FramePerceiver:
         p, rng = self.p, self.rng
         out = []
         for _ in range(count):
-            start = np.array([rng.uniform(self.box[0] + 5, self.box[2] - 5), rng.uniform(self.box[1] + 3, self.box[3] - 3)])
+            start = np.array(
+                [rng.uniform(self.box[0] + 5, self.box[2] - 5), rng.uniform(self.box[1] + 3, self.box[3] - 3)]
+            )
             a = rng.normal(0.0, 0.3)
             n = max(int(rng.uniform(*p.false_positive_length_m) / p.point_spacing_m), 1) + 1
             pts = start + np.arange(n)[:, None] * p.point_spacing_m * np.array([np.cos(a), np.sin(a)])
@@ -251,8 +350,10 @@ class _FramePerceiver:
             if len(pts) < 2:
                 continue
             is_divider = rng.random() < 0.7
-            item: dict[str, Any] = {"type": "lane_divider" if is_divider else "road_boundary",
-                                    "points": np.round(pts, 3).tolist()}
+            item: dict[str, Any] = {
+                "type": "lane_divider" if is_divider else "road_boundary",
+                "points": np.round(pts, 3).tolist(),
+            }
             if is_divider:
                 item["style"] = "dashed" if rng.random() < 0.5 else "solid"
             item["score"] = round(float(rng.uniform(*p.spurious_score)), 3)
@@ -261,45 +362,71 @@ class _FramePerceiver:
             out.append(item)
         return out
 
-    def polygons(self, pose: np.ndarray, candidates: np.ndarray) -> list[dict[str, Any]]:
+    def polygons(
+        self,
+        frames: np.ndarray,
+        poly_ids: np.ndarray,
+        poses_xyyaw: np.ndarray,
+        out: list[list[dict[str, Any]]],
+    ) -> None:
+        """Crosswalks for (frame, polygon) pairs near each other, appending to ``out[frame]``."""
         p, rng, ix = self.p, self.rng, self.index
-        out = []
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        for q in candidates.tolist():
-            d = ix.polygons_xy[q] - pose[:2]
-            v = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
-            below, above = v < self.box[:2], v > self.box[2:]
-            if below[:, 0].all() or below[:, 1].all() or above[:, 0].all() or above[:, 1].all():
-                continue  # entirely on one side of the range
-            if below.any() or above.any():
+        n_verts = ix.polygon_n_vertices[poly_ids]
+        first = np.cumsum(n_verts) - n_verts  # first vertex of each pair in the flat arrays
+        pair_of_v = np.repeat(np.arange(poly_ids.size), n_verts)
+        vidx = ix.polygon_first_vertex[poly_ids][pair_of_v] + np.arange(n_verts.sum()) - first[pair_of_v]
+        pose = poses_xyyaw[frames[pair_of_v]]
+        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+        d = ix.polygon_vertices_xy[vidx] - pose[:, :2]
+        v_all = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+        below, above = v_all < self.box[:2], v_all > self.box[2:]
+        outside = np.zeros(poly_ids.size, bool)
+        for side in (below[:, 0], below[:, 1], above[:, 0], above[:, 1]):
+            outside |= np.logical_and.reduceat(side, first)  # every vertex beyond one border
+        partial = np.logical_or.reduceat(below.any(axis=1) | above.any(axis=1), first)
+        for j in np.flatnonzero(~outside).tolist():
+            v = v_all[first[j] : first[j] + n_verts[j]]
+            if partial[j]:
                 clipped = shapely.clip_by_rect(shapely.Polygon(v), *self.box)
                 if clipped.is_empty or clipped.geom_type != "Polygon" or clipped.area < 2.0:
                     continue
                 v = np.asarray(clipped.exterior.coords)[:-1, :2]
-            dist = float(np.hypot(*v.mean(axis=0)))
             if p.small_miss_prob > 0 and rng.random() < p.small_miss_prob:
                 continue
+            frame, q = int(frames[j]), int(poly_ids[j])
+            dist = float(np.hypot(*v.mean(axis=0)))
             sigma = (p.line_white_base_m + p.line_white_per_m * dist) * p.polygon_noise_factor
             off = (p.line_offset_base_m + p.line_offset_per_m * dist) * p.polygon_noise_factor
+            v = self._distort(v, frame) + self.track_bias[len(ix.element_type) + q] * p.polygon_noise_factor
             if sigma > 0 or off > 0:
                 v = v + off * rng.standard_normal(2) + sigma * rng.standard_normal(v.shape)
-            out.append({
-                "type": "crosswalk", "points": np.round(v, 3).tolist(),
-                "score": float(self._score(np.array([dist]))[0]),
-                "track_id": (int(ix.polygon_ids[q]) * _DASH_KEYS) ^ self.salt,
-            })
-        return out
+            out[frame].append(
+                {
+                    "type": "crosswalk",
+                    "points": np.round(v, 3).tolist(),
+                    "score": float(self._score(np.array([dist]))[0]),
+                    "track_id": (int(ix.polygon_ids[q]) * _DASH_KEYS) ^ self.salt,
+                }
+            )
 
 
 def perceive_trip(
-    index: TruthIndex, poses_xyyaw_world: np.ndarray, params: PerceptionParams, rng: np.random.Generator,
+    index: TruthIndex,
+    poses_xyyaw_world: np.ndarray,
+    params: PerceptionParams,
+    rng: np.random.Generator,
     batch_frames: int = 400,
 ) -> list[list[dict[str, Any]]]:
     """Per frame, the perceived elements as upload dicts (vehicle frame), from TRUE poses ``(N, 3)``."""
     n = len(poses_xyyaw_world)
     perceiver = _FramePerceiver(index, params, rng, n)
     cx = (params.range_x_m[0] + params.range_x_m[1]) / 2.0
-    half_diag = float(np.hypot((params.range_x_m[1] - params.range_x_m[0]) / 2.0, (params.range_y_m[1] - params.range_y_m[0]) / 2.0))
+    half_diag = float(
+        np.hypot(
+            (params.range_x_m[1] - params.range_x_m[0]) / 2.0,
+            (params.range_y_m[1] - params.range_y_m[0]) / 2.0,
+        )
+    )
     yaw = poses_xyyaw_world[:, 2]
     centers = poses_xyyaw_world[:, :2] + cx * np.column_stack([np.cos(yaw), np.sin(yaw)])
     frames: list[list[dict[str, Any]]] = [[] for _ in range(n)]
@@ -311,9 +438,13 @@ def perceive_trip(
             cand = np.fromiter(itertools.chain.from_iterable(balls), np.intp, int(lens.sum()))
             perceiver.lines(np.repeat(np.arange(f0, f1), lens), poses_xyyaw_world, cand, frames)
     if len(index.polygons_xy):
-        near = np.linalg.norm(centers[:, None, :] - index.polygon_centroids_xy[None, :, :], axis=2) < half_diag + 15.0
-        for k in np.flatnonzero(near.any(axis=1)).tolist():
-            frames[k].extend(perceiver.polygons(poses_xyyaw_world[k], np.flatnonzero(near[k])))
+        # (frame, polygon) pairs whose circles overlap: box centre within half diagonal + polygon radius
+        near = (
+            np.linalg.norm(centers[:, None, :] - index.polygon_centroids_xy[None, :, :], axis=2)
+            < half_diag + index.polygon_radius_m[None, :]
+        )
+        pair_frames, pair_polys = np.nonzero(near)
+        perceiver.polygons(pair_frames, pair_polys, poses_xyyaw_world, frames)
     if params.false_positive_rate_per_frame > 0:
         counts = rng.poisson(params.false_positive_rate_per_frame, n)
         for k in np.flatnonzero(counts).tolist():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -13,7 +14,7 @@ from csr_core.types import DividerStyle, ElementType
 
 log = logging.getLogger(__name__)
 
-_STYLE = {
+_STYLE: dict[ElementType, dict[str, Any]] = {
     ElementType.ROAD_BOUNDARY: dict(color="black", lw=0.9),
     ElementType.LANE_DIVIDER: dict(color="tab:orange", lw=0.6),
     ElementType.CENTERLINE: dict(color="tab:blue", lw=0.35, alpha=0.5),
@@ -38,7 +39,7 @@ def plot_world(
 
     fig, ax = plt.subplots(figsize=(12, 10), dpi=110)
     for e in world.elements:
-        style = dict(_STYLE.get(e.type, dict(color="gray", lw=0.5)))
+        style: dict[str, Any] = dict(_STYLE.get(e.type, dict(color="gray", lw=0.5)))
         pts = e.points_xy_world
         if e.type.is_polygon:
             pts = np.vstack([pts, pts[:1]])

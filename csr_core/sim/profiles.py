@@ -41,7 +41,9 @@ class GnssParams:
         GnssStatusModel(bias_sigma_m=0.50, bias_tau_s=60.0, white_sigma_m=0.08, mean_dwell_s=90.0),
         GnssStatusModel(bias_sigma_m=0.60, bias_tau_s=600.0, white_sigma_m=0.04, mean_dwell_s=120.0),
     )
-    latency_mean_s: float = 0.08  # fix refers to the position this long before its timestamp (comma2k19: 0.083 s)
+    latency_mean_s: float = (
+        0.08  # fix refers to the position this long before its timestamp (comma2k19: 0.083 s)
+    )
     latency_sigma_s: float = 0.02  # per-trip spread of the latency
     latency_jitter_s: float = 0.01  # per-fix time-tag jitter (along-track noise = speed * jitter)
     std_report_log_sigma: float = 0.15  # reported std_m = honest std * exp(N(0, this))
@@ -80,6 +82,9 @@ class PerceptionParams:
     line_white_per_m: float = 0.003
     line_offset_base_m: float = 0.05  # per-element, per-frame offset (correlated along the element)
     line_offset_per_m: float = 0.004
+    track_bias_sigma_m: float = 0.04  # per-element offset drawn once per trip (same in every frame)
+    frame_yaw_sigma_deg: float = 0.1  # per-frame BEV rotation (extrinsic jitter), common to all elements
+    frame_scale_sigma: float = 0.003  # per-frame longitudinal scale error (ground-plane pitch)
     boundary_noise_factor: float = 2.0  # road_boundary sigmas = line sigmas * this
     polygon_noise_factor: float = 1.5  # crosswalk corner sigmas = line sigmas * this
     # detections
@@ -139,6 +144,12 @@ def hard() -> Profile:
     gnss = dataclasses.replace(
         GnssParams(),
         initial_probs=(0.02, 0.08, 0.30, 0.60),
+        transition_probs=(
+            (0.00, 0.40, 0.30, 0.30),
+            (0.15, 0.00, 0.35, 0.50),
+            (0.03, 0.12, 0.00, 0.85),
+            (0.02, 0.08, 0.90, 0.00),
+        ),
         canyon_outage_rate_per_s=0.02,
         canyon_jump_rate_per_s=0.05,
         canyon_degrade_to_single=True,
@@ -146,8 +157,16 @@ def hard() -> Profile:
     odometry = dataclasses.replace(OdometryParams(), scale_error_sigma=0.008, yaw_rate_bias_sigma_deg_s=0.05)
     perception = dataclasses.replace(
         PerceptionParams(),
-        line_white_base_m=0.05, line_offset_base_m=0.08, miss_prob_base=0.08, miss_prob_at_range_end=0.2,
-        false_positive_rate_per_frame=0.15, ghost_rate_per_frame=0.012, style_error_prob=0.08,
+        track_bias_sigma_m=0.08,
+        frame_yaw_sigma_deg=0.2,
+        frame_scale_sigma=0.006,
+        line_white_base_m=0.05,
+        line_offset_base_m=0.08,
+        miss_prob_base=0.08,
+        miss_prob_at_range_end=0.2,
+        false_positive_rate_per_frame=0.15,
+        ghost_rate_per_frame=0.012,
+        style_error_prob=0.08,
     )
     return Profile(name="hard", gnss=gnss, odometry=odometry, perception=perception)
 
@@ -156,15 +175,32 @@ def noiseless() -> Profile:
     """No sensor error at all (for tests and debugging): exact GNSS, odometry and perception."""
     exact = GnssStatusModel(bias_sigma_m=0.0, bias_tau_s=30.0, white_sigma_m=0.0, mean_dwell_s=1e9)
     gnss = dataclasses.replace(
-        GnssParams(), initial_probs=(1.0, 0.0, 0.0, 0.0), status_models=(exact,) * 4, latency_mean_s=0.0,
-        latency_sigma_s=0.0, latency_jitter_s=0.0, std_report_log_sigma=0.0, heading_sigma_deg_at_10mps=0.0,
+        GnssParams(),
+        initial_probs=(1.0, 0.0, 0.0, 0.0),
+        status_models=(exact,) * 4,
+        latency_mean_s=0.0,
+        latency_sigma_s=0.0,
+        latency_jitter_s=0.0,
+        std_report_log_sigma=0.0,
+        heading_sigma_deg_at_10mps=0.0,
     )
     odometry = OdometryParams(0.0, 0.0, 0.0, 0.0)
     perception = dataclasses.replace(
         PerceptionParams(),
-        line_white_base_m=0.0, line_white_per_m=0.0, line_offset_base_m=0.0, line_offset_per_m=0.0,
-        miss_prob_base=0.0, miss_prob_at_range_end=0.0, small_miss_prob=0.0, false_positive_rate_per_frame=0.0,
-        ghost_rate_per_frame=0.0, style_error_prob=0.0, score_sigma=0.0,
+        line_white_base_m=0.0,
+        line_white_per_m=0.0,
+        line_offset_base_m=0.0,
+        line_offset_per_m=0.0,
+        track_bias_sigma_m=0.0,
+        frame_yaw_sigma_deg=0.0,
+        frame_scale_sigma=0.0,
+        miss_prob_base=0.0,
+        miss_prob_at_range_end=0.0,
+        small_miss_prob=0.0,
+        false_positive_rate_per_frame=0.0,
+        ghost_rate_per_frame=0.0,
+        style_error_prob=0.0,
+        score_sigma=0.0,
     )
     return Profile(name="noiseless", gnss=gnss, odometry=odometry, perception=perception)
 
@@ -187,7 +223,7 @@ def _flatten(prefix: str, value) -> list[tuple[str, object]]:
         return out
     if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
         out = []
-        for name, item in zip(STATUS_NAMES, value):
+        for name, item in zip(STATUS_NAMES, value, strict=True):
             out += _flatten(f"{prefix}[{name}]", item)
         return out
     return [(prefix, value)]

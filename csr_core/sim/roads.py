@@ -75,7 +75,7 @@ def add_road(
     for j in range(n_backward):
         bwd.append(builder.add_lane(geo.offset(ref, (j + 0.5) * w)[::-1], speed_mps, w, road_type))
     for lanes in (fwd, bwd):
-        for a, b in zip(lanes[:-1], lanes[1:]):
+        for a, b in zip(lanes[:-1], lanes[1:], strict=True):
             builder.neighbours(a, b)
 
     lo, hi = divider_span_m if divider_span_m is not None else (0.0, s[-1])
@@ -96,8 +96,12 @@ def add_road(
         add_styled_line(builder, geo.offset(ref_span, j * w), DividerStyle.DASHED, solid)
     if edge_lines:
         if n_forward:
-            builder.add_element(ElementType.LANE_DIVIDER, geo.offset(ref_span, -n_forward * w), DividerStyle.SOLID)
-        builder.add_element(ElementType.LANE_DIVIDER, geo.offset(ref_span, n_backward * w), DividerStyle.SOLID)
+            builder.add_element(
+                ElementType.LANE_DIVIDER, geo.offset(ref_span, -n_forward * w), DividerStyle.SOLID
+            )
+        builder.add_element(
+            ElementType.LANE_DIVIDER, geo.offset(ref_span, n_backward * w), DividerStyle.SOLID
+        )
 
     right_b = geo.offset(ref, -(n_forward * w + shoulder_m))
     left_b = geo.offset(ref, n_backward * w + shoulder_m)
@@ -110,11 +114,18 @@ def add_road(
 def stop_line(builder: WorldBuilder, at_xy: np.ndarray, travel_dir: np.ndarray, width_m: float) -> None:
     """A stop line across lanes ``width_m`` wide to the right of ``at_xy`` (travel direction unit)."""
     right = np.array([travel_dir[1], -travel_dir[0]])
-    builder.add_element(ElementType.STOP_LINE, np.array([at_xy + right * 0.2, at_xy + right * (width_m - 0.2)]))
+    builder.add_element(
+        ElementType.STOP_LINE, np.array([at_xy + right * 0.2, at_xy + right * (width_m - 0.2)])
+    )
 
 
-def crosswalk(builder: WorldBuilder, center_xy: np.ndarray, along_dir: np.ndarray, road_width_m: float,
-              depth_m: float = 4.0) -> None:
+def crosswalk(
+    builder: WorldBuilder,
+    center_xy: np.ndarray,
+    along_dir: np.ndarray,
+    road_width_m: float,
+    depth_m: float = 4.0,
+) -> None:
     """A rectangular crosswalk polygon across a road (``along_dir`` is the road direction)."""
     a = np.asarray(along_dir, float) / np.linalg.norm(along_dir)
     n = np.array([-a[1], a[0]])
@@ -124,7 +135,9 @@ def crosswalk(builder: WorldBuilder, center_xy: np.ndarray, along_dir: np.ndarra
     builder.add_element(ElementType.CROSSWALK, corners)
 
 
-def connect_lanes(builder: WorldBuilder, lane_in: int, lane_out: int, speed_mps: float, road_type: str) -> int:
+def connect_lanes(
+    builder: WorldBuilder, lane_in: int, lane_out: int, speed_mps: float, road_type: str
+) -> int:
     """A connector lane (Bezier) from the end of ``lane_in`` to the start of ``lane_out``."""
     g = builder.graph
     c_in, c_out = g.nodes[lane_in]["centerline_xy"], g.nodes[lane_out]["centerline_xy"]
@@ -135,7 +148,9 @@ def connect_lanes(builder: WorldBuilder, lane_in: int, lane_out: int, speed_mps:
     return lid
 
 
-def corner_curb(builder: WorldBuilder, p0: np.ndarray, d0: np.ndarray, p1: np.ndarray, d1: np.ndarray) -> None:
+def corner_curb(
+    builder: WorldBuilder, p0: np.ndarray, d0: np.ndarray, p1: np.ndarray, d1: np.ndarray
+) -> None:
     """Curb around an intersection corner from ``p0`` (line direction ``d0``) to ``p1`` (``d1``)."""
     control = geo.line_intersection(p0, d0, p1, d1)
     if control is None or np.linalg.norm(control - p0) > 60 or np.linalg.norm(control - p1) > 60:

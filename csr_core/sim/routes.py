@@ -56,17 +56,21 @@ def _start_lanes(world: World) -> list[int]:
     g = world.lane_graph
     components = [sorted(c) for c in nx.strongly_connected_components(g)]
     size = [sum(_lane_length(world, n) for n in c if g.nodes[n]["visible"]) for c in components]
-    good = {n for c, sz in zip(components, size) if sz >= 0.25 * max(size) for n in c}
+    good = {n for c, sz in zip(components, size, strict=True) if sz >= 0.25 * max(size) for n in c}
     lanes = [
-        n for n in sorted(g.nodes)
-        if n in good and g.nodes[n]["visible"] and g.nodes[n]["road_type"] not in _JUNCTION_TYPES
+        n
+        for n in sorted(g.nodes)
+        if n in good
+        and g.nodes[n]["visible"]
+        and g.nodes[n]["road_type"] not in _JUNCTION_TYPES
         and _lane_length(world, n) > 20.0
     ]
     return lanes or sorted(good)
 
 
-def random_route(world: World, rng: np.random.Generator, length_m: float, params: TrafficParams,
-                 max_tries: int = 20) -> Route:
+def random_route(
+    world: World, rng: np.random.Generator, length_m: float, params: TrafficParams, max_tries: int = 20
+) -> Route:
     """Random walk of about ``length_m`` (shorter only if every try hits a dead end)."""
     best: Route | None = None
     starts = _start_lanes(world)
@@ -169,7 +173,9 @@ def drive(route: Route, rng: np.random.Generator, params: TrafficParams) -> Driv
     factor = float(rng.uniform(*params.driver_speed_factor))
     kappa = np.abs(geo.curvature_1pm(path))
     kappa = np.convolve(kappa, np.ones(9) / 9, mode="same")
-    v = np.minimum(route.speed_limit_mps * factor, np.sqrt(params.max_lateral_accel_mps2 / np.maximum(kappa, 1e-5)))
+    v = np.minimum(
+        route.speed_limit_mps * factor, np.sqrt(params.max_lateral_accel_mps2 / np.maximum(kappa, 1e-5))
+    )
     v[0] = v[-1] = 0.0
     stop_idx = np.searchsorted(s, route.stops_s_m)
     v[stop_idx] = 0.0
@@ -181,7 +187,7 @@ def drive(route: Route, rng: np.random.Generator, params: TrafficParams) -> Driv
     t_of_s = np.concatenate([[0.0], np.cumsum(dt)])
     # waits at stops: the same arclength twice, ``wait`` seconds apart
     s_aug, t_aug = s.copy(), t_of_s.copy()
-    for i, wait in sorted(zip(stop_idx.tolist(), route.stops_wait_s.tolist()), reverse=True):
+    for i, wait in sorted(zip(stop_idx.tolist(), route.stops_wait_s.tolist(), strict=True), reverse=True):
         t_aug[i + 1 :] += wait
         s_aug = np.insert(s_aug, i + 1, s_aug[i])
         t_aug = np.insert(t_aug, i + 1, t_aug[i] + wait)

@@ -58,7 +58,9 @@ class SimulatedTrip:
 
 
 def _started_at(rng: np.random.Generator) -> datetime:
-    return BASE_DATE + timedelta(days=int(rng.integers(0, 14)), seconds=int(rng.integers(6 * 3600, 21 * 3600)))
+    return BASE_DATE + timedelta(
+        days=int(rng.integers(0, 14)), seconds=int(rng.integers(6 * 3600, 21 * 3600))
+    )
 
 
 def _forward_fill_fixes(position_xy: np.ndarray, has_fix: np.ndarray) -> np.ndarray:
@@ -72,8 +74,15 @@ def _forward_fill_fixes(position_xy: np.ndarray, has_fix: np.ndarray) -> np.ndar
 
 
 def simulate_trip(
-    world: World, frame: LocalFrame, index: TruthIndex, profile: Profile, seed_seq: np.random.SeedSequence,
-    vehicle_id: str, trip_id: str, started_at: str, trip_length_m: float,
+    world: World,
+    frame: LocalFrame,
+    index: TruthIndex,
+    profile: Profile,
+    seed_seq: np.random.SeedSequence,
+    vehicle_id: str,
+    trip_id: str,
+    started_at: str,
+    trip_length_m: float,
 ) -> SimulatedTrip:
     """Route, drive, sense; return the upload document (not yet validated) and the truth."""
     rng_route, rng_drive, rng_gnss, rng_odom, rng_perc = (np.random.default_rng(s) for s in seed_seq.spawn(5))
@@ -100,7 +109,9 @@ def simulate_trip(
                 g["heading_deg"] = heading[k]
             g["std_m"] = std[k]
         o = odom_r[k]
-        frames.append({"t": t_list[k], "gnss": g, "odom": {"x": o[0], "y": o[1], "yaw": o[2]}, "elements": elements[k]})
+        frames.append(
+            {"t": t_list[k], "gnss": g, "odom": {"x": o[0], "y": o[1], "yaw": o[2]}, "elements": elements[k]}
+        )
     p = profile.perception
     upload = {
         "schema_version": SCHEMA_VERSION,
@@ -121,18 +132,23 @@ def simulate_trip(
         "frames": len(t_list),
         "duration_s": round(float(t[-1]), 1),
         "length_m": round(length_m, 1),
-        "gnss_status_share": {n: round(float(np.mean(gnss.status == s)), 3) for s, n in enumerate(_STATUS_NAMES)},
+        "gnss_status_share": {
+            n: round(float(np.mean(gnss.status == s)), 3) for s, n in enumerate(_STATUS_NAMES)
+        },
         "gnss_error_median_m": round(float(np.median(err)), 3) if err.size else None,
         "odometry": {k: round(v, 6) for k, v in odom_info.items()},
     }
-    return SimulatedTrip(info["key"], upload, t, poses, info)
+    return SimulatedTrip(f"{vehicle_id}__{trip_id}", upload, t, poses, info)
 
 
 def _truth_poses_csv(frame: LocalFrame, t: np.ndarray, poses: np.ndarray) -> bytes:
     lonlat = frame.to_lonlat(poses[:, :2])
     heading = np.mod(np.round(yaw_rad_to_heading_deg(poses[:, 2]), 3), 360.0)
     lines = ["t,lat,lon,heading_deg"]
-    lines += [f"{a:.3f},{b:.9f},{c:.9f},{d:.3f}" for a, b, c, d in zip(t, lonlat[:, 1], lonlat[:, 0], heading)]
+    lines += [
+        f"{a:.3f},{b:.9f},{c:.9f},{d:.3f}"
+        for a, b, c, d in zip(t, lonlat[:, 1], lonlat[:, 0], heading, strict=True)
+    ]
     return ("\n".join(lines) + "\n").encode()
 
 
@@ -180,8 +196,13 @@ def simulate_scenario(
 
 
 def _simulate_scenario(
-    world_name: str, n_trips: int, profile: str | Profile, seed: int, out_dir: str | Path,
-    trip_length_m: float, progress: Callable[[SimulatedTrip], None] | None,
+    world_name: str,
+    n_trips: int,
+    profile: str | Profile,
+    seed: int,
+    out_dir: str | Path,
+    trip_length_m: float,
+    progress: Callable[[SimulatedTrip], None] | None,
 ) -> dict[str, Any]:
     prof = get_profile(profile) if isinstance(profile, str) else profile
     world = load_world(world_name)
@@ -201,12 +222,22 @@ def _simulate_scenario(
         started = starts[i]
         trip_id = f"{started:%Y-%m-%dT%H-%M-%SZ}-{i + 1:04d}"
         trip = simulate_trip(
-            world, frame, index, prof, children[i + 1], vehicle_id, trip_id,
-            started.strftime("%Y-%m-%dT%H:%M:%SZ"), trip_length_m,
+            world,
+            frame,
+            index,
+            prof,
+            children[i + 1],
+            vehicle_id,
+            trip_id,
+            started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            trip_length_m,
         )
         body = orjson.dumps(trip.upload)
         _write(out / "trips" / f"{trip.key}.json.gz", gzip.compress(body, compresslevel=GZIP_LEVEL, mtime=0))
-        _write(out / "truth" / "poses" / f"{trip.key}.csv", _truth_poses_csv(frame, trip.timestamps_s, trip.true_poses_xyyaw_world))
+        _write(
+            out / "truth" / "poses" / f"{trip.key}.csv",
+            _truth_poses_csv(frame, trip.timestamps_s, trip.true_poses_xyyaw_world),
+        )
         trips_info.append({**trip.info, "json_bytes": len(body)})
         if progress is not None:
             progress(trip)

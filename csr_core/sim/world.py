@@ -94,15 +94,24 @@ class WorldBuilder:
         self.elements.append(TruthElement(len(self.elements), element_type, points_xy, style))
 
     def add_lane(
-        self, centerline_xy: np.ndarray, speed_mps: float, width_m: float, road_type: str,
-        visible: bool = True, with_element: bool = True,
+        self,
+        centerline_xy: np.ndarray,
+        speed_mps: float,
+        width_m: float,
+        road_type: str,
+        visible: bool = True,
+        with_element: bool = True,
     ) -> int:
         """Add a lane node (and its centreline truth element when visible); return its id."""
         lane_id = self.graph.number_of_nodes()
         centerline_xy = geo.resample(centerline_xy, 1.0)
         self.graph.add_node(
-            lane_id, centerline_xy=centerline_xy, speed_mps=float(speed_mps), width_m=float(width_m),
-            road_type=road_type, visible=visible,
+            lane_id,
+            centerline_xy=centerline_xy,
+            speed_mps=float(speed_mps),
+            width_m=float(width_m),
+            road_type=road_type,
+            visible=visible,
         )
         if visible and with_element:
             self.add_element(ElementType.CENTERLINE, centerline_xy)
@@ -118,8 +127,16 @@ class WorldBuilder:
 
     def _dead_ends_and_sources(self) -> tuple[list[int], list[int]]:
         g = self.graph
-        ends = [n for n in sorted(g.nodes) if not any(d["kind"] == SUCCESSOR for _, _, d in g.out_edges(n, data=True))]
-        starts = [n for n in sorted(g.nodes) if not any(d["kind"] == SUCCESSOR for _, _, d in g.in_edges(n, data=True))]
+        ends = [
+            n
+            for n in sorted(g.nodes)
+            if not any(d["kind"] == SUCCESSOR for _, _, d in g.out_edges(n, data=True))
+        ]
+        starts = [
+            n
+            for n in sorted(g.nodes)
+            if not any(d["kind"] == SUCCESSOR for _, _, d in g.in_edges(n, data=True))
+        ]
         return ends, starts
 
     def add_hidden_links(self, max_gap_m: float, min_alignment: float = 0.8, speed_mps: float = 13.9) -> int:
@@ -139,7 +156,10 @@ class WorldBuilder:
                 if d < 5.0 or d >= best_d:
                     continue
                 u = gap / d
-                if float(np.dot(u, t_end)) > min_alignment and float(np.dot(u, geo.tangents(cs)[0])) > min_alignment:
+                if (
+                    float(np.dot(u, t_end)) > min_alignment
+                    and float(np.dot(u, geo.tangents(cs)[0])) > min_alignment
+                ):
                     best, best_d = s, d
             if best is None:
                 continue
@@ -171,18 +191,27 @@ class WorldBuilder:
             radius = max(best_d / 2.0, 6.0)
             # push the U-turn out beyond the dead end so it is a proper loop, not a kink
             mid = np.array([p_end + t_end * radius * 1.2, cs[0] + t_end * radius * 1.2])
-            loop = geo.resample(np.vstack([p_end, geo.chaikin(np.vstack([p_end, mid, cs[0]]), 4)[1:-1], cs[0]]), 1.0)
+            loop = geo.resample(
+                np.vstack([p_end, geo.chaikin(np.vstack([p_end, mid, cs[0]]), 4)[1:-1], cs[0]]), 1.0
+            )
             lid = self.add_lane(loop, 4.0, g.nodes[e]["width_m"], "turnaround", visible=False)
             self.connect(e, lid)
             self.connect(lid, best)
             added += 1
         return added
 
-    def build(self, name: str, origin_lat: float, origin_lon: float, canyon_zones_xyr: np.ndarray | None = None) -> World:
+    def build(
+        self, name: str, origin_lat: float, origin_lon: float, canyon_zones_xyr: np.ndarray | None = None
+    ) -> World:
         world = World(
-            name=name, origin_lat=origin_lat, origin_lon=origin_lon, elements=tuple(self.elements),
+            name=name,
+            origin_lat=origin_lat,
+            origin_lon=origin_lon,
+            elements=tuple(self.elements),
             lane_graph=self.graph,
-            canyon_zones_xyr=np.zeros((0, 3)) if canyon_zones_xyr is None else np.asarray(canyon_zones_xyr, float),
+            canyon_zones_xyr=np.zeros((0, 3))
+            if canyon_zones_xyr is None
+            else np.asarray(canyon_zones_xyr, float),
         )
         log.debug("built world %s: %s", name, world.summary())
         return world

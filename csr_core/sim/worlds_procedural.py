@@ -62,7 +62,7 @@ def _intersection(builder: WorldBuilder, arms: list[_Arm], straight_mps: float, 
                 continue
             delta = float(np.angle(np.exp(1j * (a_out.angle_rad - a_in.angle_rad - np.pi))))
             if abs(delta) < np.pi / 4:
-                pairs = list(zip(a_in.incoming, a_out.outgoing))
+                pairs = list(zip(a_in.incoming, a_out.outgoing, strict=False))
                 speed = straight_mps
             elif delta > 0:
                 pairs, speed = [(a_in.incoming[0], a_out.outgoing[0])], turn_mps
@@ -84,7 +84,8 @@ def urban_grid() -> World:
     builder = WorldBuilder()
     nodes = {
         (i, j): np.array([i * URBAN_SPACING_X_M, j * URBAN_SPACING_Y_M]) + rng.uniform(-8, 8, 2)
-        for j in range(URBAN_NY) for i in range(URBAN_NX)
+        for j in range(URBAN_NY)
+        for i in range(URBAN_NX)
     }
     avenue_hw = URBAN_AVENUE_LANES * URBAN_AVENUE_LANE_W_M + URBAN_SHOULDER_M
     street_hw = URBAN_STREET_LANES * URBAN_STREET_LANE_W_M + URBAN_SHOULDER_M
@@ -103,29 +104,52 @@ def urban_grid() -> World:
         d_lane, d_stop, d_curb = hw_cross + 1.0, hw_cross + 6.0, hw_cross + URBAN_CURB_RADIUS_M
         ref = np.array([pa + u * d_lane, pb - u * d_lane])
         road = add_road(
-            builder, ref, n_forward=n_lanes, n_backward=n_lanes, lane_width_m=w, speed_mps=URBAN_SPEED_MPS,
-            road_type="urban", center_style=DividerStyle.DOUBLE if n_lanes > 1 else DividerStyle.DASHED,
-            shoulder_m=URBAN_SHOULDER_M, boundaries=False,
-            divider_span_m=(d_stop - d_lane, length - d_lane - d_stop), solid_before_end_m=25.0,
+            builder,
+            ref,
+            n_forward=n_lanes,
+            n_backward=n_lanes,
+            lane_width_m=w,
+            speed_mps=URBAN_SPEED_MPS,
+            road_type="urban",
+            center_style=DividerStyle.DOUBLE if n_lanes > 1 else DividerStyle.DASHED,
+            shoulder_m=URBAN_SHOULDER_M,
+            boundaries=False,
+            divider_span_m=(d_stop - d_lane, length - d_lane - d_stop),
+            solid_before_end_m=25.0,
         )
         for lane in road.forward_lanes + road.backward_lanes:
             builder.graph.nodes[lane]["stop_line_before_end_m"] = d_stop - d_lane
         curb_ref = np.array([pa + u * d_curb, pb - u * d_curb])
         for side in (-1.0, 1.0):
-            builder.add_element(ElementType.ROAD_BOUNDARY, geo.resample(geo.offset(geo.resample(curb_ref, 1.0), side * hw), 1.0))
+            builder.add_element(
+                ElementType.ROAD_BOUNDARY,
+                geo.resample(geo.offset(geo.resample(curb_ref, 1.0), side * hw), 1.0),
+            )
         # furniture at both ends: stop line for the incoming lanes, crosswalk across the road
         for end, direction in ((pa, u), (pb, -u)):
             stop_line(builder, end + direction * d_stop, -direction, n_lanes * w)
             crosswalk(builder, end + direction * (hw_cross + 3.0), direction, 2 * hw - 0.4)
         right_of_u, left_of_u = -left_n * hw, left_n * hw
-        arms[a].append(_Arm(
-            float(np.arctan2(u[1], u[0])), u, road.backward_lanes, road.forward_lanes,
-            pa + u * d_curb + right_of_u, pa + u * d_curb + left_of_u,
-        ))
-        arms[b].append(_Arm(
-            float(np.arctan2(-u[1], -u[0])), -u, road.forward_lanes, road.backward_lanes,
-            pb - u * d_curb + left_of_u, pb - u * d_curb + right_of_u,
-        ))
+        arms[a].append(
+            _Arm(
+                float(np.arctan2(u[1], u[0])),
+                u,
+                road.backward_lanes,
+                road.forward_lanes,
+                pa + u * d_curb + right_of_u,
+                pa + u * d_curb + left_of_u,
+            )
+        )
+        arms[b].append(
+            _Arm(
+                float(np.arctan2(-u[1], -u[0])),
+                -u,
+                road.forward_lanes,
+                road.backward_lanes,
+                pb - u * d_curb + left_of_u,
+                pb - u * d_curb + right_of_u,
+            )
+        )
     for key in sorted(arms):
         _intersection(builder, arms[key], URBAN_SPEED_MPS, URBAN_TURN_SPEED_MPS)
     canyons = np.array([[*nodes[(1, 1)], 130.0], [*nodes[(3, 2)], 110.0], [*nodes[(4, 0)], 90.0]])
@@ -147,10 +171,16 @@ def _ramp_loop(carriageway_ref: np.ndarray, s_out: float, s_in: float, lane_offs
     Control points in the carriageway frame (arclength, left offset); works for s_in > s_out.
     """
     ctrl_sn = [
-        (s_out - 60, lane_offset_m), (s_out, lane_offset_m), (s_out + 120, lane_offset_m - 8),
-        (s_out + 260, lane_offset_m - 60), (s_out + 330, -HIGHWAY_RAMP_OFFSET_M),
-        (s_in - 330, -HIGHWAY_RAMP_OFFSET_M), (s_in - 260, lane_offset_m - 60),
-        (s_in - 120, lane_offset_m - 8), (s_in, lane_offset_m), (s_in + 60, lane_offset_m),
+        (s_out - 60, lane_offset_m),
+        (s_out, lane_offset_m),
+        (s_out + 120, lane_offset_m - 8),
+        (s_out + 260, lane_offset_m - 60),
+        (s_out + 330, -HIGHWAY_RAMP_OFFSET_M),
+        (s_in - 330, -HIGHWAY_RAMP_OFFSET_M),
+        (s_in - 260, lane_offset_m - 60),
+        (s_in - 120, lane_offset_m - 8),
+        (s_in, lane_offset_m),
+        (s_in + 60, lane_offset_m),
     ]
     s = np.array([c[0] for c in ctrl_sn])
     n = np.array([c[1] for c in ctrl_sn])
@@ -162,8 +192,12 @@ def _ramp_loop(carriageway_ref: np.ndarray, s_out: float, s_in: float, lane_offs
     pts = geo.resample(pts, 1.0)
     # keep the part between the diverge and merge points (the ends were only for tangents)
     s_pts = geo.arclength_m(pts)
-    d0 = np.linalg.norm(pts - (geo.interpolate_at(carriageway_ref, [s_out]) + normal[1] * lane_offset_m), axis=1)
-    d1 = np.linalg.norm(pts - (geo.interpolate_at(carriageway_ref, [s_in]) + normal[-2] * lane_offset_m), axis=1)
+    d0 = np.linalg.norm(
+        pts - (geo.interpolate_at(carriageway_ref, [s_out]) + normal[1] * lane_offset_m), axis=1
+    )
+    d1 = np.linalg.norm(
+        pts - (geo.interpolate_at(carriageway_ref, [s_in]) + normal[-2] * lane_offset_m), axis=1
+    )
     return geo.cut(pts, s_pts[int(np.argmin(d0))], s_pts[int(np.argmin(d1))], 1.0)
 
 
@@ -187,12 +221,20 @@ def highway() -> World:
         for k in range(3):
             part = geo.cut(ref, cuts[k], cuts[k + 1], 1.0)
             road = add_road(
-                builder, part, n_forward=HIGHWAY_LANES, n_backward=0, lane_width_m=w, speed_mps=HIGHWAY_SPEED_MPS,
-                road_type="highway", center_style=DividerStyle.SOLID, edge_lines=True, boundaries=False,
+                builder,
+                part,
+                n_forward=HIGHWAY_LANES,
+                n_backward=0,
+                lane_width_m=w,
+                speed_mps=HIGHWAY_SPEED_MPS,
+                road_type="highway",
+                center_style=DividerStyle.SOLID,
+                edge_lines=True,
+                boundaries=False,
             )
             pieces.append(list(road.forward_lanes))
             if k:
-                for a, b in zip(pieces[k - 1], pieces[k]):
+                for a, b in zip(pieces[k - 1], pieces[k], strict=True):
                     builder.connect(a, b)
         outer_offset = -(HIGHWAY_LANES * w + HIGHWAY_SHOULDER_M)
         outer = geo.offset(ref, outer_offset)
@@ -234,7 +276,9 @@ def rural() -> World:
     solid in sharp bends, solid edge lines, asphalt edges as road boundaries."""
     builder = WorldBuilder()
     theta = np.linspace(0.0, 2 * np.pi, 2400, endpoint=False)
-    r = RURAL_RADIUS_M * (1 + 0.22 * np.sin(3 * theta + 0.5) + 0.08 * np.sin(7 * theta + 1.3) + 0.03 * np.sin(13 * theta))
+    r = RURAL_RADIUS_M * (
+        1 + 0.22 * np.sin(3 * theta + 0.5) + 0.08 * np.sin(7 * theta + 1.3) + 0.03 * np.sin(13 * theta)
+    )
     loop = np.column_stack([r * np.cos(theta), 0.7 * r * np.sin(theta)])
     loop = geo.resample(np.vstack([loop, loop[:1]]), 1.0)
     total = geo.arclength_m(loop)[-1]
@@ -243,8 +287,16 @@ def rural() -> World:
     for k in range(4):
         part = geo.cut(loop, cuts[k], cuts[k + 1], 1.0)
         road = add_road(
-            builder, part, n_forward=1, n_backward=1, lane_width_m=RURAL_LANE_W_M, speed_mps=RURAL_SPEED_MPS,
-            road_type="rural", center_style=DividerStyle.DASHED, shoulder_m=0.75, edge_lines=True,
+            builder,
+            part,
+            n_forward=1,
+            n_backward=1,
+            lane_width_m=RURAL_LANE_W_M,
+            speed_mps=RURAL_SPEED_MPS,
+            road_type="rural",
+            center_style=DividerStyle.DASHED,
+            shoulder_m=0.75,
+            edge_lines=True,
             solid_where_curvature_above_1pm=RURAL_NO_OVERTAKING_CURVATURE_1PM,
         )
         fwd.append(road.forward_lanes[0])
@@ -252,7 +304,7 @@ def rural() -> World:
     for k in range(4):
         builder.connect(fwd[k], fwd[(k + 1) % 4])
         builder.connect(bwd[(k + 1) % 4], bwd[k])
-    canyons = np.array([[*geo.interpolate_at(loop, [total * 0.3])[0], 250.0]])  # a forest section
+    canyons = np.array([[*geo.interpolate_at(loop, np.array([total * 0.3]))[0], 250.0]])  # a forest section
     return builder.build("rural", *RURAL_ORIGIN_LATLON, canyons)
 
 
@@ -279,27 +331,42 @@ def roundabout() -> World:
         s = np.arange(0.0, RB_ARM_LENGTH_M + 1.0, 1.0)
         heading = a + (0.4 if k % 2 else -0.3) * (s / RB_ARM_LENGTH_M) ** 2
         steps = np.column_stack([np.cos(heading), np.sin(heading)])
-        ref = RB_ARM_START_RADIUS_M * np.array([np.cos(a), np.sin(a)]) + np.vstack([[0, 0], np.cumsum(steps[:-1], axis=0)])
+        ref = RB_ARM_START_RADIUS_M * np.array([np.cos(a), np.sin(a)]) + np.vstack(
+            [[0, 0], np.cumsum(steps[:-1], axis=0)]
+        )
         road = add_road(
-            builder, ref, n_forward=1, n_backward=1, lane_width_m=RB_ARM_LANE_W_M, speed_mps=ROUNDABOUT_ARM_SPEED_MPS,
-            road_type="urban", center_style=DividerStyle.DASHED, boundaries=False,
+            builder,
+            ref,
+            n_forward=1,
+            n_backward=1,
+            lane_width_m=RB_ARM_LANE_W_M,
+            speed_mps=ROUNDABOUT_ARM_SPEED_MPS,
+            road_type="urban",
+            center_style=DividerStyle.DASHED,
+            boundaries=False,
             solid_where_curvature_above_1pm=None,
         )
         ref_d = geo.resample(ref, 1.0)
         for side in (-1.0, 1.0):
-            builder.add_element(ElementType.ROAD_BOUNDARY, geo.cut(geo.offset(ref_d, side * hw), 2.0, 1e9, 1.0))
+            builder.add_element(
+                ElementType.ROAD_BOUNDARY, geo.cut(geo.offset(ref_d, side * hw), 2.0, 1e9, 1.0)
+            )
         u = ref_d[1] - ref_d[0]
         crosswalk(builder, ref_d[5], u, 2 * hw - 0.4)
         arms.append((a, road, ref_d))
     # ring pieces between the points where lanes leave (a - e) and join (a + e)
-    keys = sorted([(a - RB_ENTRY_ANGLE_RAD, "exit", i) for i, (a, _, _) in enumerate(arms)]
-                  + [(a + RB_ENTRY_ANGLE_RAD, "entry", i) for i, (a, _, _) in enumerate(arms)])
+    keys = sorted(
+        [(a - RB_ENTRY_ANGLE_RAD, "exit", i) for i, (a, _, _) in enumerate(arms)]
+        + [(a + RB_ENTRY_ANGLE_RAD, "entry", i) for i, (a, _, _) in enumerate(arms)]
+    )
     ring_pieces = []
     for k, (a0, kind, i) in enumerate(keys):
         a1 = keys[(k + 1) % len(keys)][0]
         a1 = a1 + 2 * np.pi if a1 <= a0 else a1
         pts = geo.arc(np.zeros(2), RB_RING_RADIUS_M, a0, a1, 1.0)
-        ring_pieces.append((builder.add_lane(pts, ROUNDABOUT_RING_SPEED_MPS, RB_RING_LANE_W_M, "roundabout"), kind, i))
+        ring_pieces.append(
+            (builder.add_lane(pts, ROUNDABOUT_RING_SPEED_MPS, RB_RING_LANE_W_M, "roundabout"), kind, i)
+        )
     for k, (lane, kind, i) in enumerate(ring_pieces):
         prev_lane = ring_pieces[k - 1][0]
         builder.connect(prev_lane, lane)
@@ -308,7 +375,9 @@ def roundabout() -> World:
             connect_lanes(builder, prev_lane, road.forward_lanes[0], ROUNDABOUT_RING_SPEED_MPS, "roundabout")
         else:
             connect_lanes(builder, road.backward_lanes[0], lane, ROUNDABOUT_RING_SPEED_MPS, "roundabout")
-    builder.add_element(ElementType.ROAD_BOUNDARY, geo.arc(np.zeros(2), r_in, 0.0, 2 * np.pi, 1.0))  # closed ring
+    builder.add_element(
+        ElementType.ROAD_BOUNDARY, geo.arc(np.zeros(2), r_in, 0.0, 2 * np.pi, 1.0)
+    )  # closed ring
     for k, (a, _, ref_d) in enumerate(arms):
         a_next, _, ref_next = arms[(k + 1) % len(arms)]
         a_next = a_next + 2 * np.pi if a_next <= a else a_next

@@ -127,12 +127,13 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
         pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
                                  s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
-        spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        track_frames = pieces.frame[track.pieces]
         if track.type.is_polygon:
             whole = np.logical_and.reduceat(_inside(pts_v, box, edge_margin), offsets[:-1])
             obs_w = np.split(pts_w, offsets[1:-1])
             outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2])
-            spliced.append((outline, lat, alo))
+            spliced.append((outline, lat, alo, track.frames))
         else:
             obs_ends = np.column_stack([offsets[:-1], offsets[1:] - 1])
             end_free = _inside(pts_v[obs_ends], box, edge_margin)
@@ -141,13 +142,17 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
             guide = poses[t0:t1 + 1, :2]
             for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params):
-                spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m))
-        for points_w, lat, alo in spliced:
+                spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m,
+                                np.unique(track_frames[piece.observations])))
+        for points_w, lat, alo, seen in spliced:
+            if len(seen) < params.TRACK_MIN_FRAMES:
+                n_dropped += 1
+                continue
             length = float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) if len(points_w) > 1 else 0.0
             if not track.type.is_polygon and length < params.min_length_m(track.type):
                 n_dropped += 1
                 continue
-            ratio = _visibility_ratio(points_w, track.frames, frames, poses, travel, box, params.BEV_RANGE_MARGIN_M)
+            ratio = _visibility_ratio(points_w, seen, frames, poses, travel, box, params.BEV_RANGE_MARGIN_M)
             if ratio < params.TRACK_MIN_VISIBILITY_RATIO:
                 n_dropped += 1
                 continue
@@ -156,8 +161,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             styles = [trip.elements[f][j].style for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
             instances.append(TripInstance(
                 type=track.type, points_xy_world=points_w, style=_style(styles),
-                n_observations=len(track.frames), first_frame=int(frames[track.frames[0]]),
-                last_frame=int(frames[track.frames[-1]])))
+                n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])))
     # 6. noise per element type from the residuals
     noise = estimate_noise(lateral, along, params)
     t_end = time.perf_counter()

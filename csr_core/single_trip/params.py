@@ -72,7 +72,7 @@ class SingleTripParams:
     # --- tracking (Qiao et al.) ----------------------------------------------------------------------
     TRACK_STEP_M: float = 4.0  # frames are tracked once the vehicle moved this far (else all in time)
     TRACK_STEP_S: float = 1.0  # ... or this long
-    TRACK_RESAMPLE_POINTS: int = 8  # points per detection in the association cost
+    TRACK_RESAMPLE_POINTS: int = 6  # points per detection in the association cost
     TRACK_DISTANCE_CAP_M: float = 3.0  # truncation of point distances in the Chamfer cost
     TRACK_GATE_M: float = 0.9  # Chamfer gate at zero pose uncertainty; grows with it
     TRACK_GATE_SIGMAS: float = 3.0  # gate in sigmas of the combined lateral noise
@@ -95,7 +95,7 @@ class SingleTripParams:
     SPLICE_BACKBONE_SMOOTH_M: float = 4.0  # Gaussian smoothing of the first (raw) backbone  # Gaussian smoothing of the lateral profile along arclength
     SPLICE_OUTLIER_SIGMAS: float = 3.0
     SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
-    SPLICE_ITERATIONS: int = 2  # passes when the backbone is the principal axis
+    SPLICE_CLUSTER_D_M: float = 0.5  # lateral cell of the element clustering inside a track
     SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
     SPLICE_ALONG_GUIDE_MIN: float = 0.7  # |d arclength on the path| / chord: element runs along the path
     SPLICE_OUTPUT_SPACING_M: float = 1.0
@@ -104,6 +104,7 @@ class SingleTripParams:
     NOISE_PRIOR_LATERAL_M: float = 0.2
     NOISE_PRIOR_ALONG_M: float = 0.5
     NOISE_MIN_SAMPLES: int = 30
+    NOISE_END_WINDOW_M: float = 3.0  # observed ends this close to an instance end give along residuals
 
     def min_length_m(self, element_type: ElementType) -> float:
         table = self.INSTANCE_MIN_LENGTH_M or {

@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import binary_dilation, gaussian_filter1d, label
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
@@ -31,7 +31,7 @@ class SplicedLine:
     points_xy_world: np.ndarray  # (M, 2)
     lateral_residuals_m: np.ndarray  # (R,) of inlier observation points
     along_residuals_m: np.ndarray  # (A,) of observed element ends (not BEV cuts)
-    obs_inlier_share: np.ndarray  # (n_obs,) share of each observation's points kept
+    observations: np.ndarray  # (m,) observations (indices) that support the instance
 
 
 def _arclength(points: np.ndarray) -> np.ndarray:
@@ -98,21 +98,73 @@ def _principal_backbone(points: np.ndarray, spacing_m: float) -> np.ndarray:
     return mu + q[:, None] * axis
 
 
+def _cluster_sd(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.ndarray:
+    """Labels (P,) of the elements in a track's points in backbone coordinates (arclength s,
+    lateral d): occupied cells (``SPLICE_BIN_M`` x ``SPLICE_CLUSTER_D_M``) joined across up to
+    ``SPLICE_MAX_GAP_M`` along s (dash gaps, missed frames) and one cell across d. Two lines side
+    by side (a track that took in a neighbour through a ramp or a ghost) come out apart."""
+    sb = np.floor((s - s.min()) / params.SPLICE_BIN_M).astype(np.int64)
+    db = np.floor((d - d.min()) / params.SPLICE_CLUSTER_D_M).astype(np.int64)
+    grid = np.zeros((int(sb.max()) + 1, int(db.max()) + 1), dtype=bool)
+    grid[sb, db] = True
+    reach = max(int(params.SPLICE_MAX_GAP_M / params.SPLICE_BIN_M / 2), 1)
+    grown = binary_dilation(grid, structure=np.ones((2 * reach + 1, 1), dtype=bool))
+    labels, _ = label(grown, structure=np.ones((3, 3), dtype=bool))
+    return labels[sb, db] - 1
+
+
+def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, backbone: np.ndarray,
+                 params: SingleTripParams) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
+    """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
+    Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
+    s_lo, s_hi, fitted d at each point) or None."""
+    bin_m = params.SPLICE_BIN_M
+    s0 = s.min()
+    bins = np.floor((s - s0) / bin_m).astype(np.int64)
+    n_bins = int(bins.max()) + 1
+    med, _ = _binned_median(bins, d, n_bins)
+    dev = np.abs(d - med[bins])
+    sigma = max(1.4826 * float(np.median(dev)), 0.02)
+    inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
+    w = np.bincount(bins[inl], minlength=n_bins).astype(float)
+    sum_d = np.bincount(bins[inl], weights=d[inl], minlength=n_bins)
+    sm = params.SPLICE_SMOOTH_SIGMA_M / bin_m
+    num = gaussian_filter1d(sum_d, sm, mode="constant")
+    den = gaussian_filter1d(w, sm, mode="constant")
+    good = den > 1e-6
+    if not good.any():
+        return None
+    centers = s0 + (np.arange(n_bins) + 0.5) * bin_m
+    d_s = np.interp(centers, centers[good], num[good] / den[good])
+    s_lo, s_hi = _robust_ends(s[inl], obs_id[inl])
+    if s_hi - s_lo < bin_m / 2:
+        return None
+    q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
+    q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
+    s_b = _arclength(backbone)
+    tan = np.gradient(backbone, axis=0)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    dq = np.interp(q, centers, d_s)
+    bx, by = np.interp(q, s_b, backbone[:, 0]), np.interp(q, s_b, backbone[:, 1])
+    tx, ty = np.interp(q, s_b, tan[:, 0]), np.interp(q, s_b, tan[:, 1])
+    nn = np.maximum(np.hypot(tx, ty), 1e-12)
+    line = np.column_stack([bx - dq * ty / nn, by + dq * tx / nn])
+    return line, inl, s_lo, s_hi, np.interp(s, centers, d_s)
+
+
 def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
                 guide_xy: np.ndarray | None, params: SingleTripParams) -> list[SplicedLine]:
-    """Observations of one track -> smoothed polylines (usually one; a gap longer than
-    ``SPLICE_MAX_GAP_M`` splits).
+    """Observations of one track -> one smoothed polyline per element found in it (usually one).
 
     ``points_w (P, 2)`` all observation points (world), ``obs_id (P,)`` their observation,
     ``obs_ends (n_obs, 2)`` indices of each observation's first and last point, ``end_free
     (n_obs, 2)`` whether those are element ends seen inside the BEV range (not cuts by the
     range): only those give along-track residuals. ``guide_xy`` the vehicle path while the track
     was seen: the backbone when the element runs along it (curves, roundabouts), else the
-    principal axis of the points, refined by a second pass.
+    principal axis of the points, refined by a second pass on the first result.
     """
     bin_m = params.SPLICE_BIN_M
     n_obs = len(obs_ends)
-    iterations = params.SPLICE_ITERATIONS
     backbone = None
     if guide_xy is not None and len(guide_xy) >= 2:
         guide = _extend_ends(resample_polyline(guide_xy, bin_m / 2), params.SPLICE_GUIDE_EXTENSION_M, bin_m / 2)
@@ -125,82 +177,52 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
             along_share = float(np.median(along[long_obs])) if long_obs.any() else 0.0
             if along_share >= params.SPLICE_ALONG_GUIDE_MIN:
                 backbone = guide
-                iterations = 1
+    refine = backbone is None
     if backbone is None:
         backbone = _principal_backbone(points_w, bin_m / 2)
     if len(backbone) < 3:
         return []
-    result = None
-    for it in range(iterations):
-        s, d = _project(points_w, backbone)
-        s0 = s.min()
-        bins = np.floor((s - s0) / bin_m).astype(np.int64)
-        n_bins = int(bins.max()) + 1
-        med, _ = _binned_median(bins, d, n_bins)
-        dev = np.abs(d - med[bins])
-        sigma = max(1.4826 * float(np.median(dev)), 0.02)
-        inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
-        w = np.bincount(bins[inl], minlength=n_bins).astype(float)
-        sum_d = np.bincount(bins[inl], weights=d[inl], minlength=n_bins)
-        sm = params.SPLICE_SMOOTH_SIGMA_M / bin_m
-        num = gaussian_filter1d(sum_d, sm, mode="constant")
-        den = gaussian_filter1d(w, sm, mode="constant")
-        supported = w > 0
-        centers = s0 + (np.arange(n_bins) + 0.5) * bin_m
-        idx = np.flatnonzero(supported)
-        if len(idx) == 0:
-            return []
-        cuts = np.flatnonzero(np.diff(idx) * bin_m > params.SPLICE_MAX_GAP_M)
-        spans = np.split(idx, cuts + 1)
-        good = den > 1e-6
-        d_s = np.interp(centers, centers[good], num[good] / den[good])
-        s_b = _arclength(backbone)
-        tan = np.gradient(backbone, axis=0)
-        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
-        normal = np.column_stack([-tan[:, 1], tan[:, 0]])
-        result = []
-        for span in spans:
-            in_span = inl & (bins >= span[0]) & (bins <= span[-1])
-            s_lo, s_hi = _robust_ends(s[in_span], obs_id[in_span])
-            q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
-            q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
-            if len(q) < 2:
-                q = np.array([s_lo, s_hi])
-            dq = np.interp(q, centers, d_s)
-            bx = np.interp(q, s_b, backbone[:, 0])
-            by = np.interp(q, s_b, backbone[:, 1])
-            nx = np.interp(q, s_b, normal[:, 0])
-            ny = np.interp(q, s_b, normal[:, 1])
-            nn = np.maximum(np.hypot(nx, ny), 1e-12)
-            line = np.column_stack([bx + dq * nx / nn, by + dq * ny / nn])
-            result.append((line, in_span, s_lo, s_hi))
-        if it + 1 < iterations and len(result) == 1 and result[0][3] - result[0][2] >= 2 * bin_m:
-            backbone = resample_polyline(result[0][0], bin_m / 2)
-    assert result is not None
+    s, d = _project(points_w, backbone)
+    labels = _cluster_sd(s, d, params)
     out = []
-    for line, in_span, s_lo, s_hi in result:
-        if s_hi - s_lo < bin_m / 2:
+    for lab in np.unique(labels):
+        sel = np.flatnonzero(labels == lab)
+        if len(np.unique(obs_id[sel])) < params.TRACK_MIN_FRAMES:
             continue
-        dense = resample_polyline(line, bin_m / 4)
-        if len(dense) < 3:
+        fit = _fit_profile(s[sel], d[sel], obs_id[sel], backbone, params)
+        if fit is not None and refine and fit[3] - fit[2] >= 2 * bin_m:
+            bb2 = resample_polyline(fit[0], bin_m / 2)
+            if len(bb2) >= 3:
+                s2, d2 = _project(points_w[sel], bb2)
+                fit2 = _fit_profile(s2, d2, obs_id[sel], bb2, params)
+                if fit2 is not None:
+                    fit, s_sel, d_sel = fit2, s2, d2
+                else:
+                    s_sel, d_sel = s[sel], d[sel]
+            else:
+                s_sel, d_sel = s[sel], d[sel]
+        else:
+            s_sel, d_sel = s[sel], d[sel]
+        if fit is None:
             continue
-        s_f, d_f = _project(points_w[in_span], dense)
-        # along-track: observation ends that are element ends, against the instance ends
+        line, inl, s_lo, s_hi, d_fit = fit
+        # lateral residuals against the fitted profile; along-track: observation ends that are
+        # element ends against the instance ends (both in backbone arclength)
+        lat = (d_sel - d_fit)[inl]
         s_all = np.full(len(points_w), np.nan)
-        s_all[in_span] = s_f
+        s_all[sel[inl]] = s_sel[inl]
         s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
         lo_first = s_first <= s_last
         s_lo_obs = np.where(lo_first, s_first, s_last)
         s_hi_obs = np.where(lo_first, s_last, s_first)
         free_lo = np.where(lo_first, end_free[:, 0], end_free[:, 1])
         free_hi = np.where(lo_first, end_free[:, 1], end_free[:, 0])
-        length = _arclength(line)[-1]
-        win = 3.0
-        ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs) <= win)
-        ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - length) <= win)
-        along = np.r_[s_lo_obs[ok_lo], s_hi_obs[ok_hi] - length]
-        share = np.bincount(obs_id[in_span], minlength=n_obs) / np.maximum(np.bincount(obs_id, minlength=n_obs), 1)
-        out.append(SplicedLine(line, d_f, along, share))
+        win = params.NOISE_END_WINDOW_M
+        ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
+        ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
+        along_res = np.r_[s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi]
+        obs = np.unique(obs_id[sel[inl]])
+        out.append(SplicedLine(line, lat, along_res, obs))
     return out
 
 

@@ -230,23 +230,28 @@ def _run(args: argparse.Namespace) -> int:
             f"| {r['name']} | {rate:.1f} | {rate * mb_plain / args.trips:.1f} | {rate * mb_sent / args.trips:.2f} | "
             f"{r['p50_ms']:.0f} ms | {r['p99_ms']:.0f} ms | {r['parse_per_s']:.1f} | {rate / r['parse_per_s']:.2f} |"
         )
-    met = [r["name"].split(" |")[0] + ", jobs " + r["name"].split("jobs ")[1] for r in runs
-           if r["trips_per_s"] >= r["parse_per_s"] / 3]
-    lines += ["", "Goal (the upload path sustains >= 1/3 of the parse-only rate): "
-              + (f"met by {'; '.join(met)}." if met else "not met by any row.")
-              + f" Rows below 0.33: {len(runs) - len(met)} of {len(runs)}."]
+    ratios = [r["trips_per_s"] / r["parse_per_s"] for r in runs]
+    below = sum(ratio < 1 / 3 for ratio in ratios)
+    lines += ["", f"Goal (the upload path sustains >= 1/3 of the parse-only rate): "
+              f"{'met by every row' if not below else f'NOT met by {below} of {len(runs)} rows'} in this run "
+              f"(lowest ratio {min(ratios):.2f})."]
     table = "\n".join(lines)
     print(table)
     if args.write:
-        text = args.write.read_text() if args.write.exists() else "# Benchmarks\n"
-        block = f"{MARK_BEGIN}\n{table}\n{MARK_END}"
-        if MARK_BEGIN in text and MARK_END in text:
-            head, rest = text.split(MARK_BEGIN, 1)
-            text = head + block + rest.split(MARK_END, 1)[1]
-        else:
-            text = text.rstrip("\n") + "\n\n## Ingest throughput\n\n" + block + "\n"
-        args.write.write_text(text)
+        write_section(args.write, table)
     return 0
+
+
+def write_section(path: Path, table: str) -> None:
+    """Put ``table`` between the ingest markers of ``path``, keeping everything else."""
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    block = f"{MARK_BEGIN}\n{table}\n{MARK_END}"
+    if MARK_BEGIN in text and MARK_END in text:
+        head, rest = text.split(MARK_BEGIN, 1)
+        text = head + block + rest.split(MARK_END, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n## Ingest throughput\n\n" + block + "\n"
+    path.write_text(text)
 
 
 def _reset_database(database_url: str, redis_url: str) -> None:

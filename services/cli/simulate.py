@@ -1,6 +1,6 @@
 """`csr simulate`: write a simulated fleet scenario folder (contract section 5).
 
-    csr simulate --world urban --trips 20 --profile standard --seed 1 --out scen/urban [--trip-length-m 2000] [--plot]
+csr simulate --world urban --trips 20 --profile standard --seed 1 --out scen/urban [--trip-length-m 2000] [--plot]
 """
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ PROFILES = ("standard", "hard", "noiseless")
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a fleet of trips on a world and write a scenario folder")
-    p.add_argument("--world", required=True, choices=WORLDS, help="procedural world or the Karlsruhe Lanelet2 map")
+    p.add_argument(
+        "--world", required=True, choices=WORLDS, help="procedural world or the Karlsruhe Lanelet2 map"
+    )
     p.add_argument("--trips", type=int, required=True, help="number of trips")
     p.add_argument("--profile", default="standard", choices=PROFILES, help="sensor error profile")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed: byte-identical output)")
@@ -44,7 +46,12 @@ def _run(args: argparse.Namespace) -> int:
             bar.update(1)
 
         scenario = simulate_scenario(
-            args.world, args.trips, args.profile, args.seed, args.out, trip_length_m=args.trip_length_m,
+            args.world,
+            args.trips,
+            args.profile,
+            args.seed,
+            args.out,
+            trip_length_m=args.trip_length_m,
             progress=progress,
         )
     if args.plot:

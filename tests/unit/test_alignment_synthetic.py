@@ -177,3 +177,74 @@ def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]
         rpe.append(((P[10:] - P[:-10]) - (tr[10:, :2] - tr[:-10, :2])))
     rpe_all = np.vstack(rpe)
     return float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(np.sum(rpe_all**2, axis=1)))), per_trip
+
+
+# --- end-to-end known answers ----------------------------------------------------------------
+
+
+def _relative_errors(est: np.ndarray, truth: np.ndarray, est_ref: np.ndarray, truth_ref: np.ndarray) -> np.ndarray:
+    """Distance between where trip B sits relative to trip A, estimated vs true (nearest frames)."""
+    d = np.linalg.norm(truth[:, None, :2] - truth_ref[None, :, :2], axis=2)
+    j = np.argmin(d, axis=1)
+    return np.linalg.norm((est[:, :2] - est_ref[j, :2]) - (truth[:, :2] - truth_ref[j, :2]), axis=1)
+
+
+def test_two_trips_with_a_known_relative_offset_are_brought_together():
+    from csr_core.alignment import AlignmentParams, align_trips
+
+    rng = np.random.default_rng(3)
+    elements = truth_elements(300.0)
+    truth_a = truth_trajectory(0, False, rng, 300.0)
+    truth_b = truth_trajectory(1, False, rng, 300.0)
+    a = make_trip("va__a", truth_a, elements, rng, offset_xy=(0.3, -0.2))
+    b = make_trip("vb__b", truth_b, elements, rng, offset_xy=(1.4, -0.9), yaw_err=0.003)
+    before = _relative_errors(b.poses_xyyaw_world, truth_b, a.poses_xyyaw_world, truth_a)
+    assert np.median(before) > 1.0
+    res = align_trips([a, b], params=AlignmentParams(fine=False))
+    assert res.failed == {}
+    after = _relative_errors(res.poses_xyyaw_world["vb__b"], truth_b, res.poses_xyyaw_world["va__a"], truth_a)
+    assert np.sqrt(np.mean(after**2)) < 0.15
+    assert len(res.match_pairs) > 0 and all(0.0 < m.confidence <= 1.0 for m in res.match_pairs)
+    assert set(res.frame_residuals_m) == {"va__a", "vb__b"}
+    assert res.frame_residuals_m["vb__b"].shape == (b.trip.n_frames,)
+
+
+def test_many_trips_coarse_then_fine_beats_gnss_and_keeps_shape():
+    from csr_core.alignment import AlignmentParams, align_trips
+
+    trips, truths = make_scenario(5, seed=7, length_m=300.0, ghost_every=3)
+    before, rpe_before, _ = aligned_errors({t.trip.key: t.poses_xyyaw_world for t in trips}, trips, truths)
+    coarse = align_trips(trips, params=AlignmentParams(fine=False))
+    both = align_trips(trips)
+    ate_c, rpe_c, per_c = aligned_errors(coarse.poses_xyyaw_world, trips, truths)
+    ate_b, rpe_b, per_b = aligned_errors(both.poses_xyyaw_world, trips, truths)
+    assert both.failed == {} and coarse.failed == {}
+    assert ate_c < 0.5 * before
+    assert ate_b < 0.2 and max(per_b) < 0.3
+    assert rpe_b < 0.05
+
+
+def test_new_trip_against_a_prior_map_converges_and_the_map_moves_within_its_weight():
+    from csr_core.alignment import AlignmentParams, PriorMap, align_trips
+    from csr_core.types import MapFeature
+
+    rng = np.random.default_rng(11)
+    elements = truth_elements(300.0)
+    prior = PriorMap(tuple(MapFeature(t, p) for t, p in elements), sigma_xy_m=0.05, sigma_yaw_rad=0.002)
+    truth = truth_trajectory(1, False, rng, 300.0)
+    trip = make_trip("vn__new", truth, elements, rng, offset_xy=(1.3, 0.9), yaw_err=0.002)
+    res = align_trips([trip], prior_map=prior, params=AlignmentParams(fine=False))
+    assert res.failed == {}
+    err = np.linalg.norm(res.poses_xyyaw_world["vn__new"][:, :2] - truth[:, :2], axis=1)  # raw, not aligned
+    assert np.sqrt(np.mean(err**2)) < 0.2
+    shifts = np.asarray(res.diagnostics["prior_patch_shifts_m"])
+    assert len(shifts) > 0 and shifts.max() < 3 * 0.05
+    assert any(m.trip_key_i == "<prior>" for m in res.match_pairs)
+
+
+def test_empty_input_raises():
+    from csr_core.alignment import align_trips
+    from csr_core.errors import AlignmentFailed
+
+    with pytest.raises(AlignmentFailed):
+        align_trips([])

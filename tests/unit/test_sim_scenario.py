@@ -15,8 +15,12 @@ from csr_core.upload import decode_trip, validate_upload_json
 
 pytestmark = pytest.mark.unit
 
-_SHARED_SCHEMA = pathlib.Path(__file__).resolve().parents[3] / "shared" / "contract" / "trip-upload.schema.json"
-_REPO_SCHEMA = pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
+_SHARED_SCHEMA = (
+    pathlib.Path(__file__).resolve().parents[3] / "shared" / "contract" / "trip-upload.schema.json"
+)
+_REPO_SCHEMA = (
+    pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
+)
 SCHEMA = _SHARED_SCHEMA if _SHARED_SCHEMA.exists() else _REPO_SCHEMA
 TRIP_M = 120.0
 
@@ -24,7 +28,8 @@ TRIP_M = 120.0
 def _hashes(folder: pathlib.Path) -> dict[str, str]:
     return {
         str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(folder.rglob("*")) if p.is_file()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
     }
 
 
@@ -40,7 +45,9 @@ def test_folder_layout_follows_contract_section_5(scenario):
     doc = json.loads((out / "scenario.json").read_text())
     assert {"name", "origin", "profile"} <= doc.keys()
     assert set(doc["origin"]) == {"lat", "lon"}
-    assert doc["profile"]["name"] == "standard" and "gnss" in doc["profile"] and "perception" in doc["profile"]
+    assert (
+        doc["profile"]["name"] == "standard" and "gnss" in doc["profile"] and "perception" in doc["profile"]
+    )
     trips = sorted(p.name for p in (out / "trips").iterdir())
     poses = sorted(p.name for p in (out / "truth" / "poses").iterdir())
     assert len(trips) == 3
@@ -114,3 +121,30 @@ def test_unknown_world_or_profile_is_an_error(tmp_path):
         simulate_scenario("moon", 1, "standard", 0, tmp_path / "x")
     with pytest.raises(ValueError, match="unknown profile"):
         simulate_scenario("urban", 1, "sunny", 0, tmp_path / "y")
+
+
+def test_cli_writes_a_scenario(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "cli"
+    assert (
+        main(
+            [
+                "simulate",
+                "--world",
+                "roundabout",
+                "--trips",
+                "2",
+                "--seed",
+                "1",
+                "--out",
+                str(out),
+                "--trip-length-m",
+                "80",
+            ]
+        )
+        == 0
+    )
+    assert len(list((out / "trips").glob("*.json.gz"))) == 2
+    assert (out / "truth" / "map.geojson").exists() and (out / "scenario.json").exists()
+    assert "csr simulate: roundabout-standard-n2-s1: 2 trips" in capsys.readouterr().out

@@ -82,7 +82,10 @@ def test_odometry_scale_error_and_noiseless_identity():
     rel = se2.between(np.repeat(poses[:1], len(poses), 0), poses)
     np.testing.assert_allclose(odom, rel, atol=1e-9)
     odom, info = simulate_odometry(t, poses, OdometryParams(0.01, 0.0, 0.0, 0.0), np.random.default_rng(3))
-    ratio = np.linalg.norm(np.diff(odom[:, :2], axis=0), axis=1).sum() / np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1).sum()
+    ratio = (
+        np.linalg.norm(np.diff(odom[:, :2], axis=0), axis=1).sum()
+        / np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1).sum()
+    )
     assert ratio == pytest.approx(1 + info["scale_error"], rel=1e-9)
     assert info["scale_error"] != 0.0
 
@@ -96,26 +99,37 @@ def test_noiseless_perception_reproduces_truth_geometry(world_name):
     truth = drive(route, rng, prof.traffic)
     index = build_truth_index(world, prof.perception)
     frames = perceive_trip(index, truth.poses_xyyaw_world, prof.perception, rng)
+
     def segment_tree(lines: list[np.ndarray]) -> shapely.STRtree:
         segs = np.concatenate([np.stack([ln[:-1], ln[1:]], axis=1) for ln in lines])  # (S, 2, 2)
         return shapely.STRtree(shapely.linestrings(segs))
 
     trees = {
         t: segment_tree([e.points_xy_world for e in world.elements_of(t)])
-        for t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+        for t in (
+            ElementType.LANE_DIVIDER,
+            ElementType.ROAD_BOUNDARY,
+            ElementType.CENTERLINE,
+            ElementType.STOP_LINE,
+        )
         if world.elements_of(t)
     }
     crosswalks = world.elements_of(ElementType.CROSSWALK)
     if crosswalks:
-        trees[ElementType.CROSSWALK] = segment_tree([np.vstack([e.points_xy_world, e.points_xy_world[:1]]) for e in crosswalks])
+        # clipped at the range edge a crosswalk gains corners inside the truth polygon
+        trees[ElementType.CROSSWALK] = shapely.STRtree(
+            [shapely.Polygon(e.points_xy_world) for e in crosswalks]
+        )
     p = prof.perception
     points_by_type: dict[ElementType, list[np.ndarray]] = {t: [] for t in trees}
     n_seen = 0
-    for pose, items in zip(truth.poses_xyyaw_world, frames):
+    for pose, items in zip(truth.poses_xyyaw_world, frames, strict=True):
         for item in items:
             pts_v = np.asarray(item["points"])
             assert 2 <= len(pts_v) <= 200
-            assert (pts_v[:, 0] >= p.range_x_m[0] - 1e-6).all() and (pts_v[:, 0] <= p.range_x_m[1] + 1e-6).all()
+            assert (pts_v[:, 0] >= p.range_x_m[0] - 1e-6).all() and (
+                pts_v[:, 0] <= p.range_x_m[1] + 1e-6
+            ).all()
             assert (np.abs(pts_v[:, 1]) <= p.range_y_m[1] + 1e-6).all()
             points_by_type[ElementType(item["type"])].append(se2.transform_points(pose, pts_v))
             if item.get("style") == "dashed":
@@ -124,7 +138,8 @@ def test_noiseless_perception_reproduces_truth_geometry(world_name):
     for t, chunks in points_by_type.items():
         if chunks:
             _, dist = trees[t].query_nearest(shapely.points(np.vstack(chunks)), return_distance=True)
-            assert dist.max() < 0.01, (t, dist.max())
+            # 3 cm: range-edge points are interpolated on 1 m chords (tight curb corners: R 6 m)
+            assert dist.max() < 0.03, (t, dist.max())
     assert n_seen > 100
 
 

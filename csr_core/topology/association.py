@@ -1,0 +1,176 @@
+"""Association of the aligned instances of all trips (paper III-E: "the semantic elements of
+different trips are matched together"), per element type.
+
+Lines: every instance is sampled every ``SAMPLE_SPACING_M``. For each sample, the nearest
+sample of every other instance within reach gives a signed offset in that instance's local
+frame (its tangent): the lateral distance, and whether the foot lies inside the other
+instance's extent (not past one of its ends). Over each ordered pair of instances:
+
+- *alongside*: samples inside the other's extent, within ``WINDOW_GATES`` gates of it and
+  nearly parallel (either way: a trip's instance runs the way the trip drove);
+- *close*: of those, the ones within the gate (``TopologyParams.gate_m`` of the two trips'
+  sigmas).
+
+Two instances are one element when their close overlap is at least ``MIN_OVERLAP_M`` (or half
+the shorter one: a trip may see only part of a long divider) and most of what lies alongside
+is close (``MIN_CLOSE_SHARE``: two branches of a split are alongside but drift apart). Groups
+are the connected components of these links, so chains of partial overlaps join. Fusion may
+detach a member that the fused geometry does not support (``fusion.detach``).
+
+Polygons: two outlines are one element when they intersect with IoU >= 0.2 or their
+centroids are within the polygon gate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from csr_core.single_trip.splicing import resample_polyline
+from csr_core.topology.params import TopologyParams
+from csr_core.types import ElementType, TripInstance
+
+
+@dataclass(frozen=True, slots=True)
+class Member:
+    """One aligned trip instance taking part in fusion; ``sigma_m`` its lateral 1-sigma
+    (``TopologyParams.trip_sigma_m``)."""
+
+    trip_key: str
+    index: int
+    instance: TripInstance
+    sigma_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class LineSamples:
+    """All members' samples, flattened: ``points_xy (N, 2)``, unit ``tangents (N, 2)``,
+    ``owner (N,)`` member index, ``is_first``/``is_last (N,)`` end samples of their member."""
+
+    points_xy: np.ndarray
+    tangents: np.ndarray
+    owner: np.ndarray
+    is_first: np.ndarray
+    is_last: np.ndarray
+
+
+def sample_members(members: Sequence[Member], spacing_m: float) -> LineSamples:
+    pts, tans, owner = [], [], []
+    for k, m in enumerate(members):
+        p = resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing_m)
+        if len(p) < 2:
+            t = np.array([[1.0, 0.0]])
+        else:
+            t = np.gradient(p, axis=0)
+            t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        pts.append(p)
+        tans.append(t)
+        owner.append(np.full(len(p), k))
+    if not pts:
+        z = np.zeros((0, 2))
+        return LineSamples(z, z, np.zeros(0, int), np.zeros(0, bool), np.zeros(0, bool))
+    own = np.concatenate(owner)
+    first = np.r_[True, own[1:] != own[:-1]]
+    last = np.r_[own[1:] != own[:-1], True]
+    return LineSamples(np.concatenate(pts), np.concatenate(tans), own, first, last)
+
+
+def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, directed: bool,
+                    max_angle_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For every sample ``a`` and every other member with a sample within ``reach_m``: that
+    member, the lateral distance of ``a`` to it (along its nearest sample's tangent) and whether
+    ``a`` lies inside its extent and is parallel to it. Returns ``(a, member, lateral_m, inside)``."""
+    tree = cKDTree(samples.points_xy)
+    pairs = tree.query_pairs(reach_m, output_type="ndarray")
+    if len(pairs) == 0:
+        e = np.zeros(0, int)
+        return e, e, np.zeros(0), np.zeros(0, bool)
+    a = np.r_[pairs[:, 0], pairs[:, 1]]
+    b = np.r_[pairs[:, 1], pairs[:, 0]]
+    own = samples.owner
+    keep = own[a] != own[b]
+    a, b = a[keep], b[keep]
+    if len(a) == 0:
+        e = np.zeros(0, int)
+        return e, e, np.zeros(0), np.zeros(0, bool)
+    rel = samples.points_xy[a] - samples.points_xy[b]
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    # nearest sample of each other member, per sample a
+    order = np.lexsort((dist, own[b], a))
+    a, b, rel = a[order], b[order], rel[order]
+    first = np.r_[True, (a[1:] != a[:-1]) | (own[b][1:] != own[b][:-1])]
+    a, b, rel = a[first], b[first], rel[first]
+    tb = samples.tangents[b]
+    along = rel[:, 0] * tb[:, 0] + rel[:, 1] * tb[:, 1]
+    lateral = np.abs(tb[:, 0] * rel[:, 1] - tb[:, 1] * rel[:, 0])
+    half = 0.5 * spacing_m
+    outside = (samples.is_last[b] & (along > half)) | (samples.is_first[b] & (along < -half))
+    cos = (samples.tangents[a] * tb).sum(1)
+    parallel = (cos if directed else np.abs(cos)) >= math.cos(max_angle_rad)
+    return a, own[b], lateral, ~outside & parallel
+
+
+def _components(n: int, i: np.ndarray, j: np.ndarray) -> list[list[int]]:
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    groups: dict[int, list[int]] = {}
+    for k, lab in enumerate(labels):
+        groups.setdefault(int(lab), []).append(k)
+    return list(groups.values())
+
+
+def associate_lines(members: Sequence[Member], element_type: ElementType,
+                    params: TopologyParams) -> list[list[int]]:
+    """Groups (lists of member indices) of line instances that are the same element."""
+    n = len(members)
+    if n == 0:
+        return []
+    spacing = params.SAMPLE_SPACING_M
+    samples = sample_members(members, spacing)
+    sigma = np.array([m.sigma_m for m in members])
+    max_gate = max(params.gate_m(s1, s2) for s1 in (sigma.min(), sigma.max()) for s2 in (sigma.min(), sigma.max()))
+    reach = params.WINDOW_GATES * max_gate + 0.5 * spacing
+    # undirected for every type: a trip's instance runs the way the trip drove, not the lane
+    a, mb, lateral, inside = nearest_offsets(samples, reach, spacing, False, params.MAX_ANGLE_RAD)
+    ma = samples.owner[a]
+    gate = np.minimum(params.GATE_SIGMAS * np.hypot(sigma[ma], sigma[mb]),
+                      params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M)
+    alongside = inside & (lateral <= params.WINDOW_GATES * gate)
+    close = alongside & (lateral <= gate)
+    key = ma * n + mb
+    n_along = np.bincount(key[alongside], minlength=n * n).reshape(n, n).astype(float)
+    n_close = np.bincount(key[close], minlength=n * n).reshape(n, n).astype(float)
+    lengths = np.bincount(samples.owner, minlength=n) * spacing
+    both_close = np.minimum(n_close, n_close.T) * spacing
+    share = (n_close + n_close.T) / np.maximum(n_along + n_along.T, 1.0)
+    need = np.minimum(params.MIN_OVERLAP_M, 0.5 * np.minimum(lengths[:, None], lengths[None, :]))
+    linked = (both_close >= need) & (share >= params.MIN_CLOSE_SHARE) & (n_close + n_close.T > 0)
+    i, j = np.nonzero(np.triu(linked, 1))
+    return _components(n, i, j)
+
+
+def associate_polygons(members: Sequence[Member], params: TopologyParams) -> list[list[int]]:
+    """Groups of polygon instances (crosswalks, road markings) that are the same element."""
+    n = len(members)
+    if n == 0:
+        return []
+    polys = shapely.make_valid(shapely.polygons([np.asarray(m.instance.points_xy_world, float) for m in members]))
+    tree = shapely.STRtree(polys)
+    i, j = tree.query(polys, predicate="intersects")
+    keep = i < j
+    i, j = i[keep], j[keep]
+    inter = shapely.area(shapely.intersection(polys[i], polys[j]))
+    union = np.maximum(shapely.area(shapely.union(polys[i], polys[j])), 1e-9)
+    cent = shapely.get_coordinates(shapely.centroid(polys))
+    sigma = np.array([m.sigma_m for m in members])
+    gate = np.maximum(params.POLYGON_GATE_M, params.GATE_SIGMAS * np.hypot(sigma[i], sigma[j]))
+    near = np.linalg.norm(cent[i] - cent[j], axis=1) <= gate
+    ok = (inter / union >= 0.2) | near
+    return _components(n, i[ok], j[ok])

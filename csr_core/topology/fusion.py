@@ -1,0 +1,330 @@
+"""Fusion of one associated group into one map instance (paper III-E: "fused into instances
+using the same method as the single-trip semantic reconstruction procedure").
+
+Lines, as single-trip splicing does for one track's observations (``single_trip.splicing``):
+every member sample is projected on a backbone (arclength s, signed lateral offset d), the
+lateral profile d(s) is estimated per arclength bin robustly, smoothed by a Gaussian kernel
+along s and turned back into a polyline; unsupported stretches longer than ``MAX_GAP_M``
+split. What multi-trip fusion adds:
+
+- backbone: the best member (length x weight), prolonged by the members that stick out past
+  its ends (partial overlaps: each trip sees a different part of a long divider), smoothed;
+- weights: each trip's samples weigh 1 / sigma^2 (its noise estimate plus the alignment
+  error), every trip contributes the same number of samples per metre (support = trips);
+- robust: a weighted median starts an IRLS with Tukey's biweight (c = ``TUKEY_C_SIGMAS`` x
+  the larger of the trip's sigma and the group's robust scatter), so one bad trip gets weight
+  zero where it is off instead of bending the line;
+- statistics for validation and the map properties: the standard error of the profile per
+  bin (model and empirical, the larger), the scatter of the trips around it in units of their
+  sigma, and the share of weight held by trips the fit rejected.
+
+Polygons: the single-trip polygon splice (per-vertex median after vertex alignment) over the
+members' outlines. Styles: a vote weighted by observations.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from csr_core.single_trip.splicing import _robust_ends, resample_polyline, splice_polygon
+from csr_core.topology.association import Member
+from csr_core.topology.params import TopologyParams
+from csr_core.types import DividerStyle, ElementType
+
+
+@dataclass(frozen=True, slots=True)
+class FusedInstance:
+    """One fused element and what validation needs to know about it.
+
+    ``members``: indices (into the group) that support it; ``detached``: members, or runs of
+    members, the fused geometry does not support (to be associated again on their own).
+    """
+
+    type: ElementType
+    points_xy_world: np.ndarray  # (M, 2)
+    style: DividerStyle | None
+    members: tuple[int, ...]
+    detached: tuple[Member, ...]
+    uncertainty_m: float  # median standard error of the lateral position
+    scatter_ratio: float  # RMS of inlier trips' offsets / their sigma (about 1 when consistent)
+    rejected_weight_share: float  # weight of trips the robust fit rejected / all
+    outlier_members: tuple[int, ...]  # members mostly rejected by the robust fit
+    max_internal_gap_m: float  # longest unsupported stretch spanned inside
+
+
+def arclength(points: np.ndarray) -> np.ndarray:
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+
+
+def project_on_polyline(points: np.ndarray, line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arclength ``s`` and signed lateral offset ``d`` (left positive) of ``points (P, 2)`` on a
+    densely sampled ``line (B, 2)``; beyond the ends, s continues along the end tangents."""
+    from scipy.spatial import cKDTree
+
+    s_b = arclength(line)
+    tan = np.gradient(line, axis=0)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    _, i = cKDTree(line).query(points)
+    rel = points - line[i]
+    s = s_b[i] + (rel * tan[i]).sum(1)
+    d = tan[i, 0] * rel[:, 1] - tan[i, 1] * rel[:, 0]
+    return s, d
+
+
+def _weighted_median_per_bin(bins: np.ndarray, values: np.ndarray, weights: np.ndarray, n_bins: int) -> np.ndarray:
+    order = np.lexsort((values, bins))
+    b, v, w = bins[order], values[order], weights[order]
+    cw = np.cumsum(w)
+    tot = np.bincount(b, weights=w, minlength=n_bins)
+    start = np.r_[0.0, np.cumsum(tot)[:-1]]
+    half = start[b] + 0.5 * tot[b]
+    out = np.full(n_bins, np.nan)
+    hit = cw >= half
+    # first sample of each bin reaching half its weight
+    idx = np.flatnonzero(hit)
+    first = idx[np.r_[True, b[idx][1:] != b[idx][:-1]]]
+    out[b[first]] = v[first]
+    return out
+
+
+def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int, sigma_bins: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    num = gaussian_filter1d(np.bincount(bins, weights=w * d, minlength=n_bins), sigma_bins, mode="nearest")
+    den = gaussian_filter1d(np.bincount(bins, weights=w, minlength=n_bins), sigma_bins, mode="nearest")
+    prof = np.where(den > 1e-12, num / np.maximum(den, 1e-12), np.nan)
+    good = np.isfinite(prof)
+    if good.any() and not good.all():
+        x = np.arange(n_bins)
+        prof = np.interp(x, x[good], prof[good])
+    return prof, den
+
+
+def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray
+                   ) -> np.ndarray:
+    """The member most others agree with (x weight), prolonged at either end by the contiguous part of
+    the member that runs on past it furthest (the member must be within its gate of the
+    backbone near that end): partial overlaps chain, branches do not jump."""
+    lengths = np.array([arclength(p)[-1] if len(p) > 1 else 0.0 for p in lines])
+    seed = int(np.argmax(lengths * weights))
+    backbone = lines[seed]
+    pts = np.concatenate(lines)
+    starts = np.r_[0, np.cumsum([len(p) for p in lines])[:-1]]
+    used = {seed}
+    for _ in range(2 * len(lines)):
+        if len(backbone) < 2:
+            break
+        total = arclength(backbone)[-1]
+        s_all, d_all = project_on_polyline(pts, backbone)
+        near_end = 3.0 * spacing
+        best = None  # (reach, end, points, member)
+        for k in range(len(lines)):
+            if k in used or len(lines[k]) < 2:
+                continue
+            sl = slice(starts[k], starts[k] + len(lines[k]))
+            s, d = s_all[sl], d_all[sl]
+            close = np.abs(d) <= gates[k]
+            for end in (0, 1):
+                cand = np.flatnonzero(close & ((s >= total - near_end) & (s <= total) if end
+                                               else (s <= near_end) & (s >= 0)))
+                if not len(cand):
+                    continue
+                i0 = int(cand[np.argmax(s[cand])] if end else cand[np.argmin(s[cand])])
+                fwd = i0 + 1 < len(s) and (s[i0 + 1] > s[i0]) == bool(end)
+                idx = np.arange(i0 + 1, len(s)) if fwd else np.arange(i0 - 1, -1, -1)
+                beyond = s[idx] > total if end else s[idx] < 0
+                run = idx[: int(np.argmin(beyond)) if not beyond.all() else len(idx)]
+                if len(run) < 2:
+                    continue
+                reach = len(run) * spacing
+                if best is None or reach > best[0]:
+                    best = (reach, end, lines[k][run], k)
+        if best is None:
+            break
+        _, end, ext, k = best
+        used.add(k)
+        backbone = np.vstack([backbone, ext]) if end else np.vstack([ext[::-1], backbone])
+    backbone = resample_polyline(backbone, spacing)
+    if len(backbone) >= 5:
+        sm = np.column_stack([gaussian_filter1d(backbone[:, i], 2.0 / spacing, mode="nearest") for i in (0, 1)])
+        backbone = resample_polyline(sm, spacing)
+    return backbone
+
+
+def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int) -> np.ndarray:
+    """Per member: over its samples, how many other members pass within the gate (the member
+    most others agree with seeds the backbone, not the longest stray one)."""
+    from scipy.spatial import cKDTree
+
+    if n == 1:
+        return np.ones(1)
+    pairs = cKDTree(pts).query_pairs(float(gates.max()), output_type="ndarray")
+    if not len(pairs):
+        return np.bincount(own, minlength=n).astype(float)
+    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
+    ok = (own[a] != own[b]) & (np.linalg.norm(pts[a] - pts[b], axis=1) <= gates[own[a]])
+    uniq = np.unique(np.c_[a[ok], own[b[ok]]], axis=0)
+    return np.bincount(own[uniq[:, 0]], minlength=n).astype(float) + 1e-3 * np.bincount(own, minlength=n)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of the runs of True in a 1-D mask."""
+    m = np.r_[False, mask, False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(m))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
+def fuse_lines(members: Sequence[Member], element_type: ElementType, params: TopologyParams) -> list[FusedInstance]:
+    """A group of line members -> fused polylines (usually one; a gap longer than
+    ``MAX_GAP_M`` splits). Shapes: each member's ``points_xy_world (M, 2)`` in metres."""
+    sigma = np.array([m.sigma_m for m in members])
+    w_member = 1.0 / sigma**2
+    gate = np.array([params.gate_m(sg, sg) for sg in sigma])
+    spacing = 0.5 * params.BIN_M
+    lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
+    backbone = _grow_backbone(lines, gate, spacing, w_member)
+    if len(backbone) < 3:
+        return []
+    # 1. all member samples on the backbone
+    points = np.concatenate(lines)
+    own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
+    s, d = project_on_polyline(points, backbone)
+    on_backbone = (s >= -spacing) & (s <= arclength(backbone)[-1] + spacing)
+    s0 = float(s.min())
+    bins = np.floor((s - s0) / params.BIN_M).astype(np.int64)
+    n_bins = int(bins.max()) + 1
+    w0 = w_member[own]
+    sig = sigma[own]
+    # 2. robust weighted profile: weighted median, then Tukey IRLS on the smoothed profile
+    mu = _weighted_median_per_bin(bins, d, w0, n_bins)
+    ok = np.isfinite(mu)
+    mu = np.interp(np.arange(n_bins), np.flatnonzero(ok), mu[ok])
+    r = d - mu[bins]
+    scale = max(1.4826 * float(np.median(np.abs(r))), 1e-3)
+    c = params.TUKEY_C_SIGMAS * np.maximum(sig, scale)
+    sm_bins = params.SMOOTH_SIGMA_M / params.BIN_M
+    w = w0
+    for _ in range(params.IRLS_ITERATIONS):
+        u = r / c
+        w = w0 * np.where((np.abs(u) < 1.0) & on_backbone, (1.0 - u**2) ** 2, 0.0)
+        if w.sum() <= 0:
+            w = w0
+        mu, _ = _smooth_profile(bins, d, w, n_bins, sm_bins)
+        r = d - mu[bins]
+    inlier = w > 0
+    # 3. members: runs off the fused line are peeled off (associated again on their own: the
+    #    other branch of a split, a trip that was associated by a chain but lies elsewhere);
+    #    outliers: members mostly rejected where they are alongside
+    n_m = len(members)
+    cnt = np.bincount(own, minlength=n_m).astype(float)
+    off = ~on_backbone | (np.abs(r) > gate[own])
+    close_share = np.bincount(own[~off], minlength=n_m) / np.maximum(cnt, 1)
+    keep_m = close_share >= params.DETACH_CLOSE_SHARE if n_m > 1 else np.ones(1, bool)
+    if not keep_m.any():
+        keep_m[int(np.argmax(close_share))] = True
+    detached: list[Member] = []
+    min_run = max(int(params.MIN_OVERLAP_M / spacing), 2)
+    for k in range(n_m):
+        mask = off[own == k] if keep_m[k] else np.ones(int(cnt[k]), bool)
+        for a, b in _runs(mask):
+            if b - a >= min_run or not keep_m[k]:
+                m = members[k]
+                detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
+                                       m.sigma_m))
+    in_share = np.bincount(own[inlier & ~off], minlength=n_m) / np.maximum(cnt, 1)
+    outliers = [k for k in range(n_m) if keep_m[k] and in_share[k] < 0.5 * close_share[k]]
+    use = inlier & keep_m[own] & ~off
+    if not use.any():
+        return []
+    rejected_share = float(w_member[outliers].sum() / w_member[keep_m].sum()) if outliers else 0.0
+    # 4. support, gaps and ends
+    support = np.bincount(bins[use], minlength=n_bins) > 0
+    idx = np.flatnonzero(support)
+    cuts = np.flatnonzero(np.diff(idx) * params.BIN_M > params.MAX_GAP_M)
+    spans = np.split(idx, cuts + 1)
+    s_b = arclength(backbone)
+    tan = np.gradient(backbone, axis=0)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    normal = np.column_stack([-tan[:, 1], tan[:, 0]])
+    centers = s0 + (np.arange(n_bins) + 0.5) * params.BIN_M
+    # per-bin standard error: model (independent trips) and empirical (trip scatter)
+    per_trip_bin = params.BIN_M / spacing
+    w_bin = np.bincount(bins[use], weights=w[use], minlength=n_bins) / per_trip_bin
+    se_model = 1.0 / np.sqrt(np.maximum(w_bin, 1e-12))
+    r2 = np.bincount(bins[use], weights=(w[use] * r[use] ** 2), minlength=n_bins)
+    n_bin = np.bincount(bins[use], minlength=n_bins) / per_trip_bin
+    var_emp = r2 / np.maximum(np.bincount(bins[use], weights=w[use], minlength=n_bins), 1e-12)
+    se_emp = np.sqrt(var_emp / np.maximum(n_bin - 1, 1))
+    se = np.maximum(se_model, np.where(n_bin >= 2, se_emp, 0.0))
+    scatter = float(np.sqrt(np.mean((r[use] / sig[use]) ** 2)))
+    style = vote_style([members[k] for k in range(n_m) if keep_m[k]])
+    out = []
+    for span in spans:
+        in_span = use & (bins >= span[0]) & (bins <= span[-1])
+        if not in_span.any():
+            continue
+        s_lo, s_hi = _robust_ends(s[in_span], own[in_span], params.END_WINDOW_M)
+        if s_hi - s_lo < params.BIN_M:
+            continue
+        q = np.arange(s_lo, s_hi, params.OUTPUT_SPACING_M)
+        q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
+        dq = np.interp(q, centers, mu)
+        nx = np.interp(q, s_b, normal[:, 0])
+        ny = np.interp(q, s_b, normal[:, 1])
+        nn = np.maximum(np.hypot(nx, ny), 1e-12)
+        line = np.column_stack([np.interp(q, s_b, backbone[:, 0]) + dq * nx / nn,
+                                np.interp(q, s_b, backbone[:, 1]) + dq * ny / nn])
+        span_members = tuple(int(k) for k in np.unique(own[in_span]))
+        gaps = np.diff(span) * params.BIN_M - params.BIN_M
+        if element_type == ElementType.CENTERLINE:
+            line = _orient(line, [members[k] for k in span_members], w_member[list(span_members)])
+        out.append(FusedInstance(
+            type=element_type, points_xy_world=line, style=style, members=span_members,
+            detached=tuple(detached), uncertainty_m=float(np.median(se[span[0]:span[-1] + 1][support[span[0]:span[-1] + 1]])),
+            scatter_ratio=scatter, rejected_weight_share=rejected_share,
+            outlier_members=tuple(k for k in outliers if k in span_members),
+            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0))
+    return out
+
+
+def _orient(line: np.ndarray, members: Sequence[Member], weights: np.ndarray) -> np.ndarray:
+    """Directed elements (centrelines) point the way most of their members' weight points."""
+    if len(line) < 2:
+        return line
+    tangent = line[-1] - line[0]
+    vote = 0.0
+    for m, w in zip(members, weights, strict=True):
+        p = np.asarray(m.instance.points_xy_world, float)
+        if len(p) >= 2:
+            vote += w * np.sign(float(np.dot(p[-1] - p[0], tangent)))
+    return line[::-1].copy() if vote < 0 else line
+
+
+def vote_style(members: Sequence[Member]) -> DividerStyle | None:
+    """The style most observations gave (unknown only when none said otherwise)."""
+    votes: Counter = Counter()
+    for m in members:
+        st = m.instance.style
+        if st is not None and st != DividerStyle.UNKNOWN:
+            votes[st] += max(m.instance.n_observations, 1)
+    if votes:
+        return votes.most_common(1)[0][0]
+    return DividerStyle.UNKNOWN if any(m.instance.style is not None for m in members) else None
+
+
+def fuse_polygons(members: Sequence[Member], element_type: ElementType) -> FusedInstance:
+    """A group of polygon members -> one outline (per-vertex median, ``splice_polygon``)."""
+    polys = [np.asarray(m.instance.points_xy_world, float) for m in members]
+    n = len(polys)
+    outline, lateral, _ = splice_polygon(polys, np.ones(n, bool), np.zeros(n))
+    sig = np.array([m.sigma_m for m in members])
+    spread = 1.4826 * float(np.median(np.abs(lateral))) if len(lateral) else 0.0
+    se = max(float(np.sqrt(1.0 / np.sum(1.0 / sig**2))), spread / np.sqrt(max(n - 1, 1)))
+    scatter = float(spread / np.median(sig)) if n >= 3 else 1.0
+    return FusedInstance(type=element_type, points_xy_world=outline, style=vote_style(members),
+                         members=tuple(range(n)), detached=(), uncertainty_m=se, scatter_ratio=scatter,
+                         rejected_weight_share=0.0, outlier_members=(), max_internal_gap_m=0.0)

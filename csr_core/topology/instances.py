@@ -1,0 +1,215 @@
+"""The pieces the recipes of ``generate_topology`` and ``update_topology`` share: the result
+type, members, fusion of one type with re-association of detached members, features and their
+properties, ids, and the final lane graph + validation pass."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from csr_core.single_trip.splicing import resample_polyline
+from csr_core.topology.association import Member, associate_lines, associate_polygons
+from csr_core.topology.fusion import FusedInstance, fuse_lines, fuse_polygons
+from csr_core.topology.identity import inherit_ids, new_feature_id
+from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
+from csr_core.topology.params import TopologyParams
+from csr_core.topology.validation import TileQuality, ValidationFlag, coverage_counts, validate
+from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
+
+
+@dataclass(frozen=True, slots=True)
+class TopologyResult:
+    """The fused map and its checks.
+
+    ``suppressed``: instances held back from the map (one trip saw them, several passed); they
+    keep their ids and flags and are published once more trips confirm them.
+    ``members`` (feature id -> the trip instances supporting it) and ``trip_points`` (each
+    trip's element points, for coverage) are the state ``update_topology`` continues from.
+    """
+
+    features: tuple[MapFeature, ...]
+    lane_graph: LaneGraph
+    flags: tuple[ValidationFlag, ...]
+    tile_quality: dict[tuple[int, int], TileQuality]
+    members: dict[str, tuple[Member, ...]] = field(default_factory=dict)
+    trip_points: dict[str, np.ndarray] = field(default_factory=dict)
+    trip_times: dict[str, object] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    suppressed: tuple[MapFeature, ...] = ()
+
+    def flags_of(self, feature_id: str) -> list[ValidationFlag]:
+        return [f for f in self.flags if f.feature_id == feature_id]
+
+
+def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
+                 noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
+                 params: TopologyParams) -> dict[ElementType, list[Member]]:
+    out: dict[ElementType, list[Member]] = {t: [] for t in ElementType}
+    for key, instances in instances_per_trip.items():
+        noise = noise_per_trip.get(key, {})
+        for k, inst in enumerate(instances):
+            if len(inst.points_xy_world) < (3 if inst.type.is_polygon else 2):
+                continue
+            out[inst.type].append(Member(key, k, inst, params.trip_sigma_m(noise.get(inst.type))))
+    return out
+
+
+def fuse_type(members: Sequence[Member], element_type: ElementType, params: TopologyParams
+              ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
+    """Associate and fuse all members of one type. Fusion peels off what the fused line does
+    not support (the other side of a corner a chain of boundaries went round, the other branch
+    of a split): those pieces are associated and fused again among themselves, round after
+    round, until nothing is left (after ``MAX_FUSION_ROUNDS`` the rest stand alone)."""
+    out: list[tuple[FusedInstance, tuple[Member, ...]]] = []
+    pending = list(members)
+    for round_ in range(params.MAX_FUSION_ROUNDS + 1):
+        if not pending:
+            break
+        last = round_ == params.MAX_FUSION_ROUNDS
+        if element_type.is_polygon:
+            groups = associate_polygons(pending, params)
+        else:
+            groups = [[k] for k in range(len(pending))] if last else associate_lines(pending, element_type, params)
+        detached: list[Member] = []
+        for g in groups:
+            gm = [pending[k] for k in g]
+            fused = [fuse_polygons(gm, element_type)] if element_type.is_polygon else fuse_lines(gm, element_type, params)
+            for f in fused:
+                out.append((f, tuple(gm[k] for k in f.members)))
+            if fused and not last:
+                detached.extend(p for p in fused[0].detached if len(p.instance.points_xy_world) >= 2)
+        pending = detached
+    return out
+
+
+def _times(members: Sequence[Member], trip_times: Mapping[str, object] | None) -> tuple[object, object, str]:
+    keys = sorted({m.trip_key for m in members})
+    if trip_times and all(k in trip_times for k in keys):
+        ordered = sorted(keys, key=lambda k: (trip_times[k], k))
+        return trip_times[ordered[0]], trip_times[ordered[-1]], ordered[0]
+    return None, None, keys[0]
+
+
+def feature_from_fused(fused: FusedInstance, members: Sequence[Member], trip_times: Mapping[str, object] | None,
+             feature_id: str = "") -> MapFeature:
+    first, last, first_trip = _times(members, trip_times)
+    trips = sorted({m.trip_key for m in members})
+    outlier_trips = sorted({members[k].trip_key for k in fused.outlier_members if k < len(members)})
+    props = {
+        "support_trips": len(trips),
+        "support_observations": int(sum(m.instance.n_observations for m in members)),
+        "uncertainty_m": round(float(fused.uncertainty_m), 4),
+        "first_seen": first,
+        "last_confirmed": last,
+        "style": fused.style.value if fused.style is not None else None,
+        "trips": trips,
+        "scatter_ratio": round(float(fused.scatter_ratio), 3),
+        "rejected_weight_share": round(float(fused.rejected_weight_share), 3),
+        "outlier_trips": outlier_trips,
+        "max_internal_gap_m": round(float(fused.max_internal_gap_m), 2),
+        "first_trip": first_trip,
+    }
+    return MapFeature(type=fused.type, points_xy_world=fused.points_xy_world, style=fused.style,
+                      feature_id=feature_id, properties=props)
+
+
+def assign_ids(features: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
+               ) -> list[MapFeature]:
+    """Inherited ids where a previous instance continues, new deterministic ids elsewhere;
+    ``first_seen`` keeps the earliest of the previous and the new value."""
+    inherited = inherit_ids(features, previous, params)
+    prev_by_id = {f.feature_id: f for f in previous}
+    used: set[str] = set()
+    out = []
+    for f, fid in zip(features, inherited, strict=True):
+        props = dict(f.properties)
+        if fid is not None:
+            old = prev_by_id[fid].properties.get("first_seen")
+            if old is not None and (props["first_seen"] is None or old < props["first_seen"]):
+                props["first_seen"] = old
+        else:
+            fid = new_feature_id(f.type, props["first_trip"], f.points_xy_world[0])
+            base, n = fid, 2
+            while fid in used or fid in prev_by_id:
+                fid, n = f"{base}-{n}", n + 1
+        used.add(fid)
+        out.append(replace(f, feature_id=fid, properties=props))
+    return out
+
+
+def trip_probe_points(instances_per_trip: Mapping[str, Sequence[TripInstance]], spacing_m: float = 5.0
+                      ) -> dict[str, np.ndarray]:
+    out = {}
+    for key, instances in instances_per_trip.items():
+        pts = [resample_polyline(np.asarray(i.points_xy_world, float), spacing_m)
+               for i in instances if len(i.points_xy_world) >= 2]
+        out[key] = np.concatenate(pts) if pts else np.zeros((0, 2))
+    return out
+
+
+def path_probes(paths_xy_per_trip: Mapping[str, np.ndarray] | None, spacing_m: float = 2.0
+                ) -> dict[str, np.ndarray]:
+    """Each trip's driven path as ``(P, 4)`` rows x, y, unit direction x, y every ``spacing_m``."""
+    out = {}
+    for key, xy in (paths_xy_per_trip or {}).items():
+        p = resample_polyline(np.asarray(xy, float)[:, :2], spacing_m) if len(xy) >= 2 else np.zeros((0, 2))
+        if len(p) < 2:
+            continue
+        t = np.gradient(p, axis=0)
+        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        out[key] = np.hstack([p, t])
+    return out
+
+
+def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray],
+                       params: TopologyParams) -> list[MapFeature]:
+    """Centrelines point the way the trips that drove on them (path within a quarter lane)
+    drove; without such trips they keep the direction most of their members had."""
+    if not probes:
+        return list(features)
+    allp = np.concatenate(list(probes.values()))
+    tree = cKDTree(allp[:, :2])
+    out = []
+    for f in features:
+        p = np.asarray(f.points_xy_world, float)
+        if f.type != ElementType.CENTERLINE or len(p) < 2:
+            out.append(f)
+            continue
+        q = resample_polyline(p, 2.0)
+        t = np.gradient(q, axis=0)
+        dist, idx = tree.query(q, distance_upper_bound=0.25 * params.MIN_LANE_WIDTH_M)
+        ok = np.isfinite(dist)
+        vote = float(np.sum((allp[idx[ok], 2:] * t[ok]).sum(1))) if ok.any() else 0.0
+        out.append(replace(f, points_xy_world=p[::-1].copy()) if vote < 0 else f)
+    return out
+
+
+def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]],
+           trip_points: dict[str, np.ndarray], params: TopologyParams, match_pairs: Sequence,
+           timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None) -> TopologyResult:
+    """Validation over the whole map, flags copied into each feature; instances that a single
+    trip of at least ``SUPPRESS_MIN_COVERAGE`` passing trips saw are held back (``suppressed``);
+    the lane graph of the published ones."""
+    t0 = time.perf_counter()
+    cover = coverage_counts(features, trip_points, params.COVERAGE_RADIUS_M)
+    flags, quality = validate(features, cover, params, match_pairs)
+    by_feature: dict[str, list[str]] = {}
+    for fl in flags:
+        if fl.feature_id is not None:
+            by_feature.setdefault(fl.feature_id, []).append(fl.kind)
+    final = [replace(f, properties={**f.properties, "coverage_trips": c,
+                                    "flags": sorted(set(by_feature.get(f.feature_id, [])))})
+             for f, c in zip(features, cover, strict=True)]
+    held = [f.properties["support_trips"] <= 1 and f.properties["coverage_trips"] >= params.SUPPRESS_MIN_COVERAGE
+            for f in final]
+    published = tuple(f for f, h in zip(final, held, strict=True) if not h)
+    suppressed = tuple(f for f, h in zip(final, held, strict=True) if h)
+    t1 = time.perf_counter()
+    lane_graph = build_lane_graph(published, params)
+    t2 = time.perf_counter()
+    return TopologyResult(published, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
+                          {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed)

@@ -1,0 +1,81 @@
+"""Parameters of lane instance topology generation and automatic validation (paper III-E).
+
+Distances that decide "same element or not" are not constants: they come from each trip's
+single-trip noise estimate (``ElementNoise.lateral_sigma_m``) combined with the alignment error
+left between trips (``ALIGNMENT_SIGMA_M``, a prior: the paper's RPE RMSE, Table III), and are
+bounded by road geometry (``MIN_LANE_WIDTH_M``: two distinct parallel elements of one type
+are never closer than a narrow lane). The constants below are priors and physical bounds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from csr_core.types import ElementNoise
+
+
+@dataclass(frozen=True, slots=True)
+class TopologyParams:
+    # --- error model --------------------------------------------------------------------------------
+    # 1-sigma horizontal error left between aligned trips (paper Table III: RPE RMSE 0.087 m).
+    ALIGNMENT_SIGMA_M: float = 0.10
+    # lateral sigma of a type whose noise estimate is missing (single-trip prior)
+    DEFAULT_LATERAL_SIGMA_M: float = 0.20
+
+    # --- road geometry bounds -------------------------------------------------------------------------
+    MIN_LANE_WIDTH_M: float = 2.5  # narrowest lane: distinct parallel elements of one type are farther
+    MAX_LANE_WIDTH_M: float = 5.0  # widest lane between two dividers
+
+    # --- association --------------------------------------------------------------------------------
+    SAMPLE_SPACING_M: float = 1.0  # every instance sampled at this arclength spacing
+    GATE_SIGMAS: float = 3.0  # gate = GATE_SIGMAS x combined lateral sigma of the two trips
+    GATE_MAX_SHARE_OF_LANE: float = 0.3  # gate never above this share of MIN_LANE_WIDTH_M
+    WINDOW_GATES: float = 2.5  # a sample is "alongside" the other instance within this many gates
+    MIN_OVERLAP_M: float = 4.0  # edge needs this much mutual overlap (or half the shorter instance)
+    MIN_CLOSE_SHARE: float = 0.75  # of the samples alongside, this share within the gate
+    MAX_ANGLE_RAD: float = math.radians(25.0)  # samples of one element are nearly parallel
+    POLYGON_GATE_M: float = 1.0  # polygons: centroid distance beyond the overlap test
+
+    # --- fusion -------------------------------------------------------------------------------------
+    BIN_M: float = 1.0  # arclength bins of the fused lateral profile
+    SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the profile along arclength
+    TUKEY_C_SIGMAS: float = 4.685  # redescending weight: a trip farther than this is ignored
+    IRLS_ITERATIONS: int = 4
+    MAX_GAP_M: float = 15.0  # unsupported arclength spanned; longer gaps split the instance
+    END_WINDOW_M: float = 3.0  # robust ends: member ends within this of the extreme vote
+    OUTPUT_SPACING_M: float = 1.0
+    MAX_FUSION_ROUNDS: int = 12  # rounds of associate -> fuse -> peel off the unsupported
+    DETACH_CLOSE_SHARE: float = 0.6  # a member with less of its overlap near the fused line leaves
+
+    # --- identity -----------------------------------------------------------------------------------
+    ID_MIN_OVERLAP_SHARE: float = 0.5  # a new instance inherits an id when this share overlaps it
+
+    # --- lane graph ---------------------------------------------------------------------------------
+    CONNECT_M: float = 2.5  # lane end -> lane start within this is a successor link
+    CONNECT_MAX_ANGLE_RAD: float = math.radians(45.0)
+
+    # --- validation ---------------------------------------------------------------------------------
+    TILE_SIZE_M: float = 200.0  # square tiles of the world plane (the service may use its own)
+    COVERAGE_RADIUS_M: float = 10.0  # a trip "passed" an instance if it has elements this close
+    LOW_SUPPORT_SHARE: float = 0.34  # of the trips that passed, fewer than this saw it
+    HIGH_VARIANCE_RATIO: float = 2.0  # trip scatter / expected sigma above this
+    DISAGREE_WEIGHT_SHARE: float = 0.25  # rejected (outlier) trips hold this share of the weight
+    GAP_MIN_M: float = 5.0  # unsupported run inside an instance, or break to a collinear one
+    HIGH_RESIDUAL_SIGMAS: float = 3.0  # match pair residual / ALIGNMENT_SIGMA_M above this
+    WIDTH_RUN_M: float = 5.0  # an implausible spacing must hold over this length
+    SUPPRESS_MIN_COVERAGE: int = 3  # seen by one trip of at least this many passing: held back
+
+    def trip_sigma_m(self, noise: ElementNoise | None) -> float:
+        """Lateral 1-sigma of one trip's instance in the world: its perception noise plus the
+        alignment error between trips."""
+        lat = noise.lateral_sigma_m if noise is not None else self.DEFAULT_LATERAL_SIGMA_M
+        return math.hypot(lat, self.ALIGNMENT_SIGMA_M)
+
+    def gate_m(self, sigma_a_m: float, sigma_b_m: float) -> float:
+        """Association gate between two trips' instances (metres)."""
+        return min(self.GATE_SIGMAS * math.hypot(sigma_a_m, sigma_b_m),
+                   self.GATE_MAX_SHARE_OF_LANE * self.MIN_LANE_WIDTH_M)
+
+
+DEFAULT = TopologyParams()

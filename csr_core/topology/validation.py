@@ -1,0 +1,240 @@
+"""Automatic validation of the fused map (paper III-E: "the obtained instance geometry and
+variance of noise are used to determine whether there is noise in the map").
+
+Per instance (thresholds from the noise model, see ``TopologyParams``):
+
+- ``low_support``: of the trips that passed it (trips with any element within
+  ``COVERAGE_RADIUS_M``), fewer than ``LOW_SUPPORT_SHARE`` saw it, or only one of several did;
+- ``high_variance``: the inlier trips scatter around the fused line by more than
+  ``HIGH_VARIANCE_RATIO`` times their own sigma (chi-like ratio; 1 when the noise model holds);
+- ``trips_disagree``: trips the robust fit rejected hold at least ``DISAGREE_WEIGHT_SHARE`` of
+  the weight (two populations: which one is right is not clear);
+- ``outlier_trip`` (informative, the fused geometry ignores it): a minority trip rejected;
+- ``gap``: an unsupported stretch of at least ``GAP_MIN_M`` inside the instance, or a break of up
+  to ``MAX_GAP_M`` to a collinear instance of its type;
+- ``implausible_lane_width``: a parallel line of its type (divider/divider, boundary/boundary)
+  closer than a plausible lane (``MIN_LANE_WIDTH_M``, or 0.7 x the data's median spacing when
+  smaller) but farther than the association gate, over ``WIDTH_RUN_M``;
+- ``high_residual_pair``: an alignment match pair whose residual exceeds
+  ``HIGH_RESIDUAL_SIGMAS`` x ``ALIGNMENT_SIGMA_M`` involves one of its trips near it.
+
+Per tile (square ``TILE_SIZE_M`` tiles of the world plane): a quality score in [0, 1], 1 minus
+the severity-weighted share of instance length flagged, and the list of flags.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from csr_core.single_trip.splicing import resample_polyline
+from csr_core.topology.params import TopologyParams
+from csr_core.types import ElementType, MapFeature
+
+# severity of each flag in the tile score; ``outlier_trip`` does not make an instance suspect
+SEVERITY = {"low_support": 1.0, "trips_disagree": 1.0, "implausible_lane_width": 1.0, "high_variance": 0.7,
+            "high_residual_pair": 0.7, "gap": 0.5, "outlier_trip": 0.0}
+SUSPECT = frozenset(k for k, v in SEVERITY.items() if v > 0)
+PAIR_RADIUS_M = 30.0  # a match pair speaks for the instances within this of its centre
+
+
+@dataclass(frozen=True, slots=True)
+class ValidationFlag:
+    kind: str
+    feature_id: str | None
+    tile: tuple[int, int]
+    trip_keys: tuple[str, ...] = ()
+    value: float = float("nan")
+
+
+@dataclass(frozen=True, slots=True)
+class TileQuality:
+    tile: tuple[int, int]
+    score: float  # 1: nothing suspect
+    flags: tuple[str, ...]  # "kind:count", sorted
+    n_features: int
+
+
+def tile_of(points_xy: np.ndarray, tile_size_m: float) -> np.ndarray:
+    return np.floor(np.asarray(points_xy, float) / tile_size_m).astype(np.int64)
+
+
+def _samples(features: Sequence[MapFeature], spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    pts, tans, own = [], [], []
+    for k, f in enumerate(features):
+        p = np.asarray(f.points_xy_world, float)
+        if f.type.is_polygon and len(p) >= 3:
+            p = np.vstack([p, p[:1]])
+        p = resample_polyline(p, spacing) if len(p) >= 2 else p
+        t = np.gradient(p, axis=0) if len(p) >= 2 else np.array([[1.0, 0.0]])
+        t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        pts.append(p)
+        tans.append(t)
+        own.append(np.full(len(p), k))
+    if not pts:
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
+    return np.concatenate(pts), np.concatenate(tans), np.concatenate(own)
+
+
+def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> dict[int, float]:
+    """Feature index -> run length (m) of implausibly narrow spacing to a same-type parallel line."""
+    out: dict[int, float] = {}
+    spacing = params.SAMPLE_SPACING_M
+    gate = params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M
+    for etype in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY):
+        idx = [i for i, f in enumerate(features) if f.type == etype]
+        if len(idx) < 2:
+            continue
+        pts, tans, own = _samples([features[i] for i in idx], spacing)
+        tree = cKDTree(pts)
+        pairs = tree.query_pairs(params.MAX_LANE_WIDTH_M, output_type="ndarray")
+        if not len(pairs):
+            continue
+        a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
+        keep = (own[a] != own[b]) & (np.abs((tans[a] * tans[b]).sum(1)) >= math.cos(math.radians(15)))
+        a, b = a[keep], b[keep]
+        rel = pts[b] - pts[a]
+        lat = np.abs(tans[a, 0] * rel[:, 1] - tans[a, 1] * rel[:, 0])
+        along = np.abs((tans[a] * rel).sum(1))
+        ok = along <= spacing
+        a, lat = a[ok], lat[ok]
+        nearest = np.full(len(pts), np.inf)
+        np.minimum.at(nearest, a, lat)
+        finite = nearest[np.isfinite(nearest) & (nearest > gate)]
+        typical = float(np.median(finite)) if len(finite) >= 20 else params.MIN_LANE_WIDTH_M / 0.7
+        narrow = min(params.MIN_LANE_WIDTH_M, 0.7 * typical)
+        bad = (nearest > gate) & (nearest < narrow)
+        run = np.bincount(own[bad], minlength=len(idx)) * spacing
+        for k, r in enumerate(run):
+            if r >= params.WIDTH_RUN_M:
+                out[idx[k]] = float(r)
+    return out
+
+
+def _breaks(features: Sequence[MapFeature], params: TopologyParams) -> set[int]:
+    """Line features whose end is a short break from a collinear same-type line."""
+    out: set[int] = set()
+    lines = [(i, np.asarray(f.points_xy_world, float)) for i, f in enumerate(features)
+             if not f.type.is_polygon and len(f.points_xy_world) >= 3]
+    for etype in ElementType:
+        sel = [(i, p) for i, p in lines if features[i].type == etype]
+        if len(sel) < 2:
+            continue
+        ends, dirs, owner = [], [], []
+        for i, p in sel:
+            for e in (0, 1):
+                q = p[-1] if e else p[0]
+                r = p[-3] if e else p[2]
+                v = q - r
+                ends.append(q)
+                dirs.append(v / max(float(np.linalg.norm(v)), 1e-12))  # outward
+                owner.append(i)
+        ends_a, dirs_a = np.array(ends), np.array(dirs)
+        tree = cKDTree(ends_a)
+        for u, v in tree.query_pairs(params.MAX_GAP_M):
+            if owner[u] == owner[v]:
+                continue
+            gap = ends_a[v] - ends_a[u]
+            dist = float(np.linalg.norm(gap))
+            if dist < params.SAMPLE_SPACING_M:
+                continue
+            g = gap / dist
+            if float(dirs_a[u] @ g) > 0.95 and float(-dirs_a[v] @ g) > 0.95:
+                out.update((owner[u], owner[v]))
+    return out
+
+
+def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], params: TopologyParams,
+             match_pairs: Sequence = ()) -> tuple[tuple[ValidationFlag, ...], dict[tuple[int, int], TileQuality]]:
+    """Flags per instance and quality per tile.
+
+    ``features`` carry the fusion statistics in ``properties`` (support_trips, scatter_ratio,
+    rejected_weight_share, outlier_trips, max_internal_gap_m, trips); ``coverage_trips[i]`` is the
+    number of trips that passed feature i; ``match_pairs`` objects with ``centre_xy_world``,
+    ``residual_rms_m``, ``trip_key_i``, ``trip_key_j`` (``alignment.MatchPairRecord``).
+    """
+    flags: list[ValidationFlag] = []
+    narrow = _narrow_spacing(features, params)
+    breaks = _breaks(features, params)
+    pts, _, own = _samples(features, params.SAMPLE_SPACING_M)
+    tiles = tile_of(pts, params.TILE_SIZE_M)
+    home = {}
+    for k, f in enumerate(features):
+        p = np.asarray(f.points_xy_world, float)
+        home[k] = tuple(int(v) for v in tile_of(p[len(p) // 2], params.TILE_SIZE_M))
+    bad_pairs = [mp for mp in match_pairs
+                 if float(mp.residual_rms_m) > params.HIGH_RESIDUAL_SIGMAS * params.ALIGNMENT_SIGMA_M]
+    for k, f in enumerate(features):
+        pr = f.properties
+        tile = home[k]
+        fid = f.feature_id
+        support = int(pr.get("support_trips", 1))
+        cover = int(coverage_trips[k])
+        if cover >= 2 and (support < params.LOW_SUPPORT_SHARE * cover or (support == 1 and cover >= 3)):
+            flags.append(ValidationFlag("low_support", fid, tile, value=support / cover))
+        if support >= 2 and pr.get("scatter_ratio", 0.0) > params.HIGH_VARIANCE_RATIO:
+            flags.append(ValidationFlag("high_variance", fid, tile, value=float(pr["scatter_ratio"])))
+        if pr.get("rejected_weight_share", 0.0) >= params.DISAGREE_WEIGHT_SHARE:
+            flags.append(ValidationFlag("trips_disagree", fid, tile, tuple(pr.get("outlier_trips", ())),
+                                        float(pr["rejected_weight_share"])))
+        elif pr.get("outlier_trips"):
+            flags.append(ValidationFlag("outlier_trip", fid, tile, tuple(pr["outlier_trips"])))
+        if pr.get("max_internal_gap_m", 0.0) >= params.GAP_MIN_M or k in breaks:
+            flags.append(ValidationFlag("gap", fid, tile, value=float(pr.get("max_internal_gap_m", 0.0))))
+        if k in narrow:
+            flags.append(ValidationFlag("implausible_lane_width", fid, tile, value=narrow[k]))
+        if bad_pairs:
+            trips = set(pr.get("trips", ()))
+            p = np.asarray(f.points_xy_world, float)
+            for mp in bad_pairs:
+                if {mp.trip_key_i, mp.trip_key_j} & trips and \
+                        float(np.min(np.linalg.norm(p - np.asarray(mp.centre_xy_world), axis=1))) <= PAIR_RADIUS_M:
+                    flags.append(ValidationFlag("high_residual_pair", fid, tile, (mp.trip_key_i, mp.trip_key_j),
+                                                float(mp.residual_rms_m)))
+                    break
+    # tiles: severity-weighted share of sample length flagged
+    worst = np.zeros(len(features))
+    index = {f.feature_id: k for k, f in enumerate(features)}
+    per_tile_flags: dict[tuple[int, int], Counter] = {}
+    for fl in flags:
+        if fl.feature_id in index:
+            worst[index[fl.feature_id]] = max(worst[index[fl.feature_id]], SEVERITY[fl.kind])
+        per_tile_flags.setdefault(fl.tile, Counter())[fl.kind] += 1
+    quality: dict[tuple[int, int], TileQuality] = {}
+    if len(pts):
+        keys, inv = np.unique(tiles, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        total = np.bincount(inv, minlength=len(keys))
+        bad = np.bincount(inv, weights=worst[own], minlength=len(keys))
+        for t, key in enumerate(keys):
+            tk = (int(key[0]), int(key[1]))
+            n_feat = len(np.unique(own[inv == t]))
+            c = per_tile_flags.get(tk, Counter())
+            quality[tk] = TileQuality(tk, float(1.0 - bad[t] / max(total[t], 1)),
+                                      tuple(f"{kind}:{n}" for kind, n in sorted(c.items())), n_feat)
+    return tuple(flags), quality
+
+
+def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np.ndarray],
+                    radius_m: float) -> list[int]:
+    """For each feature, how many trips have some element point within ``radius_m`` of it
+    (``trip_points``: each trip's element points, a few metres apart)."""
+    keys = [k for k, p in trip_points.items() if len(p)]
+    if not keys or not features:
+        return [0] * len(features)
+    pts = np.concatenate([trip_points[k] for k in keys])
+    label = np.concatenate([np.full(len(trip_points[k]), i) for i, k in enumerate(keys)])
+    tree = cKDTree(pts)
+    out = []
+    for f in features:
+        p = np.asarray(f.points_xy_world, float)
+        probe = resample_polyline(p, 5.0) if len(p) >= 2 else p
+        hits = tree.query_ball_point(probe, radius_m)
+        idx = np.fromiter((i for h in hits for i in h), dtype=np.int64)
+        out.append(int(len(np.unique(label[idx]))))
+    return out

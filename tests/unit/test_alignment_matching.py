@@ -1,0 +1,154 @@
+"""Alignment Step 1-2: topology descriptors (Eq. 3), similarities (Eq. 5/6), RRWM (Eq. 4),
+GNC registration, and the one-lane-offset known answer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from csr_core import se2
+from csr_core.alignment.association import match_pair
+from csr_core.alignment.graph_matching import (
+    ElementSet, edge_similarity, element_distances, node_similarity, rrwm, rrwm_match,
+)
+from csr_core.alignment.params import AlignmentParams, NoiseScales
+from csr_core.alignment.registration import register_elements
+from csr_core.alignment.submaps import Circle, Submap, SubmapElement
+from csr_core.alignment.topology import sliding_window_vote, topology_consistent, topology_descriptor
+from csr_core.types import ElementType
+
+from tests.unit.test_alignment_synthetic import LANE_W
+
+pytestmark = pytest.mark.unit
+
+P = AlignmentParams()
+NOISE = NoiseScales({t: 0.05 for t in ElementType}, 0.1, sigma_p_m=0.8, sigma_e_m=0.3)
+D, B, C = ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE
+
+
+def straight_road(offsets_types, x0=-25.0, x1=25.0, spacing=2.0) -> ElementSet:
+    x = np.arange(x0, x1 + 1e-9, spacing)
+    return ElementSet(tuple(t for _, t in offsets_types),
+                      tuple(np.column_stack([x, np.full_like(x, o)]) for o, _ in offsets_types))
+
+
+ROAD = [(-7.5, B), (-3.5, D), (0.0, D), (3.5, D), (7.5, B), (-5.25, C), (-1.75, C), (1.75, C), (5.25, C)]
+
+
+def test_node_similarity_eq5_known_values():
+    a = straight_road([(0.0, D), (3.5, B)])
+    same = node_similarity(a, a, NOISE, P)
+    assert same[0, 0] == pytest.approx(1.0) and same[1, 1] == pytest.approx(1.0)
+    assert same[0, 1] == 0.0 and same[1, 0] == 0.0  # different types never match
+    shifted = node_similarity(a, a.shifted(np.array([0.0, NOISE.sigma_p_m])), NOISE, P)
+    w = P.node_position_weight
+    assert shifted[0, 0] == pytest.approx(w * np.exp(-0.5) + (1 - w), abs=1e-6)
+    half = ElementSet(a.types[:1], (a.points[0][a.points[0][:, 0] >= 0],))  # half the extent
+    s = node_similarity(a, half, NOISE, P)[0, 0]
+    d_o = 1 - 2 * 25 / 75  # overlap ratio o_in/(o_in+o_out) = 2/3
+    assert s == pytest.approx(w + (1 - w) * np.exp(-0.5 * (d_o / P.sigma_o) ** 2), abs=0.02)
+
+
+def test_edge_similarity_eq6_known_values():
+    e = element_distances(straight_road([(0.0, D), (3.5, D), (7.0, D)]))
+    assert e[0, 1] == pytest.approx(3.5) and e[0, 2] == pytest.approx(7.0)
+    sim = edge_similarity(e, e + 0.3, 0.3)
+    assert sim[0, 1, 0, 1] == pytest.approx(np.exp(-0.5))
+    assert edge_similarity(e, e, 0.3)[0, 2, 0, 2] == pytest.approx(1.0)
+
+
+def test_rrwm_recovers_a_permutation_and_agrees_with_pygmtools():
+    rng = np.random.default_rng(0)
+    n = 12
+    pts = rng.uniform(0, 30, (n, 2))
+    perm = rng.permutation(n)
+    pts2 = (pts + rng.normal(0, 0.2, pts.shape))[perm]
+    D1 = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    D2 = np.linalg.norm(pts2[:, None] - pts2[None], axis=2)
+    E = np.exp(-((D1[None, :, None, :] - D2[:, None, :, None]) ** 2) / 2.0)
+    E *= (1 - np.eye(n))[None, :, None, :] * (1 - np.eye(n))[:, None, :, None]
+    K = E.reshape(n * n, n * n)
+    X = rrwm(K, n, n)
+    assert X.shape == (n, n)
+    assert np.array_equal(np.argmax(X, axis=1), np.argsort(perm))
+    pygm = pytest.importorskip("pygmtools")
+    pygm.set_backend("numpy")
+    ref = pygm.rrwm(K, n, n)
+    assert np.array_equal(np.argmax(ref, axis=1), np.argmax(X, axis=1))
+
+
+def test_rrwm_match_keeps_geometry_consistent_matches_and_drops_dissimilar():
+    a = straight_road(ROAD)
+    b = straight_road(ROAD).shifted(np.array([0.0, 0.4]))
+    s = node_similarity(a, b, NOISE, P)
+    m = rrwm_match(s, element_distances(a), element_distances(b), NOISE.sigma_e_m, P)
+    assert sorted(m) == [(k, k) for k in range(len(ROAD))]
+
+
+def test_gnc_registration_recovers_a_rigid_transform_despite_outlier_matches():
+    rng = np.random.default_rng(1)
+    curve = lambda o: np.column_stack([np.arange(-25, 26, 2.0), o + 0.004 * np.arange(-25, 26, 2.0) ** 2])  # noqa: E731
+    types = (B, D, D, D, B, ElementType.STOP_LINE)
+    stop = np.column_stack([np.full(8, 10.0), np.linspace(-7, 0, 8)])
+    target = ElementSet(types, tuple([curve(o) for o in (-7.5, -3.5, 0.0, 3.5, 7.5)] + [stop]))
+    truth = np.array([0.6, -0.8, 0.01])  # source = truth^-1 (target)
+    inv = se2.inverse(truth)
+    source = ElementSet(types, tuple(se2.transform_points(inv, p) + rng.normal(0, 0.03, p.shape) for p in target.points))
+    matches = [(0, 0), (1, 1), (2, 2), (3, 3), (4, 4), (5, 5), (1, 2), (3, 1)][:6]
+    matches = matches + [(0, 4)]  # outlier: left boundary to right boundary
+    reg = register_elements(target, source, matches, 0.05, P)
+    assert reg is not None
+    np.testing.assert_allclose(reg.delta_xyyaw, truth, atol=0.03)
+    assert reg.element_inlier.tolist() == [True] * 6 + [False]
+
+
+def _submap(es: ElementSet, trip: int, sid: int, pose=(0.0, 0.0, 0.0)) -> Submap:
+    """A sub-map whose elements are ``es`` in the world, anchored at ``pose``."""
+    inv = se2.inverse(np.asarray(pose, float))
+    return Submap(sid, 0, trip, f"v{trip}__t", 0, 0, 10, np.asarray(pose, float),
+                  tuple(SubmapElement(t, se2.transform_points(inv, p), n) for n, (t, p) in enumerate(zip(es.types, es.points))))
+
+
+def test_a_sub_map_offset_by_exactly_one_lane_width_is_not_matched_to_the_wrong_lane():
+    circle = Circle(0, np.zeros(2), 0.0, 25.0)
+    noise = NoiseScales({t: 0.05 for t in ElementType} | {B: 0.1}, 0.1, sigma_p_m=2.5 * np.sqrt(2 * 0.05**2 + 0.1**2) + 0.4,
+                        sigma_e_m=0.25)
+    a = straight_road(ROAD)
+    b = straight_road(ROAD).shifted(np.array([0.0, LANE_W]))  # initial poses one lane apart
+    m = match_pair(_submap(a, 0, 0), _submap(b, 1, 1), circle, noise, P)
+    assert m is not None
+    assert m.delta_local_xyyaw[1] == pytest.approx(-LANE_W, abs=0.1)  # brought back, not "aligned" as is
+    for k, kp in m.element_matches:
+        assert abs(np.mean(a.points[k][:, 1]) - (np.mean(b.points[kp][:, 1]) - LANE_W)) < 0.2
+
+
+def test_without_boundaries_a_one_lane_offset_is_rejected_or_recovered_never_half_matched():
+    circle = Circle(0, np.zeros(2), 0.0, 25.0)
+    lanes_only = [r for r in ROAD if r[1] != B]
+    a = straight_road(lanes_only)
+    b = straight_road(lanes_only).shifted(np.array([0.0, LANE_W]))
+    m = match_pair(_submap(a, 0, 0), _submap(b, 1, 1), circle, NOISE, P)
+    if m is not None:
+        assert abs(m.delta_local_xyyaw[1] - (-LANE_W)) < 0.1 or abs(m.delta_local_xyyaw[1]) < 0.1
+
+
+def test_topology_descriptors_and_eq3_thresholds():
+    circle = Circle(0, np.zeros(2), 0.0, 25.0)
+    full = topology_descriptor(_submap(straight_road(ROAD), 0, 0), circle, 0.5)
+    assert full.lane_count == 4 and full.road_width_m == pytest.approx(15.0)
+    assert full.road_centre_m == pytest.approx(0.0) and full.split_merge_count == 0
+    narrow = topology_descriptor(_submap(straight_road([(-3.5, B), (0.0, D), (3.5, B)]), 1, 1), circle, 0.5)
+    assert narrow.lane_count == 2
+    assert not topology_consistent(full, narrow, NOISE, P)
+    shifted = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 0.5])), 1, 1), circle, 0.5)
+    assert topology_consistent(full, shifted, NOISE, P)
+    far = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 12.0])), 1, 1, (0.0, 12.0, 0.0)),
+                              circle, 0.5)
+    assert not topology_consistent(full, far, NOISE, P)  # a parallel road, not the same one
+
+
+def test_sliding_window_vote_drops_isolated_passes():
+    votes = np.array([1, 1, 0, 1, 1, 0, 0, 1, 0, 0], bool)
+    keys = [("a", "b")] * 10
+    out = sliding_window_vote(keys, np.arange(10), votes, half_window=2, min_fraction=0.5)
+    assert out.tolist() == [1, 1, 0, 1, 0, 0, 0, 0, 0, 0]
