@@ -20,8 +20,12 @@ class Caller:
 def bearer_secret(authorization: str | None) -> str:
     scheme, _, secret = (authorization or "").partition(" ")
     if scheme.lower() != "bearer" or not secret.strip():
-        raise ApiError(401, "unauthorized", "missing API key: send Authorization: Bearer <key>",
-                       headers={"WWW-Authenticate": "Bearer"})
+        raise ApiError(
+            401,
+            "unauthorized",
+            "missing API key: send Authorization: Bearer <key>",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
     return secret.strip()
 
 
@@ -30,13 +34,17 @@ def authenticate(session_factory: sessionmaker[Session], authorization: str | No
     with session_factory() as session:
         row = repo.active_key(session, secret=secret)
     if row is None:
-        raise ApiError(401, "unauthorized", "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"})
+        raise ApiError(
+            401, "unauthorized", "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"}
+        )
     return Caller(key_id=row.id, role=row.role, vehicle_id=row.vehicle_id)
 
 
 def authorize(caller: Caller, roles: tuple[str, ...]) -> Caller:
     if caller.role not in roles:
-        raise ApiError(403, "forbidden", f"a {caller.role} key may not make this call (needs: {', '.join(roles)})")
+        raise ApiError(
+            403, "forbidden", f"a {caller.role} key may not make this call (needs: {', '.join(roles)})"
+        )
     return caller
 
 

@@ -31,12 +31,16 @@ def main() -> int:
             with psycopg.connect(f"{base}/{DEV_DATABASE}", autocommit=True, connect_timeout=5) as conn:
                 conn.execute("CREATE EXTENSION IF NOT EXISTS postgis")
     except psycopg.OperationalError as exc:
-        problems.append(f"PostgreSQL is not reachable at {PG_ADMIN_URL} ({exc}); start it, e.g. "
-                        "pg_ctlcluster --skip-systemctl-redirect 15 main start")
+        problems.append(
+            f"PostgreSQL is not reachable at {PG_ADMIN_URL} ({exc}); start it, e.g. "
+            "pg_ctlcluster --skip-systemctl-redirect 15 main start"
+        )
     try:
         redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3).ping()
     except redis.RedisError as exc:
-        problems.append(f"Redis is not reachable at {REDIS_URL} ({exc}); start it, e.g. redis-server --daemonize yes")
+        problems.append(
+            f"Redis is not reachable at {REDIS_URL} ({exc}); start it, e.g. redis-server --daemonize yes"
+        )
     for problem in problems:
         sys.stderr.write(f"devsetup: {problem}\n")
     if not problems:

@@ -25,23 +25,39 @@ MIB = 1024 * 1024
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="CSR_", extra="ignore")
 
-    database_url: str | None = Field(None, description="postgresql+psycopg://... (PostGIS); unset: SQLite in data_dir")
+    database_url: str | None = Field(
+        None, description="postgresql+psycopg://... (PostGIS); unset: SQLite in data_dir"
+    )
     redis_url: str | None = Field(None, description="redis://...; unset: jobs run in-process")
-    admin_key: SecretStr | None = Field(None, description="bootstrap admin key; unset: generated into data_dir/admin.key")
+    admin_key: SecretStr | None = Field(
+        None, description="bootstrap admin key; unset: generated into data_dir/admin.key"
+    )
     data_dir: Path = Path("./data")
     max_body_bytes: int = Field(32 * MIB, gt=0, description="limit on the body as sent")
-    max_decompressed_bytes: int = Field(256 * MIB, gt=0, description="limit on the body after gzip decompression")
+    max_decompressed_bytes: int = Field(
+        256 * MIB, gt=0, description="limit on the body after gzip decompression"
+    )
     tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
-    quiet_period_s: float = Field(300.0, ge=0, description="a dirty tile is processed this long after its last new trip")
+    quiet_period_s: float = Field(
+        300.0, ge=0, description="a dirty tile is processed this long after its last new trip"
+    )
     embedded_workers: int = Field(
-        2, ge=0, description="threads of the in-process job pool (no CSR_REDIS_URL); 0: jobs wait in the database"
+        2,
+        ge=0,
+        description="threads of the in-process job pool (no CSR_REDIS_URL); 0: jobs wait in the database",
     )
     job_time_limit_s: int = Field(1800, gt=0, description="hard limit of one job (Celery task_time_limit)")
-    visibility_timeout_s: int = Field(3600, gt=0, description="Redis re-delivers an unacknowledged job after this")
-    redispatch_after_s: float = Field(3600.0, gt=0, description="re-send a queued job whose message may be lost")
+    visibility_timeout_s: int = Field(
+        3600, gt=0, description="Redis re-delivers an unacknowledged job after this"
+    )
+    redispatch_after_s: float = Field(
+        3600.0, gt=0, description="re-send a queued job whose message may be lost"
+    )
     poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
     worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
-    test_ingest_delay_s: float = Field(0.0, ge=0, description="TEST ONLY: sleep in the first attempt of an ingest job")
+    test_ingest_delay_s: float = Field(
+        0.0, ge=0, description="TEST ONLY: sleep in the first attempt of an ingest job"
+    )
 
     @field_validator("database_url")
     @classmethod

@@ -70,7 +70,10 @@ class EmbeddedRunner(BackgroundLoop):
         time.sleep(RETRY_AFTER_S)
         try:
             with self.session_factory.begin() as session:
-                session.execute(update(Job).where(Job.id == job_id, Job.state == "running")
-                                .values(state="queued", dispatched_at=None))
+                session.execute(
+                    update(Job)
+                    .where(Job.id == job_id, Job.state == "running")
+                    .values(state="queued", dispatched_at=None)
+                )
         except OperationalError:
             log.warning("job %s stays running until the next start", job_id)

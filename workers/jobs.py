@@ -80,7 +80,9 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
             _close(job, "failed", started, error=f"{type(exc).__name__}: {exc}")
             if kind == "ingest_trip":
                 session.execute(
-                    update(Trip).where(Trip.id == subject).values(status="failed", error=str(exc), updated_at=utcnow())
+                    update(Trip)
+                    .where(Trip.id == subject)
+                    .values(status="failed", error=str(exc), updated_at=utcnow())
                 )
         return "failed"
 
@@ -119,7 +121,9 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
     frame = LocalFrame.around(lonlat_deg)
     length_m = polyline_length_m(frame.to_local(lonlat_deg))
     return IngestResult(
-        length_km=length_m / 1000.0, track_ewkt=ewkt_linestring(lonlat_deg), tiles=tiles_touched(lonlat_deg, zoom=zoom)
+        length_km=length_m / 1000.0,
+        track_ewkt=ewkt_linestring(lonlat_deg),
+        tiles=tiles_touched(lonlat_deg, zoom=zoom),
     )
 
 
@@ -145,4 +149,3 @@ def _persist_tile(session: Session, job_id: str, z: int, x: int, y: int) -> None
     )
     if dirty is not None and dirty.job_id == job_id:
         session.delete(dirty)
-

@@ -22,7 +22,9 @@ BATCH = 200  # outbox rows per round; one publish is ~0.1 ms on loopback Redis
 TASK_OF_KIND = {"ingest_trip": "csr.ingest_trip", "align_tile": "csr.align_tile"}
 
 
-def relay_once(session_factory: sessionmaker[Session], celery_app: Celery, *, redispatch_after_s: float) -> int:
+def relay_once(
+    session_factory: sessionmaker[Session], celery_app: Celery, *, redispatch_after_s: float
+) -> int:
     """Publish up to ``BATCH`` outbox rows; returns how many were sent. Raises when the broker is down
     (rows published before the failure are recorded as dispatched)."""
     sent, error = 0, None
@@ -42,17 +44,22 @@ def relay_once(session_factory: sessionmaker[Session], celery_app: Celery, *, re
         raise error
     return sent
 
+
 class OutboxRelay(BackgroundLoop):
     name = "csr-outbox-relay"
 
-    def __init__(self, settings: Settings, session_factory: sessionmaker[Session], celery_app: Celery) -> None:
+    def __init__(
+        self, settings: Settings, session_factory: sessionmaker[Session], celery_app: Celery
+    ) -> None:
         super().__init__(settings, session_factory)
         self.celery_app = celery_app
         self._broker_down = False
 
     def tick(self) -> None:
         try:
-            sent = relay_once(self.session_factory, self.celery_app, redispatch_after_s=self.settings.redispatch_after_s)
+            sent = relay_once(
+                self.session_factory, self.celery_app, redispatch_after_s=self.settings.redispatch_after_s
+            )
         except Exception as exc:
             if not self._broker_down:
                 log.warning("broker unreachable, jobs stay in the outbox: %s", exc)

@@ -8,7 +8,12 @@ from sqlalchemy.exc import OperationalError
 from workers.celery_app import app, runtime
 from workers.jobs import run_job
 
-RETRY = {"autoretry_for": (OperationalError,), "retry_backoff": True, "retry_backoff_max": 300, "max_retries": 10}
+RETRY = {
+    "autoretry_for": (OperationalError,),
+    "retry_backoff": True,
+    "retry_backoff_max": 300,
+    "max_retries": 10,
+}
 
 
 @app.task(name="csr.ingest_trip", **RETRY)

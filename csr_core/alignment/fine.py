@@ -27,12 +27,12 @@ from gtsam.symbol_shorthand import X
 from scipy.spatial import cKDTree
 
 from csr_core import se2
-from csr_core.alignment.geometry import arclength_m, point_to_segments, resample_polyline
+from csr_core.alignment.geometry import arclength_m, resample_polyline
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.types import ElementType, MapFeature, TripReconstruction
 
-K_CANDIDATES = 6
-MAX_POINTS_PER_DETECTION = 8
+K_CANDIDATES = 4
+MAX_POINTS_PER_DETECTION = 5
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +121,8 @@ def frame_points(trip: TripReconstruction) -> FramePoints:
 
 def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping, exclude_owner: int,
                      gate_m: np.ndarray):
-    """Nearest same-type segment of another owner: foot, normal, signed residual, valid mask."""
+    """Nearest same-type segment of another owner (among the ``K_CANDIDATES`` nearest segment
+    midpoints): foot, unit normal, signed residual and validity (gated, not beyond an end)."""
     P = len(points_world)
     foot, normal = np.zeros((P, 2)), np.zeros((P, 2))
     resid, valid = np.zeros(P), np.zeros(P, bool)
@@ -131,20 +132,27 @@ def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping,
         if m is None:
             continue
         sel = np.flatnonzero(types == code)
+        q = points_world[sel]
         k = min(K_CANDIDATES, len(m.a))
-        _, cand = m.tree.query(points_world[sel], k=k)
+        _, cand = m.tree.query(q, k=k)
         cand = cand.reshape(len(sel), k)
-        q = np.repeat(points_world[sel], k, axis=0)
-        f, n, u, d = point_to_segments(q, m.a[cand.ravel()], m.b[cand.ravel()])
-        d = d.reshape(len(sel), k)
-        beyond = ((m.open_start[cand] & (u.reshape(len(sel), k) < 0)) | (m.open_end[cand] & (u.reshape(len(sel), k) > 1)))
-        d = np.where((m.owner[cand] == exclude_owner) | beyond, np.inf, d)
-        best = np.argmin(d, axis=1)
-        flat = np.arange(len(sel)) * k + best
-        ok = np.isfinite(d[np.arange(len(sel)), best]) & (d[np.arange(len(sel)), best] <= gate_m[sel])
-        foot[sel], normal[sel] = f[flat], n[flat]
-        resid[sel] = np.einsum("ij,ij->i", n[flat], points_world[sel] - f[flat])
-        valid[sel] = ok
+        a, d = m.a[cand], m.b[cand] - m.a[cand]  # (n, k, 2)
+        rel = q[:, None, :] - a
+        L2 = np.maximum((d * d).sum(-1), 1e-12)
+        u = (rel * d).sum(-1) / L2
+        uc = np.clip(u, 0.0, 1.0)
+        dist2 = ((rel - uc[..., None] * d) ** 2).sum(-1)
+        bad = (m.owner[cand] == exclude_owner) | (m.open_start[cand] & (u < 0)) | (m.open_end[cand] & (u > 1))
+        dist2[bad] = np.inf
+        best = np.argmin(dist2, axis=1)
+        rows = np.arange(len(sel))
+        db = dist2[rows, best]
+        dd = d[rows, best]
+        nrm = np.column_stack([-dd[:, 1], dd[:, 0]]) / np.sqrt(L2[rows, best])[:, None]
+        f = a[rows, best] + uc[rows, best][:, None] * dd
+        foot[sel], normal[sel] = f, nrm
+        resid[sel] = np.einsum("ij,ij->i", nrm, q - f)
+        valid[sel] = np.isfinite(db) & (db <= gate_m[sel] ** 2)
     return foot, normal, resid, valid
 
 
@@ -270,8 +278,9 @@ def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints
 
 def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
                     prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams) -> dict[str, np.ndarray]:
-    """Per-frame alignment residual: RMS point-to-line distance (metres) of the frame's gated
-    perceived points to the other trips' aligned elements and the prior map; NaN where none."""
+    """Per-frame alignment residual: RMS point-to-line distance (metres) of the gated perceived
+    points to the other trips' aligned elements and the prior map, evaluated on the fine
+    keyframes (every ``fine_keyframe_spacing_m``) and held until the next; NaN where none."""
     owners = {k: _aligned_instances(t, poses[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
     if prior_features:
         owners[-1] = [(f.type, resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
@@ -279,9 +288,10 @@ def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoin
     maps = build_segment_maps(owners)
     out = {}
     for k, t in enumerate(trips):
-        fp = fps[k]
         n = t.trip.n_frames
-        res = np.full(n, np.nan)
+        frames = _keyframes(poses[t.trip.key], params.fine_keyframe_spacing_m)
+        fp = fps[k].select(frames)
+        res_kf = np.full(n, np.nan)
         if len(fp.frame):
             pw = _to_world(poses[t.trip.key][fp.frame], fp.points_xy_vehicle)
             sigma = _point_sigmas(fp.type_code, fp.points_xy_vehicle, noise)
@@ -289,6 +299,8 @@ def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoin
             _, _, r, valid = associate_points(pw, fp.type_code, maps, k, gate)
             sq = np.bincount(fp.frame[valid], weights=r[valid] ** 2, minlength=n)
             cnt = np.bincount(fp.frame[valid], minlength=n)
-            res = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
-        out[t.trip.key] = res
+            res_kf = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
+        # every frame takes the residual of its keyframe (the last one at or before it)
+        owner_kf = frames[np.clip(np.searchsorted(frames, np.arange(n), side="right") - 1, 0, len(frames) - 1)]
+        out[t.trip.key] = res_kf[owner_kf]
     return out

@@ -113,9 +113,6 @@ class AlignmentParams:
     fine_min_points: int = 6
     fine_iterations: int = 2
 
-    # --- failure marking --------------------------------------------------------------------
-    min_registered_fraction: float = 0.2  # of a trip's sub-maps with an accepted registration
-
 
 DEFAULT = AlignmentParams()
 

@@ -3,8 +3,11 @@
 Variables ``S(i)``: ``world_T_submap`` of every sub-map (trip sub-maps and pre-built-map patches).
 Factors (Eq. 9/10):
 - ``e^g``  ``PriorFactorPose2(S(i), g_i)``, g_i the smoothed anchor pose, information
-  ``Omega_g = mean_t(M_table(s_t) + omega d_go_t) Omega_g^base`` (Eq. 11; ``omega < 0``: a GNSS
-  step that disagrees with odometry lowers the weight; clipped at ``gnss_min_weight``);
+  ``Omega_g = mean_t(M_table(s_t) (1 + omega d_go_t)) Omega_g^base`` (Eq. 11, with the
+  deviation term scaled by the status weight so that ``omega`` means the same for every status
+  -- the paper adds it; with an inverse-variance M_table an additive term would vanish for RTK
+  and dominate for single fixes; ``omega < 0``: a GNSS step that disagrees with odometry lowers
+  the weight, to 0 at ``1/|omega|`` metres; the mean is floored at ``gnss_min_weight``);
 - ``e^pre`` the pre-built map: each patch is a variable held by a ``PriorFactorPose2`` at its
   stored pose with the map's own sigma, and a sub-map registered to it gets a between factor,
   so the map moves only as far as its weight allows (a fixed map is the limit sigma -> 0);
@@ -34,6 +37,7 @@ from gtsam.symbol_shorthand import S
 
 from csr_core import se2
 from csr_core.alignment.association import PairMatch
+from csr_core.alignment.geometry import arclength_m
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.submaps import Submap
 from csr_core.types import TripReconstruction
@@ -70,8 +74,8 @@ def gnss_weight(trip: TripReconstruction, lo: int, hi: int, deviation: np.ndarra
     """Eq. 11's scalar factor over frames ``lo..hi``."""
     status = trip.trip.gnss_status[lo : hi + 1].astype(int)
     table = np.array([params.gnss_status_weights.get(int(s), 0.0) for s in range(5)])
-    w = table[np.clip(status, 0, 4)] + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1]
-    w = np.where(status == 4, 0.0, np.maximum(w, 0.0))
+    w = table[np.clip(status, 0, 4)] * np.maximum(1.0 + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1], 0.0)
+    w = np.where(status == 4, 0.0, w)
     return float(max(np.mean(w), params.gnss_min_weight))
 
 
@@ -107,11 +111,12 @@ def build_factor_graph(
     for s in submaps:
         if not s.is_prior:
             by_trip.setdefault(s.trip_index, []).append(s)
-    for group in by_trip.values():
+    for k, group in by_trip.items():
         group.sort(key=lambda s: s.anchor_frame)
+        travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
         for a, b in zip(group[:-1], group[1:]):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
-            d = float(np.hypot(rel[0], rel[1]))
+            d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
             sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d
             syaw = params.submap_chain_sigma_yaw_rad * (1.0 + d / 50.0)
             known.append(g.size())

@@ -25,7 +25,7 @@ from csr_core.alignment.geometry import point_to_segments
 from csr_core.alignment.graph_matching import ElementSet, element_distances, node_similarity
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 
-MAX_POINTS_PER_ELEMENT = 30
+MAX_POINTS_PER_ELEMENT = 15
 GNC_MU_FACTOR = 2.0  # Yang et al. use 1.4; 2.0 halves the outer steps, same results here
 
 

@@ -156,6 +156,9 @@ def clip_elements_to_disk(
     for i, ((pts, closed), etype) in enumerate(zip(prepared, types)):
         if len(pts) < 2:
             continue
+        lo, hi = pts.min(axis=0), pts.max(axis=0)  # cheap reject by bounding box
+        if np.any(lo > centre_xy + radius_m) or np.any(hi < centre_xy - radius_m):
+            continue
         inside = np.linalg.norm(pts - centre_xy, axis=1) <= radius_m
         if not inside.any():
             continue

@@ -77,7 +77,9 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         "reconstruction, writing) per km of uploaded trip length (true path length); processing is the "
         "reconstruction call alone. Uploaded = the trip bodies as sent (gzip). Output = what the pipeline "
         "produces (poses CSVs + map.geojson). Stored = uploaded + output (what the service keeps per km). "
-        "Peak memory is the `csr reconstruct` process's max RSS (`wait4` rusage).",
+        "Peak memory is the `csr reconstruct` process's max RSS (`wait4` rusage). The machine (2 cores) was shared "
+        "with other jobs while measuring: identical work (CSR pipeline and GNSS-only run the same code today) "
+        "took up to 4x different wall times, so read the time columns as orders of magnitude.",
         "",
         "### Ablation (Table I), pipeline RPE after the global alignment [m]",
         "",

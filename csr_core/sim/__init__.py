@@ -7,10 +7,11 @@ perception models, and scenario folders (contract section 5). See ``docs/simulat
 
 from csr_core.sim.profiles import Profile, get_profile
 from csr_core.sim.scenario import simulate_scenario
-from csr_core.sim.world import TruthElement, World
+from csr_core.sim.world import SimulationError, TruthElement, World
 from csr_core.sim.worlds import WORLD_NAMES, load_world
 
 __all__ = [
+    "SimulationError",
     "World",
     "TruthElement",
     "Profile",

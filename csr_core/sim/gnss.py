@@ -1,12 +1,14 @@
 """GNSS receiver model (parameters: ``profiles.GnssParams``).
 
-- Fix status: a semi-Markov chain over rtk_fixed / rtk_float / dgps / single (exponential dwell
-  times, next status from a transition matrix).
+- Receivers: per vehicle, RTK-capable (share ``rtk_receiver_share``: all statuses, fixes
+  time-tagged at the epoch) or consumer (statuses dgps / single, fixes stamped on arrival).
+- Fix status: a semi-Markov chain over the receiver's statuses (exponential dwell times, next
+  status from the transition matrix restricted to them).
 - Position error per axis (east, north): ``sigma_b(status) * z_t + white``, ``z`` a unit
   first-order Gauss-Markov process with time constant ``tau(status)``.
-- Latency: the fix reports the true position ``latency`` seconds earlier (per trip, plus a small
-  per-fix time-tag jitter), which shows as an along-track lag, as in the real u-blox log
-  (comma2k19: 82 ms, 1.4 m behind at 17 m/s).
+- Latency (consumer receivers): the fix reports the true position ``latency`` seconds earlier
+  (per vehicle, plus a small per-fix time-tag jitter), which shows as an along-track lag, as in
+  the real u-blox log (comma2k19: 82 ms, 1.4 m behind at 17 m/s).
 - ``std_m``: the status' honest per-axis std ``sqrt(sigma_b^2 + sigma_w^2)`` with a log-normal
   jitter; it does not include the latency lag nor canyon jumps (real receivers do not know them).
 - Course heading: direction of true motion plus noise that grows at low speed; absent when slow.
@@ -37,11 +39,43 @@ class GnssTrack:
     error_xy_m: np.ndarray  # (N, 2) reported minus true (diagnostics)
 
 
-def status_sequence(params: GnssParams, n_frames: int, dt_s: float, rng: np.random.Generator) -> np.ndarray:
-    """Per-frame status codes (0..3) from the semi-Markov chain."""
+CONSUMER_STATUSES = (GnssStatus.DGPS, GnssStatus.SINGLE)
+
+
+@dataclass(frozen=True)
+class Receiver:
+    """One vehicle's GNSS receiver: which statuses it reaches and how its fixes are time-tagged."""
+
+    kind: str  # "rtk" or "consumer"
+    latency_s: float
+    jitter_s: float
+    statuses: tuple[int, ...]  # reachable status codes
+
+
+def draw_receiver(params: GnssParams, rng: np.random.Generator) -> Receiver:
+    """An RTK receiver (share ``rtk_receiver_share``) or a consumer one with a latency."""
+    if rng.random() < params.rtk_receiver_share:
+        return Receiver("rtk", 0.0, 0.0, (0, 1, 2, 3))
+    latency = params.latency_mean_s
+    if params.latency_sigma_s > 0:
+        latency = max(float(rng.normal(params.latency_mean_s, params.latency_sigma_s)), 0.0)
+    return Receiver("consumer", latency, params.latency_jitter_s, tuple(int(s) for s in CONSUMER_STATUSES))
+
+
+def status_sequence(
+    params: GnssParams,
+    n_frames: int,
+    dt_s: float,
+    rng: np.random.Generator,
+    statuses: tuple[int, ...] = (0, 1, 2, 3),
+) -> np.ndarray:
+    """Per-frame status codes (0..3) from the semi-Markov chain restricted to ``statuses``."""
     out = np.empty(n_frames, np.uint8)
-    trans = np.asarray(params.transition_probs, float)
-    state = int(rng.choice(4, p=np.asarray(params.initial_probs) / np.sum(params.initial_probs)))
+    allowed = np.isin(np.arange(4), statuses).astype(float)
+    trans = np.asarray(params.transition_probs, float) * allowed
+    init = np.asarray(params.initial_probs, float) * allowed
+    init = init / init.sum() if init.sum() > 0 else allowed / allowed.sum()
+    state = int(rng.choice(4, p=init))
     i = 0
     while i < n_frames:
         dwell = rng.exponential(params.status_models[state].mean_dwell_s)
@@ -100,24 +134,24 @@ def simulate_gnss(
     params: GnssParams,
     canyon_zones_xyr: np.ndarray,
     rng: np.random.Generator,
+    receiver: Receiver | None = None,
 ) -> GnssTrack:
-    """Receiver output for a true trajectory ``poses_xyyaw_world (N, 3)`` at ``timestamps_s (N,)``."""
+    """Receiver output for a true trajectory ``poses_xyyaw_world (N, 3)`` at ``timestamps_s (N,)``.
+
+    ``receiver``: the vehicle's receiver (None: draw one from the parameters)."""
     n = len(timestamps_s)
     dt = float(np.median(np.diff(timestamps_s))) if n > 1 else 0.1
-    status = status_sequence(params, n, dt, rng)
+    if receiver is None:
+        receiver = draw_receiver(params, rng)
+    status = status_sequence(params, n, dt, rng, receiver.statuses)
     models = params.status_models
     sigma_b = np.array([models[k].bias_sigma_m for k in range(4)])[status]
     sigma_w = np.array([models[k].white_sigma_m for k in range(4)])[status]
     tau = np.array([models[k].bias_tau_s for k in range(4)])[status]
-    latency = (
-        max(float(rng.normal(params.latency_mean_s, params.latency_sigma_s)), 0.0)
-        if params.latency_sigma_s > 0
-        else params.latency_mean_s
-    )
     true_xy = poses_xyyaw_world[:, :2]
-    t_fix = timestamps_s - latency
-    if params.latency_jitter_s > 0:
-        t_fix = t_fix + params.latency_jitter_s * rng.standard_normal(n)
+    t_fix = timestamps_s - receiver.latency_s
+    if receiver.jitter_s > 0:
+        t_fix = t_fix + receiver.jitter_s * rng.standard_normal(n)
     lagged_xy = np.column_stack([np.interp(t_fix, timestamps_s, true_xy[:, k]) for k in range(2)])
     z = gauss_markov_unit(n, dt, tau, rng)
     white = rng.standard_normal((n, 2))

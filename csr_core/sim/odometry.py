@@ -1,7 +1,7 @@
 """Wheel/IMU dead reckoning (parameters: ``profiles.OdometryParams``).
 
-The true increments ``vehicle_{k}_T_vehicle_{k+1}`` get a per-trip distance scale error
-``(1 + e)``, a per-trip yaw-rate bias ``b`` (``b * dt`` added to each yaw increment) and small
+The true increments ``vehicle_{k}_T_vehicle_{k+1}`` get a distance scale error ``(1 + e)``
+(per vehicle plus a small per-trip part), a per-trip yaw-rate bias ``b`` (``b * dt`` added to each yaw increment) and small
 white noise, and are integrated from ``(0, 0, 0)`` in the trip's own odometry frame.
 """
 
@@ -13,22 +13,26 @@ from csr_core import se2
 from csr_core.sim.profiles import OdometryParams
 
 
+def draw_scale_error(sigma: float, rng: np.random.Generator) -> float:
+    """``e ~ N(0, sigma)`` clipped to 3 sigma (0 when sigma is 0)."""
+    return float(np.clip(rng.normal(0.0, sigma), -3 * sigma, 3 * sigma)) if sigma > 0 else 0.0
+
+
 def simulate_odometry(
-    timestamps_s: np.ndarray, poses_xyyaw_world: np.ndarray, params: OdometryParams, rng: np.random.Generator
+    timestamps_s: np.ndarray,
+    poses_xyyaw_world: np.ndarray,
+    params: OdometryParams,
+    rng: np.random.Generator,
+    vehicle_scale_error: float | None = None,
 ) -> tuple[np.ndarray, dict]:
-    """``odom_xyyaw (N, 3)`` (metres, radians; odom frame) and the drawn per-trip errors."""
+    """``odom_xyyaw (N, 3)`` (metres, radians; odom frame) and the drawn per-trip errors.
+
+    The distance scale error is the vehicle's (``vehicle_scale_error``, e.g. its tyre radius;
+    None draws one with ``scale_error_sigma``) plus a per-trip part (load, tyre pressure)."""
     n = len(timestamps_s)
-    scale_error = (
-        float(
-            np.clip(
-                rng.normal(0.0, params.scale_error_sigma),
-                -3 * params.scale_error_sigma,
-                3 * params.scale_error_sigma,
-            )
-        )
-        if params.scale_error_sigma > 0
-        else 0.0
-    )
+    if vehicle_scale_error is None:
+        vehicle_scale_error = draw_scale_error(params.scale_error_sigma, rng)
+    scale_error = vehicle_scale_error + draw_scale_error(params.scale_error_trip_sigma, rng)
     yaw_bias_rad_s = (
         float(np.radians(rng.normal(0.0, params.yaw_rate_bias_sigma_deg_s)))
         if params.yaw_rate_bias_sigma_deg_s > 0

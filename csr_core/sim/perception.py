@@ -279,19 +279,33 @@ class _FramePerceiver:
             (rng.random(n_runs) < p.style_error_prob) if p.style_error_prob > 0 else np.zeros(n_runs, bool)
         )
         keys = ((ix.element_id[run_elem] * _DASH_KEYS + np.maximum(dash[starts], 0)) ^ self.salt).tolist()
-        run_elem_l, run_type_l, run_frame_l = run_elem.tolist(), run_type.tolist(), run_frame.tolist()
-        style_wrong_l = style_wrong.tolist()
-        styles = ix.element_style
-        for r in np.flatnonzero(report).tolist():
-            b0, b1 = bounds[r], bounds[r + 1]
-            if b1 - b0 < 2:
-                continue
-            t = run_type_l[r]
-            item: dict[str, Any] = {"type": _TYPE_NAMES[t], "points": kept_xy[b0:b1].tolist()}
-            if t == _DIVIDER:
-                item["style"] = "unknown" if style_wrong_l[r] else styles[run_elem_l[r]]
-            item["score"] = scores[r]
-            item["track_id"] = keys[r]
+        bounds_a = np.asarray(bounds)
+        emit = np.flatnonzero(report & (np.diff(bounds_a) >= 2))
+        # per-run values as Python lists, points as one list sliced per run (much faster than
+        # converting each run's numpy slice)
+        style_of_elem = np.array([s or "" for s in ix.element_style] + ["unknown"], dtype=object)
+        style_idx = np.where(style_wrong, len(ix.element_style), run_elem)
+        run_style = np.where(run_type == _DIVIDER, style_of_elem[style_idx], None).tolist()
+        type_names = np.array(_TYPE_NAMES, dtype=object)[run_type].tolist()
+        run_frame_l = run_frame.tolist()
+        points = kept_xy.tolist()
+        for r in emit.tolist():
+            style = run_style[r]
+            if style is None:
+                item = {
+                    "type": type_names[r],
+                    "points": points[bounds[r] : bounds[r + 1]],
+                    "score": scores[r],
+                    "track_id": keys[r],
+                }
+            else:
+                item = {
+                    "type": type_names[r],
+                    "points": points[bounds[r] : bounds[r + 1]],
+                    "style": style,
+                    "score": scores[r],
+                    "track_id": keys[r],
+                }
             out[run_frame_l[r]].append(item)
         # ghosts: frames inside a ghost event copy one visible divider/boundary sideways
         ghost_frames = np.flatnonzero(self.ghost_event[run_frame] >= 0)

@@ -41,11 +41,13 @@ class GnssParams:
         GnssStatusModel(bias_sigma_m=0.50, bias_tau_s=60.0, white_sigma_m=0.08, mean_dwell_s=90.0),
         GnssStatusModel(bias_sigma_m=0.60, bias_tau_s=600.0, white_sigma_m=0.04, mean_dwell_s=120.0),
     )
-    latency_mean_s: float = (
-        0.08  # fix refers to the position this long before its timestamp (comma2k19: 0.083 s)
-    )
-    latency_sigma_s: float = 0.02  # per-trip spread of the latency
-    latency_jitter_s: float = 0.01  # per-fix time-tag jitter (along-track noise = speed * jitter)
+    # receivers: a share of the fleet has RTK-capable receivers whose fixes are time-tagged at the
+    # measurement epoch (all statuses, no latency); the others are consumer receivers (statuses
+    # dgps / single) whose fixes are stamped on arrival, like the comma2k19 u-blox
+    rtk_receiver_share: float = 0.3
+    latency_mean_s: float = 0.08  # consumer: fix = position this long before its stamp (comma2k19: 0.082 s)
+    latency_sigma_s: float = 0.02  # consumer: spread of the latency between vehicles
+    latency_jitter_s: float = 0.01  # consumer: per-fix time-tag jitter (along-track noise = speed * jitter)
     std_report_log_sigma: float = 0.15  # reported std_m = honest std * exp(N(0, this))
     heading_sigma_deg_at_10mps: float = 1.0  # course noise, scales with 10 / speed
     heading_min_speed_mps: float = 1.0  # no course below this speed
@@ -62,10 +64,11 @@ class GnssParams:
 class OdometryParams:
     """Dead reckoning from wheel speed and yaw rate: per-trip scale error and yaw-rate bias."""
 
-    scale_error_sigma: float = 0.005  # per-trip (1 + e) on distance, e ~ N(0, this), clipped to 3 sigma
+    scale_error_sigma: float = 0.005  # per-vehicle (1 + e) on distance, e ~ N(0, this), clipped to 3 sigma
     yaw_rate_bias_sigma_deg_s: float = 0.03  # per-trip constant yaw-rate bias
     step_sigma_m_per_sqrt_m: float = 0.002  # white noise on each increment, per sqrt(metre travelled)
     yaw_step_sigma_rad: float = 0.0002  # white noise on each 0.1 s yaw increment
+    scale_error_trip_sigma: float = 0.001  # per-trip part of the scale error, added to the vehicle's
 
 
 @dataclass(frozen=True, slots=True)
@@ -144,6 +147,7 @@ def hard() -> Profile:
     gnss = dataclasses.replace(
         GnssParams(),
         initial_probs=(0.02, 0.08, 0.30, 0.60),
+        rtk_receiver_share=0.1,
         transition_probs=(
             (0.00, 0.40, 0.30, 0.30),
             (0.15, 0.00, 0.35, 0.50),
@@ -177,6 +181,7 @@ def noiseless() -> Profile:
     gnss = dataclasses.replace(
         GnssParams(),
         initial_probs=(1.0, 0.0, 0.0, 0.0),
+        rtk_receiver_share=1.0,
         status_models=(exact,) * 4,
         latency_mean_s=0.0,
         latency_sigma_s=0.0,
@@ -184,7 +189,7 @@ def noiseless() -> Profile:
         std_report_log_sigma=0.0,
         heading_sigma_deg_at_10mps=0.0,
     )
-    odometry = OdometryParams(0.0, 0.0, 0.0, 0.0)
+    odometry = OdometryParams(0.0, 0.0, 0.0, 0.0, 0.0)
     perception = dataclasses.replace(
         PerceptionParams(),
         line_white_base_m=0.0,
@@ -212,7 +217,9 @@ def get_profile(name: str) -> Profile:
     try:
         return PROFILES[name]()
     except KeyError:
-        raise ValueError(f"unknown profile {name!r}; known: {sorted(PROFILES)}") from None
+        from csr_core.sim.world import SimulationError
+
+        raise SimulationError(f"unknown profile {name!r}; known: {sorted(PROFILES)}") from None
 
 
 def _flatten(prefix: str, value) -> list[tuple[str, object]]:

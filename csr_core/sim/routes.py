@@ -16,7 +16,7 @@ import numpy as np
 
 from csr_core.sim import geometry as geo
 from csr_core.sim.profiles import TrafficParams
-from csr_core.sim.world import LEFT, RIGHT, SUCCESSOR, World
+from csr_core.sim.world import LEFT, RIGHT, SUCCESSOR, SimulationError, World
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,8 @@ def random_route(
             best = route
         if geo.arclength_m(best.path_xy)[-1] >= length_m - 1.0:
             break
-    assert best is not None
+    if best is None or len(best.path_xy) < 3:
+        raise SimulationError(f"world {world.name!r}: no drivable route found in {max_tries} tries")
     return best
 
 
@@ -177,7 +178,7 @@ def drive(route: Route, rng: np.random.Generator, params: TrafficParams) -> Driv
         route.speed_limit_mps * factor, np.sqrt(params.max_lateral_accel_mps2 / np.maximum(kappa, 1e-5))
     )
     v[0] = v[-1] = 0.0
-    stop_idx = np.searchsorted(s, route.stops_s_m)
+    stop_idx = np.clip(np.searchsorted(s, route.stops_s_m), 1, len(s) - 2)
     v[stop_idx] = 0.0
     for i in range(1, len(v)):  # acceleration limit
         v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * params.max_accel_mps2 * ds[i - 1]))

@@ -7,8 +7,8 @@ truth/poses/<vehicle_id>__<trip_id>.csv   t,lat,lon,heading_deg: the TRUE pose o
 truth/map.geojson                      the true road structure (LineString / Polygon, properties.type)
 ```
 
-Deterministic: one ``SeedSequence(seed)``; trip ``i`` gets child ``i + 1`` and that child one
-stream per model (route, drive, gnss, odometry, perception); gzip with mtime 0 and no file
+Deterministic: one ``SeedSequence(seed)``; child 0 draws the fleet (start times, vehicle traits);
+trip ``i`` gets child ``i + 1`` and that child one stream per model (route, drive, gnss, odometry, perception); gzip with mtime 0 and no file
 name; JSON with fixed key order and rounded numbers (degrees 1e-9, metres 1e-3).
 """
 
@@ -29,8 +29,8 @@ import orjson
 
 from csr_core.geo import LocalFrame
 from csr_core.se2 import yaw_rad_to_heading_deg
-from csr_core.sim.gnss import simulate_gnss
-from csr_core.sim.odometry import simulate_odometry
+from csr_core.sim.gnss import Receiver, draw_receiver, simulate_gnss
+from csr_core.sim.odometry import draw_scale_error, simulate_odometry
 from csr_core.sim.perception import TruthIndex, build_truth_index, perceive_trip
 from csr_core.sim.profiles import Profile, get_profile
 from csr_core.sim.routes import drive, random_route
@@ -57,6 +57,15 @@ class SimulatedTrip:
     info: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class Vehicle:
+    """Per-vehicle sensor traits shared by all of its trips."""
+
+    vehicle_id: str
+    odometry_scale_error: float  # wheel odometry distance scale error (tyre radius), dimensionless
+    gnss_receiver: Receiver  # RTK or consumer receiver, its latency
+
+
 def _started_at(rng: np.random.Generator) -> datetime:
     return BASE_DATE + timedelta(
         days=int(rng.integers(0, 14)), seconds=int(rng.integers(6 * 3600, 21 * 3600))
@@ -79,7 +88,7 @@ def simulate_trip(
     index: TruthIndex,
     profile: Profile,
     seed_seq: np.random.SeedSequence,
-    vehicle_id: str,
+    vehicle: Vehicle,
     trip_id: str,
     started_at: str,
     trip_length_m: float,
@@ -89,8 +98,11 @@ def simulate_trip(
     route = random_route(world, rng_route, trip_length_m, profile.traffic)
     truth = drive(route, rng_drive, profile.traffic)
     t, poses = truth.timestamps_s, truth.poses_xyyaw_world
-    gnss = simulate_gnss(t, poses, truth.speed_mps, profile.gnss, world.canyon_zones_xyr, rng_gnss)
-    odom, odom_info = simulate_odometry(t, poses, profile.odometry, rng_odom)
+    gnss = simulate_gnss(
+        t, poses, truth.speed_mps, profile.gnss, world.canyon_zones_xyr, rng_gnss, vehicle.gnss_receiver
+    )
+    odom, odom_info = simulate_odometry(t, poses, profile.odometry, rng_odom, vehicle.odometry_scale_error)
+    vehicle_id = vehicle.vehicle_id
     elements = perceive_trip(index, poses, profile.perception, rng_perc)
 
     has_fix = gnss.status != GnssStatus.NONE
@@ -137,6 +149,8 @@ def simulate_trip(
         },
         "gnss_error_median_m": round(float(np.median(err)), 3) if err.size else None,
         "odometry": {k: round(v, 6) for k, v in odom_info.items()},
+        "gnss_receiver": vehicle.gnss_receiver.kind,
+        "gnss_latency_s": round(vehicle.gnss_receiver.latency_s, 4),
     }
     return SimulatedTrip(f"{vehicle_id}__{trip_id}", upload, t, poses, info)
 
@@ -161,6 +175,10 @@ def truth_map_geojson(world: World, frame: LocalFrame) -> dict[str, Any]:
         if e.style is not None:
             props["style"] = e.style.value
         if e.type.is_polygon:
+            # RFC 7946: exterior ring counter-clockwise, closed
+            x, y = coords[:, 0], coords[:, 1]
+            if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0:
+                coords = coords[::-1]
             geometry = {"type": "Polygon", "coordinates": [np.vstack([coords, coords[:1]]).tolist()]}
         else:
             geometry = {"type": "LineString", "coordinates": coords.tolist()}
@@ -216,9 +234,17 @@ def _simulate_scenario(
     rng_fleet = np.random.default_rng(children[0])
     n_vehicles = prof.traffic.n_vehicles or max(1, math.ceil(n_trips / 3))
     starts = sorted(_started_at(rng_fleet) for _ in range(n_trips))
+    vehicles = [
+        Vehicle(
+            vehicle_id=f"veh-{v + 1:04d}",
+            odometry_scale_error=draw_scale_error(prof.odometry.scale_error_sigma, rng_fleet),
+            gnss_receiver=draw_receiver(prof.gnss, rng_fleet),
+        )
+        for v in range(n_vehicles)
+    ]
     trips_info = []
     for i in range(n_trips):
-        vehicle_id = f"veh-{i % n_vehicles + 1:04d}"
+        vehicle = vehicles[i % n_vehicles]
         started = starts[i]
         trip_id = f"{started:%Y-%m-%dT%H-%M-%SZ}-{i + 1:04d}"
         trip = simulate_trip(
@@ -227,7 +253,7 @@ def _simulate_scenario(
             index,
             prof,
             children[i + 1],
-            vehicle_id,
+            vehicle,
             trip_id,
             started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             trip_length_m,

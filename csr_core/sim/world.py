@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
+from csr_core.errors import CsrError
 from csr_core.sim import geometry as geo
 from csr_core.types import DividerStyle, ElementType
 
@@ -26,6 +27,10 @@ log = logging.getLogger(__name__)
 SUCCESSOR = "successor"
 LEFT = "left"
 RIGHT = "right"
+
+
+class SimulationError(CsrError, ValueError):
+    """The simulator cannot do what was asked (unknown world or profile, no drivable route)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-from csr_core.sim.world import World
+from csr_core.sim.world import SimulationError, World
 
 WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe")
 
@@ -27,5 +27,5 @@ def load_world(name: str) -> World:
     """The named world (built once per process; treat it as read-only)."""
     builders = _builders()
     if name not in builders:
-        raise ValueError(f"unknown world {name!r}; known: {', '.join(WORLD_NAMES)}")
+        raise SimulationError(f"unknown world {name!r}; known: {', '.join(WORLD_NAMES)}")
     return builders[name]()

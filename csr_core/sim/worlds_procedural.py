@@ -12,7 +12,7 @@ import numpy as np
 import shapely
 
 from csr_core.sim import geometry as geo
-from csr_core.sim.roads import add_road, add_styled_line, connect_lanes, corner_curb, crosswalk, stop_line
+from csr_core.sim.roads import add_road, connect_lanes, corner_curb, crosswalk, stop_line
 from csr_core.sim.world import World, WorldBuilder
 from csr_core.types import DividerStyle, ElementType
 
@@ -392,4 +392,4 @@ def roundabout() -> World:
     return builder.build("roundabout", *ROUNDABOUT_ORIGIN_LATLON, canyons)
 
 
-__all__ = ["urban_grid", "highway", "rural", "roundabout", "add_styled_line"]
+__all__ = ["urban_grid", "highway", "rural", "roundabout"]

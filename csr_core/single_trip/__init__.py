@@ -23,7 +23,7 @@ from csr_core.single_trip.noise import estimate_noise
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import smooth_poses
 from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
-from csr_core.single_trip.tracking import track_elements
+from csr_core.single_trip.tracking import densify_flat, track_elements
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -122,6 +122,9 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         counts = np.fromiter((len(v) for v in raw_v), dtype=np.int64, count=len(raw_v))
         offsets = np.r_[0, np.cumsum(counts)]
         pts_v = np.concatenate(raw_v)
+        if not track.type.is_polygon:  # vertices as sent can be far apart (a stop line: two)
+            pts_v, offsets = densify_flat(pts_v, offsets, params.SPLICE_BIN_M)
+            counts = np.diff(offsets)
         obs_id = np.repeat(np.arange(len(raw_v)), counts)
         pose = poses[upload_frames][obs_id]
         c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])

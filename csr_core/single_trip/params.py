@@ -97,7 +97,9 @@ class SingleTripParams:
     SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
     SPLICE_CLUSTER_D_M: float = 0.5  # lateral cell of the element clustering inside a track
     SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
-    SPLICE_ALONG_GUIDE_MIN: float = 0.7  # |d arclength on the path| / chord: element runs along the path
+    SPLICE_ALONG_GUIDE_MIN: float = 0.9  # |d arclength on the path| / chord: element runs along the path
+    SPLICE_STRAIGHT_BELOW_M: float = 10.0  # shorter elements (stop lines) spliced on their principal axis
+    SPLICE_BACKBONE_SMOOTH_M: float = 3.0  # Gaussian smoothing of a backbone grown from observations
     SPLICE_OUTPUT_SPACING_M: float = 1.0
 
     # --- noise prior (used where a type has too few residuals) -----------------------------------------

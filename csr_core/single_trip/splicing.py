@@ -88,6 +88,60 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, tangent_m:
     return np.vstack([head, line, tail])
 
 
+def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
+                  lateral_gate_m: float = 1.0, lateral_gate_slope: float = 0.15) -> np.ndarray:
+    """An ordered polyline covering an element of any shape from its observations (each an
+    ordered polyline, in time order): the first one, extended at either end by the points of
+    later ones that lie beyond it along its end tangent (over the last ``tangent_m``) and near
+    that tangent line. Observations are oriented like the previous one first."""
+    polys = [points_w[a:b + 1] for a, b in obs_ends]
+    ref = None
+    bb: list[np.ndarray] = []
+    for p in polys:
+        d = p[-1] - p[0]
+        if ref is not None and float(d @ ref) < 0:
+            p = p[::-1]
+            d = -d
+        if float(np.hypot(d[0], d[1])) > 0.5:
+            ref = d
+        if len(bb) < 2:
+            bb = list(p)
+            continue
+        for end in (1, 0):
+            b = bb[-1] if end else bb[0]
+            j, step = (len(bb) - 2, -1) if end else (1, 1)
+            while 0 < j < len(bb) - 1 and np.hypot(*(b - bb[j])) < tangent_m:
+                j += step
+            t = b - bb[j]
+            tn = float(np.hypot(t[0], t[1]))
+            if tn < 1e-9:
+                continue
+            t = t / tn
+            if max(float((p[0] - b) @ t), float((p[-1] - b) @ t)) <= min_step_m:
+                continue
+            rel = p - b
+            proj = rel @ t
+            lat = np.abs(rel[:, 0] * t[1] - rel[:, 1] * t[0])
+            beyond = (proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj)
+            if beyond.any():
+                ext = p[beyond][np.argsort(proj[beyond])]
+                if end:
+                    bb.extend(ext)
+                else:
+                    bb[:0] = list(ext[::-1])
+    return np.asarray(bb) if bb else points_w[:1]
+
+
+def smooth_polyline(points: np.ndarray, spacing_m: float, sigma_m: float) -> np.ndarray:
+    """Resampled at ``spacing_m`` and Gaussian-smoothed along arclength (ends kept in place)."""
+    r = resample_polyline(points, spacing_m)
+    if len(r) < 3 or sigma_m <= 0:
+        return r
+    out = gaussian_filter1d(r, sigma_m / spacing_m, axis=0, mode="nearest")
+    out[0], out[-1] = r[0], r[-1]
+    return out
+
+
 def _principal_backbone(points: np.ndarray, spacing_m: float) -> np.ndarray:
     """A straight backbone along the principal axis of the points, covering them."""
     mu = points.mean(0)
@@ -165,65 +219,105 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
     """
     bin_m = params.SPLICE_BIN_M
     n_obs = len(obs_ends)
-    backbone = None
+    guide = None
     if guide_xy is not None and len(guide_xy) >= 2:
         guide = _extend_ends(resample_polyline(guide_xy, bin_m / 2), params.SPLICE_GUIDE_EXTENSION_M, bin_m / 2)
-        if len(guide) >= 3:
-            s_e, _ = _project(points_w[obs_ends.ravel()], guide)
-            s_e = s_e.reshape(-1, 2)
-            chord = np.linalg.norm(points_w[obs_ends[:, 1]] - points_w[obs_ends[:, 0]], axis=1)
-            along = np.abs(s_e[:, 1] - s_e[:, 0]) / np.maximum(chord, 1e-6)
-            long_obs = chord > 1.0
-            along_share = float(np.median(along[long_obs])) if long_obs.any() else 0.0
-            if along_share >= params.SPLICE_ALONG_GUIDE_MIN:
-                backbone = guide
-    refine = backbone is None
-    if backbone is None:
-        backbone = _principal_backbone(points_w, bin_m / 2)
+        if len(guide) < 3:
+            guide = None
+    if guide is not None:
+        # separate the elements of the track along the path; each element is then spliced on
+        # the path if it runs along it, else on its own shape
+        s, d = _project(points_w, guide)
+        labels = _cluster_sd(s, d, params)
+        out = []
+        for lab in np.unique(labels):
+            sel = np.flatnonzero(labels == lab)
+            if len(np.unique(obs_id[sel])) < params.TRACK_MIN_FRAMES:
+                continue
+            if _runs_along(s[sel], points_w[sel], obs_id[sel]) >= params.SPLICE_ALONG_GUIDE_MIN:
+                out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide, False, obs_id, obs_ends, end_free, params))
+            else:
+                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params))
+        return out
+    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params)
+
+
+def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
+    """Median over observations of |arclength span on the path| / chord: 1 along, 0 across."""
+    order = np.argsort(obs_id, kind="stable")
+    ids, start = np.unique(obs_id[order], return_index=True)
+    end = np.r_[start[1:], len(order)] - 1
+    first, last = order[start], order[end]
+    chord = np.linalg.norm(points[last] - points[first], axis=1)
+    ok = chord > 2.0
+    if not ok.any():
+        return 1.0
+    return float(np.median(np.abs(s[last] - s[first])[ok] / chord[ok]))
+
+
+def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
+                      end_free: np.ndarray, params: SingleTripParams) -> list[SplicedLine]:
+    """Splice the points ``sel`` on a backbone grown from their own observations (any shape),
+    or their principal axis, refined by a second pass; clustered on it first."""
+    bin_m = params.SPLICE_BIN_M
+    pts = points_w[sel]
+    ids = obs_id[sel]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    ends = np.r_[starts[1:], len(ids)] - 1
+    short = float(np.ptp(pts, axis=0).max()) < params.SPLICE_STRAIGHT_BELOW_M
+    grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]))
+    if len(grown) >= 2 and _arclength(grown)[-1] > 2 * bin_m:
+        backbone = smooth_polyline(grown, bin_m / 2, params.SPLICE_BACKBONE_SMOOTH_M)
+    else:
+        backbone = _principal_backbone(pts, bin_m / 2)
     if len(backbone) < 3:
         return []
-    s, d = _project(points_w, backbone)
+    s, d = _project(pts, backbone)
     labels = _cluster_sd(s, d, params)
     out = []
     for lab in np.unique(labels):
-        sel = np.flatnonzero(labels == lab)
-        if len(np.unique(obs_id[sel])) < params.TRACK_MIN_FRAMES:
+        sub = np.flatnonzero(labels == lab)
+        if len(np.unique(ids[sub])) < params.TRACK_MIN_FRAMES:
             continue
-        fit = _fit_profile(s[sel], d[sel], obs_id[sel], backbone, params)
-        if fit is not None and refine and fit[3] - fit[2] >= 2 * bin_m:
-            bb2 = resample_polyline(fit[0], bin_m / 2)
-            if len(bb2) >= 3:
-                s2, d2 = _project(points_w[sel], bb2)
-                fit2 = _fit_profile(s2, d2, obs_id[sel], bb2, params)
-                if fit2 is not None:
-                    fit, s_sel, d_sel = fit2, s2, d2
-                else:
-                    s_sel, d_sel = s[sel], d[sel]
-            else:
-                s_sel, d_sel = s[sel], d[sel]
-        else:
-            s_sel, d_sel = s[sel], d[sel]
-        if fit is None:
-            continue
-        line, inl, s_lo, s_hi, d_fit = fit
-        # lateral residuals against the fitted profile; along-track: observation ends that are
-        # element ends against the instance ends (both in backbone arclength)
-        lat = (d_sel - d_fit)[inl]
-        s_all = np.full(len(points_w), np.nan)
-        s_all[sel[inl]] = s_sel[inl]
-        s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
-        lo_first = s_first <= s_last
-        s_lo_obs = np.where(lo_first, s_first, s_last)
-        s_hi_obs = np.where(lo_first, s_last, s_first)
-        free_lo = np.where(lo_first, end_free[:, 0], end_free[:, 1])
-        free_hi = np.where(lo_first, end_free[:, 1], end_free[:, 0])
-        win = params.NOISE_END_WINDOW_M
-        ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
-        ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
-        along_res = np.r_[s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi]
-        obs = np.unique(obs_id[sel[inl]])
-        out.append(SplicedLine(line, lat, along_res, obs))
+        out.extend(_splice_on(points_w, sel[sub], s[sub], d[sub], backbone, True, obs_id, obs_ends, end_free, params))
     return out
+
+
+def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: np.ndarray, backbone: np.ndarray,
+               refine: bool, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
+               params: SingleTripParams) -> list[SplicedLine]:
+    """One element (points ``sel`` with backbone coordinates) -> its SplicedLine (or none)."""
+    bin_m = params.SPLICE_BIN_M
+    n_obs = len(obs_ends)
+    fit = _fit_profile(s_sel, d_sel, obs_id[sel], backbone, params)
+    if fit is not None and refine and fit[3] - fit[2] >= 2 * bin_m:
+        bb2 = resample_polyline(fit[0], bin_m / 2)
+        if len(bb2) >= 3:
+            s2, d2 = _project(points_w[sel], bb2)
+            fit2 = _fit_profile(s2, d2, obs_id[sel], bb2, params)
+            if fit2 is not None:
+                fit, s_sel, d_sel = fit2, s2, d2
+    if fit is None:
+        return []
+    line, inl, s_lo, s_hi, d_fit = fit
+    # lateral residuals against the fitted profile; along-track: observation ends that are
+    # element ends against the instance ends (both in backbone arclength)
+    lat = (d_sel - d_fit)[inl]
+    s_all = np.full(len(points_w), np.nan)
+    s_all[sel[inl]] = s_sel[inl]
+    s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
+    lo_first = s_first <= s_last
+    s_lo_obs = np.where(lo_first, s_first, s_last)
+    s_hi_obs = np.where(lo_first, s_last, s_first)
+    free_lo = np.where(lo_first, end_free[:, 0], end_free[:, 1])
+    free_hi = np.where(lo_first, end_free[:, 1], end_free[:, 0])
+    win = params.NOISE_END_WINDOW_M
+    ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
+    ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
+    along_res = np.r_[s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi]
+    obs = np.unique(obs_id[sel[inl]])
+    del n_obs
+    return [SplicedLine(line, lat, along_res, obs)]
 
 
 def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tuple[float, float]:
@@ -245,12 +339,35 @@ def polygon_area(poly: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
+def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An element never seen whole (a crosswalk wider than the BEV range): the rectangle on the
+    principal axes of all observed outline points, spanning their q..1-q quantiles. Residuals:
+    each observation's points beyond the rectangle, lateral/along the vehicle heading."""
+    pts = np.concatenate(polys)
+    mu = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - mu, full_matrices=False)
+    proj = (pts - mu) @ vt.T
+    lo, hi = np.quantile(proj, q, axis=0), np.quantile(proj, 1 - q, axis=0)
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]) @ vt + mu
+    if polygon_area(corners) < 0:
+        corners = corners[::-1]
+    over = np.maximum(proj - hi, 0.0) + np.minimum(proj - lo, 0.0)  # (P, 2) outside distance per axis
+    h = np.repeat(headings_rad, [len(p) for p in polys])
+    dev = over @ vt
+    along = dev[:, 0] * np.cos(h) + dev[:, 1] * np.sin(h)
+    lateral = -dev[:, 0] * np.sin(h) + dev[:, 1] * np.cos(h)
+    return corners, lateral, along
+
+
 def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observed outlines (world) -> one outline, lateral and along residuals (vehicle heading).
 
     ``whole`` (n_obs,) bool: the observation is not clipped by the BEV range."""
-    cand = [i for i in range(len(polys)) if whole[i]] or list(range(len(polys)))
+    if not whole.any():
+        return _robust_rectangle(polys, headings_rad)
+    cand = [i for i in range(len(polys)) if whole[i]]
     # consistent winding (counter-clockwise)
     ccw = [p if polygon_area(p) >= 0 else p[::-1] for p in polys]
     areas = np.array([abs(polygon_area(ccw[i])) for i in cand])

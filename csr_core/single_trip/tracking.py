@@ -7,9 +7,9 @@ vectorised pass each:
 - within a frame, pieces of one type lying on each other's extension (a dashed divider seen
   as separate dashes, a divider split where its style changes) are one detection;
 - between a frame and the next tracked frames (up to ``TRACK_MAX_SKIP_FRAMES`` later, so a
-  missed detection does not end the track), each piece is linked to its best successor and
-  from its best predecessor (a one-to-one assignment where the choices agree; where they
-  conflict both links are kept, which only happens between pieces of one element). The cost
+  missed detection does not end the track), a piece and a later one are linked when each is
+  the other's best choice (mutual best: a one-to-one assignment, so tracks stay chains and do
+  not branch into every lane at a junction). The cost
   combines a one-sided Chamfer distance (later piece -> earlier piece, end segments extended
   so that the next dash still matches), the pose uncertainty accumulated over the travel
   between the frames (it widens the gate) and lateral-order consistency (the offsets of both
@@ -74,6 +74,25 @@ def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray
     span = np.maximum(s_local[right] - s_local[left], 1e-12)
     w = np.clip((target - s_local[left]) / span, 0.0, 1.0)[..., None]
     return points[left] * (1.0 - w) + points[right] * w
+
+
+def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Polylines (concatenated ``points`` with ``offsets``) with points inserted so that no step
+    exceeds ``max_step_m``; returns the new points and offsets. Vectorised."""
+    n = len(points)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    same = np.ones(n - 1, dtype=bool)
+    same[offsets[1:-1] - 1] = False  # no segment across polylines
+    k = np.where(same, np.maximum(np.ceil(seg / max_step_m).astype(np.int64), 1), 1)
+    # each point i < n-1 emits k_i points (itself and k_i - 1 interpolated); the last emits one
+    counts = np.r_[k, 1]
+    start = np.repeat(np.arange(n), counts)
+    frac = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    frac = frac / np.repeat(counts, counts)
+    nxt = np.minimum(start + 1, n - 1)
+    out = points[start] + frac[:, None] * (points[nxt] - points[start])
+    new_off = np.r_[0, np.cumsum(counts)][offsets]
+    return out, new_off
 
 
 def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
@@ -249,7 +268,7 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         a, b, chamfer = a[ok], b[ok], chamfer[ok]
         # lateral order: offsets at the vehicle of both pieces, in the later frame's vehicle frame
         lat = _LATERAL_CODES[pc.type_code[a]]
-        cost = chamfer + 0.05 * (skip - 1)
+        cost = chamfer.copy()
         if lat.any():
             pose_b = poses_xyyaw[frames[pc.frame[b[lat]]]]
             rel = pc.points_w[a[lat]] - pose_b[:, None, :2]
@@ -261,15 +280,23 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         pa.append(a)
         pb.append(b)
         pcost.append(cost)
-    if pa:
-        a, b, cost = np.concatenate(pa), np.concatenate(pb), np.concatenate(pcost)
+    # mutual best per skip, nearest frames first; a later skip only for pieces still unlinked
+    has_succ = np.zeros(q, dtype=bool)
+    has_pred = np.zeros(q, dtype=bool)
+    for a, b, cost in zip(pa, pb, pcost, strict=True):
+        free = ~has_succ[a] & ~has_pred[b]
+        a, b, cost = a[free], b[free], cost[free]
+        if len(a) == 0:
+            continue
         best_succ = np.full(q, np.inf)
         np.minimum.at(best_succ, a, cost)
         best_pred = np.full(q, np.inf)
         np.minimum.at(best_pred, b, cost)
-        keep = (cost <= best_succ[a]) | (cost <= best_pred[b])
+        keep = (cost <= best_succ[a]) & (cost <= best_pred[b])
         rows.append(a[keep])
         cols.append(b[keep])
+        has_succ[a[keep]] = True
+        has_pred[b[keep]] = True
 
     r = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
     c = np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64)

@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import _robust_ends, resample_polyline, splice_polygon
 from csr_core.topology.association import Member
@@ -64,8 +65,6 @@ def arclength(points: np.ndarray) -> np.ndarray:
 def project_on_polyline(points: np.ndarray, line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Arclength ``s`` and signed lateral offset ``d`` (left positive) of ``points (P, 2)`` on a
     densely sampled ``line (B, 2)``; beyond the ends, s continues along the end tangents."""
-    from scipy.spatial import cKDTree
-
     s_b = arclength(line)
     tan = np.gradient(line, axis=0)
     tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
@@ -106,29 +105,29 @@ def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int,
 
 def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray
                    ) -> np.ndarray:
-    """The member most others agree with (x weight), prolonged at either end by the contiguous part of
-    the member that runs on past it furthest (the member must be within its gate of the
-    backbone near that end): partial overlaps chain, branches do not jump."""
-    lengths = np.array([arclength(p)[-1] if len(p) > 1 else 0.0 for p in lines])
-    seed = int(np.argmax(lengths * weights))
-    backbone = lines[seed]
+    """The member most others agree with (x weight), prolonged at either end by the contiguous
+    part of the member that runs on past it furthest (the member must be within its gate of
+    the backbone near that end): partial overlaps chain, branches do not jump."""
     pts = np.concatenate(lines)
-    starts = np.r_[0, np.cumsum([len(p) for p in lines])[:-1]]
+    own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
+    seed = int(np.argmax(_consensus(pts, own, gates, len(lines)) * weights))
+    backbone = lines[seed]
     used = {seed}
+    tree = cKDTree(pts)
+    near_end = 3.0 * spacing
     for _ in range(2 * len(lines)):
         if len(backbone) < 2:
             break
         total = arclength(backbone)[-1]
-        s_all, d_all = project_on_polyline(pts, backbone)
-        near_end = 3.0 * spacing
         best = None  # (reach, end, points, member)
-        for k in range(len(lines)):
-            if k in used or len(lines[k]) < 2:
-                continue
-            sl = slice(starts[k], starts[k] + len(lines[k]))
-            s, d = s_all[sl], d_all[sl]
-            close = np.abs(d) <= gates[k]
-            for end in (0, 1):
+        for end in (0, 1):
+            hits = tree.query_ball_point(backbone[-1 if end else 0], near_end + float(gates.max()))
+            cands = sorted({int(own[h]) for h in hits} - used)
+            for k in cands:
+                if len(lines[k]) < 2:
+                    continue
+                s, d = project_on_polyline(lines[k], backbone)
+                close = np.abs(d) <= gates[k]
                 cand = np.flatnonzero(close & ((s >= total - near_end) & (s <= total) if end
                                                else (s <= near_end) & (s >= 0)))
                 if not len(cand):
@@ -158,8 +157,6 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
 def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int) -> np.ndarray:
     """Per member: over its samples, how many other members pass within the gate (the member
     most others agree with seeds the backbone, not the longest stray one)."""
-    from scipy.spatial import cKDTree
-
     if n == 1:
         return np.ones(1)
     pairs = cKDTree(pts).query_pairs(float(gates.max()), output_type="ndarray")
@@ -167,8 +164,8 @@ def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int) -> n
         return np.bincount(own, minlength=n).astype(float)
     a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
     ok = (own[a] != own[b]) & (np.linalg.norm(pts[a] - pts[b], axis=1) <= gates[own[a]])
-    uniq = np.unique(np.c_[a[ok], own[b[ok]]], axis=0)
-    return np.bincount(own[uniq[:, 0]], minlength=n).astype(float) + 1e-3 * np.bincount(own, minlength=n)
+    uniq = np.unique(a[ok].astype(np.int64) * n + own[b[ok]])  # (sample, other member) once
+    return np.bincount(own[uniq // n], minlength=n).astype(float) + 1e-3 * np.bincount(own, minlength=n)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -80,7 +80,12 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
             fused = [fuse_polygons(gm, element_type)] if element_type.is_polygon else fuse_lines(gm, element_type, params)
             for f in fused:
                 out.append((f, tuple(gm[k] for k in f.members)))
-            if fused and not last:
+            if last:
+                continue
+            if not fused and len(gm) > 1:  # nothing fused: try the members on their own
+                fused_singles = [(fuse_lines([m], element_type, params), m) for m in gm]
+                out.extend((f, (m,)) for fs, m in fused_singles for f in fs)
+            elif fused:
                 detached.extend(p for p in fused[0].detached if len(p.instance.points_xy_world) >= 2)
         pending = detached
     return out
@@ -204,8 +209,8 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     final = [replace(f, properties={**f.properties, "coverage_trips": c,
                                     "flags": sorted(set(by_feature.get(f.feature_id, [])))})
              for f, c in zip(features, cover, strict=True)]
-    held = [f.properties["support_trips"] <= 1 and f.properties["coverage_trips"] >= params.SUPPRESS_MIN_COVERAGE
-            for f in final]
+    held = [params.SUPPRESS_MIN_COVERAGE > 0 and f.properties["support_trips"] <= 1
+            and f.properties["coverage_trips"] >= params.SUPPRESS_MIN_COVERAGE for f in final]
     published = tuple(f for f, h in zip(final, held, strict=True) if not h)
     suppressed = tuple(f for f, h in zip(final, held, strict=True) if h)
     t1 = time.perf_counter()

@@ -165,7 +165,7 @@ def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     names = list(g.nodes)
     pts, tans, own = [], [], []
     for k, n in enumerate(names):
-        p = resample_polyline(np.asarray(g.nodes[n]["points_xy_world"], float), 1.0)
+        p = resample_polyline(np.asarray(g.nodes[n]["points_xy_world"], float), 2.0)
         if len(p) < 2:
             continue
         t = np.gradient(p, axis=0)
@@ -185,7 +185,7 @@ def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     rel = xy[b] - xy[a]
     lat = tan[a, 0] * rel[:, 1] - tan[a, 1] * rel[:, 0]
     along = (tan[a] * rel).sum(1)
-    ok = ((fid[owner[a]] != fid[owner[b]]) & (np.abs(along) <= 0.5) & ((tan[a] * tan[b]).sum(1) >= cos_max)
+    ok = ((fid[owner[a]] != fid[owner[b]]) & (np.abs(along) <= 1.0) & ((tan[a] * tan[b]).sum(1) >= cos_max)
           & (np.abs(lat) >= lo_w) & (np.abs(lat) <= hi_w))
     a, b, lat = a[ok], b[ok], lat[ok]
     if not len(a):

@@ -64,7 +64,8 @@ class TopologyParams:
     GAP_MIN_M: float = 5.0  # unsupported run inside an instance, or break to a collinear one
     HIGH_RESIDUAL_SIGMAS: float = 3.0  # match pair residual / ALIGNMENT_SIGMA_M above this
     WIDTH_RUN_M: float = 5.0  # an implausible spacing must hold over this length
-    SUPPRESS_MIN_COVERAGE: int = 3  # seen by one trip of at least this many passing: held back
+    # seen by one trip of at least this many passing trips: held back from the map (0: never)
+    SUPPRESS_MIN_COVERAGE: int = 0
 
     def trip_sigma_m(self, noise: ElementNoise | None) -> float:
         """Lateral 1-sigma of one trip's instance in the world: its perception noise plus the

@@ -13,8 +13,8 @@ Per instance (thresholds from the noise model, see ``TopologyParams``):
 - ``gap``: an unsupported stretch of at least ``GAP_MIN_M`` inside the instance, or a break of up
   to ``MAX_GAP_M`` to a collinear instance of its type;
 - ``implausible_lane_width``: a parallel line of its type (divider/divider, boundary/boundary)
-  closer than a plausible lane (``MIN_LANE_WIDTH_M``, or 0.7 x the data's median spacing when
-  smaller) but farther than the association gate, over ``WIDTH_RUN_M``;
+  closer than a plausible lane (0.7 x the data's median spacing, within 0.6 - 1 x
+  ``MIN_LANE_WIDTH_M``) but farther than the association gate, over ``WIDTH_RUN_M``;
 - ``high_residual_pair``: an alignment match pair whose residual exceeds
   ``HIGH_RESIDUAL_SIGMAS`` x ``ALIGNMENT_SIGMA_M`` involves one of its trips near it.
 
@@ -102,17 +102,24 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         lat = np.abs(tans[a, 0] * rel[:, 1] - tans[a, 1] * rel[:, 0])
         along = np.abs((tans[a] * rel).sum(1))
         ok = along <= spacing
-        a, lat = a[ok], lat[ok]
+        a, b, lat = a[ok], b[ok], lat[ok]
         nearest = np.full(len(pts), np.inf)
         np.minimum.at(nearest, a, lat)
         finite = nearest[np.isfinite(nearest) & (nearest > gate)]
         typical = float(np.median(finite)) if len(finite) >= 20 else params.MIN_LANE_WIDTH_M / 0.7
-        narrow = min(params.MIN_LANE_WIDTH_M, 0.7 * typical)
-        bad = (nearest > gate) & (nearest < narrow)
-        run = np.bincount(own[bad], minlength=len(idx)) * spacing
-        for k, r in enumerate(run):
-            if r >= params.WIDTH_RUN_M:
-                out[idx[k]] = float(r)
+        narrow = float(np.clip(0.7 * typical, 0.6 * params.MIN_LANE_WIDTH_M, params.MIN_LANE_WIDTH_M))
+        bad = (lat > gate) & (lat < narrow)
+        # per pair of features: the narrow run; blame the clearly less supported one, else both
+        pairs_ab = np.unique(np.c_[own[a[bad]], own[b[bad]], a[bad]], axis=0)
+        runs: dict[tuple[int, int], float] = {}
+        for fa, fb, _ in pairs_ab.tolist():
+            runs[(fa, fb)] = runs.get((fa, fb), 0.0) + spacing
+        support = [int(features[i].properties.get("support_trips", 1)) for i in idx]
+        for (fa, fb), run in runs.items():
+            if run < params.WIDTH_RUN_M:
+                continue
+            if support[fa] <= 0.5 * support[fb] or not support[fb] <= 0.5 * support[fa]:
+                out[idx[fa]] = max(out.get(idx[fa], 0.0), run)
     return out
 
 

@@ -41,8 +41,11 @@ def start_context(settings: Settings) -> AppContext:
         celery = make_celery(settings)
         runner = OutboxRelay(settings, session_factory, celery)
     runner.start()
-    log.info("CSR API ready: database %s, jobs %s", engine.dialect.name,
-             "in-process" if settings.embedded_jobs else "Celery on Redis")
+    log.info(
+        "CSR API ready: database %s, jobs %s",
+        engine.dialect.name,
+        "in-process" if settings.embedded_jobs else "Celery on Redis",
+    )
     return AppContext(settings, engine, session_factory, Metrics(session_factory), runner, celery)
 
 

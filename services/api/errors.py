@@ -14,7 +14,9 @@ UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_orde
 
 
 class ApiError(Exception):
-    def __init__(self, status: int, error: str, message: str, *, location: str = "", headers: dict | None = None):
+    def __init__(
+        self, status: int, error: str, message: str, *, location: str = "", headers: dict | None = None
+    ):
         super().__init__(message)
         self.status, self.error, self.message, self.location = status, error, message, location
         self.headers = headers

@@ -36,10 +36,14 @@ class _JobCollector:
             depth.add_metric([queue], n)
         yield depth
         yield jobs
-        yield GaugeMetricFamily("csr_dirty_tiles", "Tiles with trips not yet processed", value=summary["dirty_tiles"])
+        yield GaugeMetricFamily(
+            "csr_dirty_tiles", "Tiles with trips not yet processed", value=summary["dirty_tiles"]
+        )
         hist = HistogramMetricFamily("csr_job_duration_seconds", "Duration of finished jobs", labels=["kind"])
         for kind, (cumulative, count, total) in durations.items():
-            buckets = [(str(b), c) for b, c in zip(JOB_DURATION_BUCKETS_S, cumulative, strict=True)] + [("+Inf", count)]
+            buckets = [(str(b), c) for b, c in zip(JOB_DURATION_BUCKETS_S, cumulative, strict=True)] + [
+                ("+Inf", count)
+            ]
             hist.add_metric([kind], buckets, total)
         yield hist
 
@@ -50,14 +54,24 @@ class Metrics:
     def __init__(self, session_factory: sessionmaker[Session]) -> None:
         self.registry = CollectorRegistry()
         self.uploads = Counter(
-            "csr_uploads", "Accepted uploads (duplicate: an idempotent replay)", ["result"], registry=self.registry
+            "csr_uploads",
+            "Accepted uploads (duplicate: an idempotent replay)",
+            ["result"],
+            registry=self.registry,
         )
         self.upload_bytes = Counter(
-            "csr_upload_bytes", "Bytes of accepted uploads, as sent and decompressed", ["form"], registry=self.registry
+            "csr_upload_bytes",
+            "Bytes of accepted uploads, as sent and decompressed",
+            ["form"],
+            registry=self.registry,
         )
-        self.rejects = Counter("csr_upload_rejects", "Rejected uploads by reason", ["reason"], registry=self.registry)
+        self.rejects = Counter(
+            "csr_upload_rejects", "Rejected uploads by reason", ["reason"], registry=self.registry
+        )
         self.upload_seconds = Histogram(
-            "csr_upload_duration_seconds", "Time to accept an upload after its body arrived", registry=self.registry,
+            "csr_upload_duration_seconds",
+            "Time to accept an upload after its body arrived",
+            registry=self.registry,
             buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0),
         )
         self.registry.register(_JobCollector(session_factory))

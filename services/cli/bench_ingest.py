@@ -26,9 +26,18 @@ MARK_BEGIN, MARK_END = "<!-- ingest:begin -->", "<!-- ingest:end -->"
 EARTH_M_PER_DEG_LAT = 111_320.0
 
 
-def straight_trip(*, vehicle_id: str, trip_id: str, length_m: float = 1000.0, rate_hz: float = 10.0,
-                  speed_mps: float = 10.0, origin_lat: float = 48.1366, origin_lon: float = 11.5790,
-                  heading_deg: float = 90.0, seed: int = 0) -> dict[str, Any]:
+def straight_trip(
+    *,
+    vehicle_id: str,
+    trip_id: str,
+    length_m: float = 1000.0,
+    rate_hz: float = 10.0,
+    speed_mps: float = 10.0,
+    origin_lat: float = 48.1366,
+    origin_lon: float = 11.5790,
+    heading_deg: float = 90.0,
+    seed: int = 0,
+) -> dict[str, Any]:
     """A trip upload (contract section 1) driving straight ``length_m`` at ``speed_mps``, sampled at
     ``rate_hz``, seeing two boundaries, a lane divider and a centerline in every frame (20 points
     each, like the contract example)."""
@@ -46,34 +55,62 @@ def straight_trip(*, vehicle_id: str, trip_id: str, length_m: float = 1000.0, ra
     frames = []
     for i in range(n):
         elements = []
-        for kind, y_m, track in (("road_boundary", -5.3, 1), ("lane_divider", 1.75, 2),
-                                 ("centerline", 5.3, 3), ("road_boundary", 9.0, 4)):
+        for kind, y_m, track in (
+            ("road_boundary", -5.3, 1),
+            ("lane_divider", 1.75, 2),
+            ("centerline", 5.3, 3),
+            ("road_boundary", 9.0, 4),
+        ):
             ys = y_m + rng.normal(0.0, 0.03, xs.size)
-            element = {"type": kind, "points": [[round(float(x), 2), round(float(y), 2)] for x, y in zip(xs, ys, strict=True)],
-                       "score": round(float(rng.uniform(0.7, 0.95)), 3), "track_id": track}
+            element = {
+                "type": kind,
+                "points": [[round(float(x), 2), round(float(y), 2)] for x, y in zip(xs, ys, strict=True)],
+                "score": round(float(rng.uniform(0.7, 0.95)), 3),
+                "track_id": track,
+            }
             if kind == "lane_divider":
                 element["style"] = "dashed"
             elements.append(element)
-        frames.append({
-            "t": round(float(t_s[i]), 3),
-            "gnss": {"lat": round(float(lat[i]), 8), "lon": round(float(lon[i]), 8), "status": "rtk_float",
-                     "std_m": 0.25, "heading_deg": heading_deg % 360.0},
-            "odom": {"x": round(float(along_m[i]), 3), "y": 0.0, "yaw": 0.0},
-            "elements": elements,
-        })
-    return {"schema_version": "1.0", "vehicle_id": vehicle_id, "trip_id": trip_id,
-            "started_at": "2026-11-21T08:00:00Z", "sensor_setup": {"model": "bench"}, "frames": frames}
+        frames.append(
+            {
+                "t": round(float(t_s[i]), 3),
+                "gnss": {
+                    "lat": round(float(lat[i]), 8),
+                    "lon": round(float(lon[i]), 8),
+                    "status": "rtk_float",
+                    "std_m": 0.25,
+                    "heading_deg": heading_deg % 360.0,
+                },
+                "odom": {"x": round(float(along_m[i]), 3), "y": 0.0, "yaw": 0.0},
+                "elements": elements,
+            }
+        )
+    return {
+        "schema_version": "1.0",
+        "vehicle_id": vehicle_id,
+        "trip_id": trip_id,
+        "started_at": "2026-11-21T08:00:00Z",
+        "sensor_setup": {"model": "bench"},
+        "frames": frames,
+    }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench-ingest", help="measure upload throughput (both deployments) against orjson parsing")
+    p = sub.add_parser(
+        "bench-ingest", help="measure upload throughput (both deployments) against orjson parsing"
+    )
     p.add_argument("--trips", type=int, default=120, help="uploads per row (default 120)")
     p.add_argument("--clients", type=int, default=4, help="concurrent clients (default 4)")
-    p.add_argument("--database-url", default=os.environ.get("CSR_BENCH_DATABASE_URL"),
-                   help="PostGIS URL of an empty database for the distributed run (default: CSR_BENCH_DATABASE_URL; "
-                        "none: that run is skipped)")
+    p.add_argument(
+        "--database-url",
+        default=os.environ.get("CSR_BENCH_DATABASE_URL"),
+        help="PostGIS URL of an empty database for the distributed run (default: CSR_BENCH_DATABASE_URL; "
+        "none: that run is skipped)",
+    )
     p.add_argument("--redis-url", default=os.environ.get("CSR_BENCH_REDIS_URL", "redis://127.0.0.1:6379/13"))
-    p.add_argument("--write", type=Path, default=None, help="update this BENCHMARKS.md between the ingest markers")
+    p.add_argument(
+        "--write", type=Path, default=None, help="update this BENCHMARKS.md between the ingest markers"
+    )
     p.set_defaults(func=_run)
 
 
@@ -106,7 +143,9 @@ def _wait_healthy(url: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> 
     raise SystemExit("server did not become healthy")
 
 
-def _upload_all(url: str, admin_key: str, bodies: list[bytes], clients: int) -> tuple[float, list[float], list[int]]:
+def _upload_all(
+    url: str, admin_key: str, bodies: list[bytes], clients: int
+) -> tuple[float, list[float], list[int]]:
     import httpx
 
     latencies: list[float] = []
@@ -115,8 +154,11 @@ def _upload_all(url: str, admin_key: str, bodies: list[bytes], clients: int) -> 
     next_index = iter(range(len(bodies)))
 
     def client() -> None:
-        headers = {"Authorization": f"Bearer {admin_key}", "Content-Type": "application/json",
-                   "Content-Encoding": "gzip"}
+        headers = {
+            "Authorization": f"Bearer {admin_key}",
+            "Content-Type": "application/json",
+            "Content-Encoding": "gzip",
+        }
         with httpx.Client(base_url=url, headers=headers, timeout=120.0) as http:
             while True:
                 with lock:
@@ -148,8 +190,15 @@ def _parse_rate(plain: list[bytes]) -> float:
     return len(plain) / (time.perf_counter() - t0)
 
 
-def _run_deployment(name: str, env_extra: dict[str, str], bodies: list[bytes], plain: list[bytes], clients: int, *,
-                    with_worker: bool) -> dict[str, Any]:
+def _run_deployment(
+    name: str,
+    env_extra: dict[str, str],
+    bodies: list[bytes],
+    plain: list[bytes],
+    clients: int,
+    *,
+    with_worker: bool,
+) -> dict[str, Any]:
     """One deployment, fresh: the upload run, with the orjson parse-only rate measured just before
     and just after it (the mean is its reference: the machine may be shared)."""
     admin_key = "bench-" + secrets.token_hex(8)
@@ -157,18 +206,35 @@ def _run_deployment(name: str, env_extra: dict[str, str], bodies: list[bytes], p
     url = f"http://127.0.0.1:{port}"
     bindir = Path(sys.executable).parent
     with tempfile.TemporaryDirectory() as data_dir:
-        env = {**os.environ, "CSR_ADMIN_KEY": admin_key, "CSR_DATA_DIR": data_dir, "CSR_QUIET_PERIOD_S": "3600",
-               **env_extra}
+        env = {
+            **os.environ,
+            "CSR_ADMIN_KEY": admin_key,
+            "CSR_DATA_DIR": data_dir,
+            "CSR_QUIET_PERIOD_S": "3600",
+            **env_extra,
+        }
         for var in ("CSR_DATABASE_URL", "CSR_REDIS_URL"):
             if var not in env_extra:
                 env.pop(var, None)
-        procs = [subprocess.Popen([str(bindir / "csr"), "serve", "--port", str(port), "--no-access-log"], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+        procs = [
+            subprocess.Popen(
+                [str(bindir / "csr"), "serve", "--port", str(port), "--no-access-log"],
+                env=env,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        ]
         try:
             _wait_healthy(url, procs[0])
             if with_worker:
-                procs.append(subprocess.Popen([str(bindir / "csr"), "worker", "--concurrency", "1"], env=env,
-                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                procs.append(
+                    subprocess.Popen(
+                        [str(bindir / "csr"), "worker", "--concurrency", "1"],
+                        env=env,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
+                )
                 time.sleep(5)  # the worker is up before the clock starts
             parse_before = _parse_rate(plain)
             wall_s, latencies, statuses = _upload_all(url, admin_key, bodies, clients)
@@ -181,9 +247,14 @@ def _run_deployment(name: str, env_extra: dict[str, str], bodies: list[bytes], p
     bad = [s for s in statuses if s != 202]
     if bad:
         raise SystemExit(f"{name}: {len(bad)} uploads failed (statuses {sorted(set(bad))})")
-    return {"name": name, "wall_s": wall_s, "trips_per_s": len(bodies) / wall_s,
-            "p50_ms": 1000 * _percentile(latencies, 0.50), "p99_ms": 1000 * _percentile(latencies, 0.99),
-            "parse_per_s": (parse_before + parse_after) / 2}
+    return {
+        "name": name,
+        "wall_s": wall_s,
+        "trips_per_s": len(bodies) / wall_s,
+        "p50_ms": 1000 * _percentile(latencies, 0.50),
+        "p99_ms": 1000 * _percentile(latencies, 0.99),
+        "parse_per_s": (parse_before + parse_after) / 2,
+    }
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -193,8 +264,13 @@ def _run(args: argparse.Namespace) -> int:
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
     # a few distinct trips (noise seeds), each uploaded under many trip ids
-    bases = [orjson.dumps(straight_trip(vehicle_id=f"veh-{s}", trip_id="bench-XXXXXX", seed=s)) for s in range(4)]
-    plain = [bases[i % len(bases)].replace(b'"bench-XXXXXX"', f'"bench-{i:06d}"'.encode(), 1) for i in range(args.trips)]
+    bases = [
+        orjson.dumps(straight_trip(vehicle_id=f"veh-{s}", trip_id="bench-TRIPID", seed=s)) for s in range(4)
+    ]
+    plain = [
+        bases[i % len(bases)].replace(b'"bench-TRIPID"', f'"bench-{i:06d}"'.encode(), 1)
+        for i in range(args.trips)
+    ]
     n_frames = len(orjson.loads(bases[0])["frames"])
     bodies = [gzip.compress(b, compresslevel=6) for b in plain]
     mb_plain = sum(map(len, plain)) / 1e6
@@ -202,15 +278,31 @@ def _run(args: argparse.Namespace) -> int:
 
     runs = []
     for jobs, extra in (("run concurrently", {}), ("deferred", {"CSR_EMBEDDED_WORKERS": "0"})):
-        runs.append(_run_deployment(f"embedded (SQLite) | jobs {jobs} in-process", extra, bodies, plain, args.clients,
-                                    with_worker=False))
+        runs.append(
+            _run_deployment(
+                f"embedded (SQLite) | jobs {jobs} in-process",
+                extra,
+                bodies,
+                plain,
+                args.clients,
+                with_worker=False,
+            )
+        )
     if args.database_url:
         distributed = {"CSR_DATABASE_URL": args.database_url, "CSR_REDIS_URL": args.redis_url}
         for with_worker in (True, False):
             _reset_database(args.database_url, args.redis_url)
             jobs = "run concurrently by 1 Celery worker" if with_worker else "queued in Redis, no worker"
-            runs.append(_run_deployment(f"distributed (PostGIS + Redis) | jobs {jobs}", distributed, bodies, plain,
-                                        args.clients, with_worker=with_worker))
+            runs.append(
+                _run_deployment(
+                    f"distributed (PostGIS + Redis) | jobs {jobs}",
+                    distributed,
+                    bodies,
+                    plain,
+                    args.clients,
+                    with_worker=with_worker,
+                )
+            )
     lines = [
         f"Workload: {args.trips} trips of 1 km at 10 Hz ({n_frames} frames, {mb_plain / args.trips:.2f} MB JSON, "
         f"{mb_sent / args.trips:.2f} MB gzip each) per row, {args.clients} concurrent clients on loopback, "
@@ -232,9 +324,12 @@ def _run(args: argparse.Namespace) -> int:
         )
     ratios = [r["trips_per_s"] / r["parse_per_s"] for r in runs]
     below = sum(ratio < 1 / 3 for ratio in ratios)
-    lines += ["", f"Goal (the upload path sustains >= 1/3 of the parse-only rate): "
-              f"{'met by every row' if not below else f'NOT met by {below} of {len(runs)} rows'} in this run "
-              f"(lowest ratio {min(ratios):.2f})."]
+    lines += [
+        "",
+        f"Goal (the upload path sustains >= 1/3 of the parse-only rate): "
+        f"{'met by every row' if not below else f'NOT met by {below} of {len(runs)} rows'} in this run "
+        f"(lowest ratio {min(ratios):.2f}).",
+    ]
     table = "\n".join(lines)
     print(table)
     if args.write:
@@ -261,8 +356,14 @@ def _reset_database(database_url: str, redis_url: str) -> None:
 
     engine = sa.create_engine(database_url)
     with engine.begin() as conn:
-        tables = [r[0] for r in conn.execute(sa.text(
-            "SELECT tablename FROM pg_tables WHERE schemaname = 'public' AND tablename <> 'spatial_ref_sys'"))]
+        tables = [
+            r[0]
+            for r in conn.execute(
+                sa.text(
+                    "SELECT tablename FROM pg_tables WHERE schemaname = 'public' AND tablename <> 'spatial_ref_sys'"
+                )
+            )
+        ]
         for table in tables:
             conn.execute(sa.text(f'DROP TABLE IF EXISTS "{table}" CASCADE'))
     engine.dispose()

@@ -24,6 +24,12 @@ def _run(args: argparse.Namespace) -> int:
     from services.settings import get_settings
 
     app = create_app(get_settings())
-    uvicorn.run(app, host=args.host, port=args.port, access_log=not args.no_access_log, log_config=None,
-                timeout_graceful_shutdown=10)
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        access_log=not args.no_access_log,
+        log_config=None,
+        timeout_graceful_shutdown=10,
+    )
     return 0

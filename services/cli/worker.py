@@ -9,7 +9,9 @@ import argparse
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("worker", help="start a Celery worker (distributed deployment)")
     p.add_argument("--queues", default="ingest,align,merge", help="queues to consume (default: all)")
-    p.add_argument("--concurrency", type=int, default=None, help="processes (default CSR_WORKER_CONCURRENCY, 1)")
+    p.add_argument(
+        "--concurrency", type=int, default=None, help="processes (default CSR_WORKER_CONCURRENCY, 1)"
+    )
     p.add_argument("--name", default="csr@%h", help="worker node name")
     p.set_defaults(func=_run)
 
@@ -21,13 +23,26 @@ def _run(args: argparse.Namespace) -> int:
 
     settings = get_settings()
     if not settings.redis_url or not settings.database_url:
-        raise SystemExit("csr worker needs CSR_DATABASE_URL and CSR_REDIS_URL (the embedded default runs jobs in `csr serve`)")
+        raise SystemExit(
+            "csr worker needs CSR_DATABASE_URL and CSR_REDIS_URL (the embedded default runs jobs in `csr serve`)"
+        )
     engine = make_engine(settings.sqlalchemy_url)
     migrate(engine)
     engine.dispose()
     concurrency = args.concurrency or settings.worker_concurrency
-    app.worker_main([
-        "worker", "--queues", args.queues, "--concurrency", str(concurrency), "--hostname", args.name,
-        "--loglevel", "INFO", "--without-gossip", "--without-mingle",
-    ])
+    app.worker_main(
+        [
+            "worker",
+            "--queues",
+            args.queues,
+            "--concurrency",
+            str(concurrency),
+            "--hostname",
+            args.name,
+            "--loglevel",
+            "INFO",
+            "--without-gossip",
+            "--without-mingle",
+        ]
+    )
     return 0

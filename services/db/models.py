@@ -41,7 +41,6 @@ class TrackGeometry(TypeDecorator):
         return dialect.type_descriptor(Text())
 
 
-
 def utcnow() -> datetime:
     return datetime.now(UTC)
 

@@ -54,7 +54,9 @@ def create_key(session: Session, *, role: str, vehicle_id: str | None) -> tuple[
     if role not in ROLES:
         raise ValueError(f"unknown role {role!r}")
     secret = "csr_" + secrets.token_urlsafe(32)
-    row = ApiKey(id="key_" + secrets.token_hex(8), key_sha256=hash_key(secret), role=role, vehicle_id=vehicle_id)
+    row = ApiKey(
+        id="key_" + secrets.token_hex(8), key_sha256=hash_key(secret), role=role, vehicle_id=vehicle_id
+    )
     session.add(row)
     return row, secret
 
@@ -102,8 +104,15 @@ def add_trip(
 ) -> tuple[Trip, Job]:
     """A received trip, its raw upload and its ingest job (the outbox row), to be committed together."""
     trip = Trip(
-        id=new_id(), vehicle_id=vehicle_id, trip_id=trip_id, content_sha256=content_sha256, status="received",
-        schema_version=schema_version, started_at=started_at, n_frames=n_frames, body_bytes=body_bytes,
+        id=new_id(),
+        vehicle_id=vehicle_id,
+        trip_id=trip_id,
+        content_sha256=content_sha256,
+        status="received",
+        schema_version=schema_version,
+        started_at=started_at,
+        n_frames=n_frames,
+        body_bytes=body_bytes,
         json_bytes=json_bytes,
     )
     session.add(trip)
@@ -118,9 +127,11 @@ def raw_upload(session: Session, *, trip_pk: str) -> TripUpload | None:
 
 
 def tiles_of_trip(session: Session, *, trip_pk: str) -> list[TripTile]:
-    return list(session.scalars(
-        select(TripTile).where(TripTile.trip_pk == trip_pk).order_by(TripTile.z, TripTile.x, TripTile.y)
-    ))
+    return list(
+        session.scalars(
+            select(TripTile).where(TripTile.trip_pk == trip_pk).order_by(TripTile.z, TripTile.x, TripTile.y)
+        )
+    )
 
 
 def set_trip_tiles(session: Session, *, trip_pk: str, tiles: Iterable[tuple[int, int, int]]) -> None:
@@ -199,10 +210,15 @@ def job_summary(session: Session) -> dict[str, int]:
 
 def job_counts(session: Session) -> list[tuple[str, str, int]]:
     """``(queue, state, count)`` for the metrics."""
-    return [tuple(r) for r in session.execute(select(Job.queue, Job.state, func.count()).group_by(Job.queue, Job.state))]
+    return [
+        tuple(r)
+        for r in session.execute(select(Job.queue, Job.state, func.count()).group_by(Job.queue, Job.state))
+    ]
 
 
-def job_duration_stats(session: Session, *, buckets: Sequence[float]) -> dict[str, tuple[list[int], int, float]]:
+def job_duration_stats(
+    session: Session, *, buckets: Sequence[float]
+) -> dict[str, tuple[list[int], int, float]]:
     """Per job kind: cumulative counts at each bucket bound, total count and sum of finished durations."""
     columns = [func.sum(case((Job.duration_s <= b, 1), else_=0)) for b in buckets]
     rows = session.execute(
@@ -224,7 +240,12 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
         job = add_job(session, kind="align_tile", subject=f"{tile.z}/{tile.x}/{tile.y}")
         taken = session.execute(
             update(DirtyTile)
-            .where(DirtyTile.z == tile.z, DirtyTile.x == tile.x, DirtyTile.y == tile.y, DirtyTile.job_id.is_(None))
+            .where(
+                DirtyTile.z == tile.z,
+                DirtyTile.x == tile.x,
+                DirtyTile.y == tile.y,
+                DirtyTile.job_id.is_(None),
+            )
             .values(job_id=job.id)
         ).rowcount
         if taken:

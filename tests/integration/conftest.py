@@ -44,8 +44,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interval_s: float = 0.2,
-               what: str | Callable[[], str] = "") -> Any:
+def wait_until(
+    predicate: Callable[[], Any],
+    *,
+    timeout_s: float = 60.0,
+    interval_s: float = 0.2,
+    what: str | Callable[[], str] = "",
+) -> Any:
     """Poll until ``predicate()`` is truthy; ``what`` (or what it returns) names it in the failure."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -53,7 +58,9 @@ def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interva
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {(what() if callable(what) else what) or predicate}")
+            raise AssertionError(
+                f"timed out after {timeout_s} s waiting for {(what() if callable(what) else what) or predicate}"
+            )
         time.sleep(interval_s)
 
 
@@ -135,9 +142,21 @@ class RedisServer:
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
-            [shutil.which("redis-server") or "redis-server", "--port", str(self.port), "--bind", "127.0.0.1",
-             "--save", "", "--appendonly", "no", "--dir", str(self.workdir)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            [
+                shutil.which("redis-server") or "redis-server",
+                "--port",
+                str(self.port),
+                "--bind",
+                "127.0.0.1",
+                "--save",
+                "",
+                "--appendonly",
+                "no",
+                "--dir",
+                str(self.workdir),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
         )
         wait_until(self._ping, timeout_s=10, what="private redis-server")
 
@@ -172,8 +191,14 @@ class Proc:
         ARTIFACTS.mkdir(exist_ok=True)
         self.log_path = ARTIFACTS / f"{log_name}-{secrets.token_hex(3)}.log"
         self._log = self.log_path.open("wb")
-        self.proc = subprocess.Popen([str(BIN / "csr"), *args], env=env, stdout=self._log, stderr=subprocess.STDOUT,
-                                     cwd=REPO, start_new_session=True)
+        self.proc = subprocess.Popen(
+            [str(BIN / "csr"), *args],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+            start_new_session=True,
+        )
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -224,7 +249,9 @@ class Deployment:
     def start_server(self, **extra_env: str) -> Proc:
         port = free_port()
         self.base_url = f"http://127.0.0.1:{port}"
-        server = Proc(["serve", "--port", str(port), "--no-access-log"], {**self.env, **extra_env}, f"serve-{self.name}")
+        server = Proc(
+            ["serve", "--port", str(port), "--no-access-log"], {**self.env, **extra_env}, f"serve-{self.name}"
+        )
         self.procs.append(server)
 
         def healthy() -> bool:
@@ -251,7 +278,9 @@ class Deployment:
 
     # --- uploads and inspection
 
-    def upload(self, doc: dict[str, Any] | bytes, *, key: str | None = None, gzipped: bool = False) -> httpx.Response:
+    def upload(
+        self, doc: dict[str, Any] | bytes, *, key: str | None = None, gzipped: bool = False
+    ) -> httpx.Response:
         body = doc if isinstance(doc, bytes) else orjson.dumps(doc)
         headers = {"Content-Type": "application/json"}
         if gzipped:
@@ -273,14 +302,23 @@ class Deployment:
 
     def wait_idle(self, timeout_s: float = 90.0) -> dict[str, int]:
         """Until no job is queued or running."""
-        return wait_until(lambda: (s := self.summary())["queued"] == 0 and s["running"] == 0 and s,
-                          timeout_s=timeout_s, what=f"{self.name}: jobs to finish")
+        return wait_until(
+            lambda: (s := self.summary())["queued"] == 0 and s["running"] == 0 and s,
+            timeout_s=timeout_s,
+            what=f"{self.name}: jobs to finish",
+        )
 
 
 def base_env(tmp: Path, **extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CSR_")}
-    env.update({"CSR_DATA_DIR": str(tmp / "data"), "CSR_QUIET_PERIOD_S": "3600", "CSR_POLL_INTERVAL_S": "0.2",
-                "PYTHONUNBUFFERED": "1"})
+    env.update(
+        {
+            "CSR_DATA_DIR": str(tmp / "data"),
+            "CSR_QUIET_PERIOD_S": "3600",
+            "CSR_POLL_INTERVAL_S": "0.2",
+            "PYTHONUNBUFFERED": "1",
+        }
+    )
     env.update(extra)
     return env
 
@@ -292,7 +330,9 @@ def make_deployment(kind: str, tmp: Path, pg: PgDatabases, redis_url: str, **ext
         db_url = f"sqlite:///{(tmp / 'data' / 'csr.sqlite3').resolve()}"
     else:
         db_url = pg.create()
-        env = base_env(tmp, CSR_ADMIN_KEY=admin_key, CSR_DATABASE_URL=db_url, CSR_REDIS_URL=redis_url, **extra)
+        env = base_env(
+            tmp, CSR_ADMIN_KEY=admin_key, CSR_DATABASE_URL=db_url, CSR_REDIS_URL=redis_url, **extra
+        )
     return Deployment(kind, env, db_url, admin_key)
 
 

@@ -33,14 +33,17 @@ def test_serve_on_a_fresh_data_dir_generates_a_private_admin_key(tmp_path: Path)
 
 
 def test_worker_refuses_to_start_without_the_distributed_settings(tmp_path: Path):
-    result = subprocess.run([str(BIN / "csr"), "worker"], env=base_env(tmp_path), capture_output=True, text=True,
-                            timeout=120)
+    result = subprocess.run(
+        [str(BIN / "csr"), "worker"], env=base_env(tmp_path), capture_output=True, text=True, timeout=120
+    )
     assert result.returncode != 0
     assert "CSR_DATABASE_URL and CSR_REDIS_URL" in result.stderr
 
 
 def _alembic(env: dict[str, str], *args: str) -> None:
-    subprocess.run([str(BIN / "alembic"), *args], env=env, cwd=REPO, check=True, capture_output=True, timeout=180)
+    subprocess.run(
+        [str(BIN / "alembic"), *args], env=env, cwd=REPO, check=True, capture_output=True, timeout=180
+    )
 
 
 def _tables(url: str) -> set[str]:
@@ -52,7 +55,9 @@ def _tables(url: str) -> set[str]:
 
 
 @pytest.mark.parametrize("backend", ["sqlite", "postgis"])
-def test_alembic_command_line_upgrades_and_downgrades_both_backends(tmp_path: Path, pg: PgDatabases, backend: str):
+def test_alembic_command_line_upgrades_and_downgrades_both_backends(
+    tmp_path: Path, pg: PgDatabases, backend: str
+):
     if backend == "postgis":
         url = pg.create()
         env = base_env(tmp_path, CSR_DATABASE_URL=url)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import secrets
+import time
 
 import pytest
 
@@ -24,8 +25,9 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     response = deployment.upload(doc, gzipped=True)
     assert response.status_code == 202, response.text
     trip_pk = response.json()["id"]
-    trip = wait_until(lambda: (t := _trip(deployment, trip_pk))["status"] == "processing" and t,
-                      timeout_s=60, what="ingest")
+    trip = wait_until(
+        lambda: (t := _trip(deployment, trip_pk))["status"] == "processing" and t, timeout_s=60, what="ingest"
+    )
     assert trip["length_km"] == pytest.approx(1.0, abs=0.005)
     lonlat = [(f["gnss"]["lon"], f["gnss"]["lat"]) for f in doc["frames"]]
     expected_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(lonlat, zoom=16)]
@@ -35,7 +37,9 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     if deployment.engine.dialect.name == "postgresql":
         geometry = deployment.rows(
             "SELECT ST_GeometryType(track), ST_SRID(track), ST_NPoints(track), "
-            "ST_Length(track::geography) FROM trips WHERE id = :p", p=trip_pk)[0]
+            "ST_Length(track::geography) FROM trips WHERE id = :p",
+            p=trip_pk,
+        )[0]
         assert geometry[:3] == ("ST_LineString", 4326, len(doc["frames"]))
         assert geometry[3] == pytest.approx(1000.0, abs=5.0)
         indexdef = deployment.scalar("SELECT indexdef FROM pg_indexes WHERE indexname = 'ix_trips_track'")
@@ -50,8 +54,13 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
         scheduled = http.post("/v1/process").json()
     assert scheduled["scheduled"] == summary["dirty_tiles"]
     assert set(expected_tiles) <= {job["tile"] for job in scheduled["jobs"]}
-    done = wait_until(lambda: (s := deployment.summary())["dirty_tiles"] == 0 and s["queued"] == 0
-                      and s["running"] == 0 and s, timeout_s=60, what="tile jobs")
+    done = wait_until(
+        lambda: (
+            (s := deployment.summary())["dirty_tiles"] == 0 and s["queued"] == 0 and s["running"] == 0 and s
+        ),
+        timeout_s=60,
+        what="tile jobs",
+    )
     assert done["failed"] == 0
     trip = _trip(deployment, trip_pk)
     assert trip["tiles_pending"] == 0
@@ -83,7 +92,9 @@ def test_trip_without_any_gnss_fix_fails_visibly(deployment: Deployment):
     for frame in doc["frames"]:
         frame["gnss"]["status"] = "none"
     trip_pk = deployment.upload(doc).json()["id"]
-    trip = wait_until(lambda: (t := _trip(deployment, trip_pk))["status"] == "failed" and t, what="failed ingest")
+    trip = wait_until(
+        lambda: (t := _trip(deployment, trip_pk))["status"] == "failed" and t, what="failed ingest"
+    )
     assert "GNSS fix" in trip["error"]
     assert deployment.scalar("SELECT state FROM jobs WHERE subject = :p", p=trip_pk) == "failed"
     assert deployment.summary()["failed"] >= 1
@@ -101,10 +112,15 @@ def test_healthz_and_metrics(deployment: Deployment):
         response = http.get("/metrics")
     assert response.headers["content-type"].startswith("text/plain")
     text = response.text
-    for needle in ('csr_uploads_total{result="accepted"}', 'csr_upload_bytes_total{form="sent"}',
-                   'csr_upload_rejects_total{reason="json"}', 'csr_queue_depth{queue="ingest"} 0.0',
-                   'csr_job_duration_seconds_count{kind="ingest_trip"}', "csr_dirty_tiles",
-                   "csr_upload_duration_seconds_bucket"):
+    for needle in (
+        'csr_uploads_total{result="accepted"}',
+        'csr_upload_bytes_total{form="sent"}',
+        'csr_upload_rejects_total{reason="json"}',
+        'csr_queue_depth{queue="ingest"} 0.0',
+        'csr_job_duration_seconds_count{kind="ingest_trip"}',
+        "csr_dirty_tiles",
+        "csr_upload_duration_seconds_bucket",
+    ):
         assert needle in text, needle
 
 
@@ -113,8 +129,11 @@ def test_quiet_period_processes_dirty_tiles_without_a_trigger(tmp_path, pg, shar
     try:
         dep.start_server()
         trip_pk = dep.upload(unique_trip()).json()["id"]
-        wait_until(lambda: _trip(dep, trip_pk)["tiles_pending"] == 0 and _trip(dep, trip_pk)["tiles"],
-                   timeout_s=30, what="tile job after the quiet period")
+        wait_until(
+            lambda: (t := _trip(dep, trip_pk))["tiles"] and t["tiles_pending"] == 0,
+            timeout_s=30,
+            what="tile job after the quiet period",
+        )
         assert dep.summary() == {"queued": 0, "running": 0, "failed": 0, "dirty_tiles": 0}
     finally:
         dep.stop()
@@ -125,14 +144,33 @@ def test_embedded_server_killed_mid_job_finishes_the_job_after_restart(tmp_path,
     try:
         server = dep.start_server(CSR_TEST_INGEST_DELAY_S="60")
         trip_pk = dep.upload(unique_trip()).json()["id"]
-        wait_until(lambda: dep.scalar("SELECT state FROM jobs WHERE subject = :p", p=trip_pk) == "running",
-                   what="ingest job running")
+        wait_until(
+            lambda: dep.scalar("SELECT state FROM jobs WHERE subject = :p", p=trip_pk) == "running",
+            what="ingest job running",
+        )
         server.kill_group()
         dep.start_server()
-        trip = wait_until(lambda: (t := _trip(dep, trip_pk))["status"] == "processing" and t, what="ingest after restart")
+        trip = wait_until(
+            lambda: (t := _trip(dep, trip_pk))["status"] == "processing" and t, what="ingest after restart"
+        )
         assert trip["tiles"]
         jobs = dep.rows("SELECT state, attempts FROM jobs WHERE subject = :p", p=trip_pk)
         assert [tuple(r) for r in jobs] == [("done", 2)]
         assert dep.scalar("SELECT count(*) FROM trips") == 1
+    finally:
+        dep.stop()
+
+
+def test_embedded_without_job_threads_keeps_jobs_queued_until_a_runner_starts(tmp_path, pg, shared_redis_url):
+    dep = make_deployment("embedded", tmp_path, pg, shared_redis_url)
+    try:
+        server = dep.start_server(CSR_EMBEDDED_WORKERS="0")
+        trip_pk = dep.upload(unique_trip()).json()["id"]
+        time.sleep(2)  # several poll intervals
+        assert dep.summary()["queued"] == 1 and _trip(dep, trip_pk)["status"] == "received"
+        server.stop()
+        dep.start_server()
+        wait_until(lambda: _trip(dep, trip_pk)["status"] == "processing", what="the queued job to run")
+        assert dep.summary()["queued"] == 0
     finally:
         dep.stop()

@@ -43,14 +43,19 @@ def test_uploads_while_redis_is_down_are_processed_once_it_is_back(make_isolated
     assert dep.summary()["queued"] == 5
 
     private_redis.start()
-    wait_until(lambda: dep.scalar("SELECT count(*) FROM trips WHERE status = 'processing'") == 5,
-               timeout_s=120, what=lambda: f"the uploads to be processed; worker log:\n{worker.log_tail()}")
+    wait_until(
+        lambda: dep.scalar("SELECT count(*) FROM trips WHERE status = 'processing'") == 5,
+        timeout_s=120,
+        what=lambda: f"the uploads to be processed; worker log:\n{worker.log_tail()}",
+    )
     for trip_pk in trip_pks:
         assert _ingest_jobs(dep, trip_pk) == [("done", 1)]
     assert dep.summary() == {"queued": 0, "running": 0, "failed": 0, "dirty_tiles": 1}
 
 
-def test_worker_killed_mid_task_the_task_is_redelivered_and_completes_once(make_isolated, private_redis: RedisServer):
+def test_worker_killed_mid_task_the_task_is_redelivered_and_completes_once(
+    make_isolated, private_redis: RedisServer
+):
     """SIGKILL of the whole worker (main process and pool child, like a crashed machine): the
     message stays unacknowledged in Redis; a new worker restores it after the visibility timeout."""
     dep = make_isolated("distributed", redis_url=private_redis.url)
@@ -62,8 +67,11 @@ def test_worker_killed_mid_task_the_task_is_redelivered_and_completes_once(make_
     assert _ingest_jobs(dep, trip_pk) == [("running", 1)]
 
     second = dep.start_worker(CSR_VISIBILITY_TIMEOUT_S="4", CSR_JOB_TIME_LIMIT_S="3")
-    wait_until(lambda: _ingest_jobs(dep, trip_pk) == [("done", 2)], timeout_s=90,
-               what=lambda: f"re-delivery; worker log:\n{second.log_tail()}")
+    wait_until(
+        lambda: _ingest_jobs(dep, trip_pk) == [("done", 2)],
+        timeout_s=90,
+        what=lambda: f"re-delivery; worker log:\n{second.log_tail()}",
+    )
     trip = dep.rows("SELECT status, length_km FROM trips WHERE id = :p", p=trip_pk)[0]
     assert trip[0] == "processing" and trip[1] > 0
     tiles = dep.scalar("SELECT count(*) FROM trip_tiles WHERE trip_pk = :p", p=trip_pk)
@@ -82,8 +90,11 @@ def test_pool_process_killed_mid_task_is_rejected_and_requeued(make_isolated, pr
     children = _children(worker.proc.pid)
     assert len(children) == 1, children
     os.kill(children[0], signal.SIGKILL)
-    wait_until(lambda: _ingest_jobs(dep, trip_pk) == [("done", 2)], timeout_s=60,
-               what=lambda: f"requeue; worker log:\n{worker.log_tail()}")
+    wait_until(
+        lambda: _ingest_jobs(dep, trip_pk) == [("done", 2)],
+        timeout_s=60,
+        what=lambda: f"requeue; worker log:\n{worker.log_tail()}",
+    )
     assert worker.alive()
     assert "WorkerLostError" in worker.log_tail(20000)
     assert dep.scalar("SELECT count(*) FROM trip_tiles WHERE trip_pk = :p", p=trip_pk) == 1

@@ -23,17 +23,30 @@ class World:
 @pytest.fixture(scope="module")
 def world(deployment: Deployment) -> World:
     with deployment.admin() as http:
+
         def key(**body) -> str:
             response = http.post("/v1/keys", json=body)
             assert response.status_code == 201, response.text
             return response.json()
-        vehicle, other, reader, revoked = (key(role="vehicle", vehicle_id="veh-a"), key(role="vehicle", vehicle_id="veh-b"),
-                                           key(role="reader"), key(role="reader"))
+
+        vehicle, other, reader, revoked = (
+            key(role="vehicle", vehicle_id="veh-a"),
+            key(role="vehicle", vehicle_id="veh-b"),
+            key(role="reader"),
+            key(role="reader"),
+        )
         assert http.delete(f"/v1/keys/{revoked['id']}").status_code == 204
     trip = deployment.upload(unique_trip("veh-a"), key=vehicle["key"])
     assert trip.status_code == 202
-    keys = {"none": None, "unknown": "csr_not-a-key", "revoked": revoked["key"], "vehicle": vehicle["key"],
-            "vehicle_other": other["key"], "reader": reader["key"], "admin": deployment.admin_key}
+    keys = {
+        "none": None,
+        "unknown": "csr_not-a-key",
+        "revoked": revoked["key"],
+        "vehicle": vehicle["key"],
+        "vehicle_other": other["key"],
+        "reader": reader["key"],
+        "admin": deployment.admin_key,
+    }
     return World(keys, trip.json()["id"])
 
 
@@ -45,8 +58,11 @@ def _call(dep: Deployment, world: World, endpoint: str, caller: str):
         if endpoint == "GET /metrics":
             return http.get("/metrics")
         if endpoint == "POST /v1/trips":
-            return http.post("/v1/trips", content=orjson.dumps(unique_trip("veh-a")),
-                             headers={"Content-Type": "application/json"})
+            return http.post(
+                "/v1/trips",
+                content=orjson.dumps(unique_trip("veh-a")),
+                headers={"Content-Type": "application/json"},
+            )
         if endpoint == "GET /v1/trips/{id}":
             return http.get(f"/v1/trips/{world.trip_pk}")
         if endpoint == "GET /v1/trips/{id}/poses":
@@ -64,26 +80,35 @@ def _call(dep: Deployment, world: World, endpoint: str, caller: str):
     raise AssertionError(endpoint)
 
 
-#                          none unknown revoked vehicle vehicle_other reader admin
+# fmt: off
+#                              none  unknown revoked vehicle other  reader admin   (other: a vehicle key of another vehicle)
 MATRIX = {
-    "GET /healthz":            (200, 200, 200, 200, 200, 200, 200),
-    "GET /metrics":            (401, 401, 401, 403, 403, 200, 200),
-    "POST /v1/trips":          (401, 401, 401, 202, 403, 403, 202),
-    "GET /v1/trips/{id}":      (401, 401, 401, 200, 403, 200, 200),
-    "GET /v1/trips/{id}/poses": (401, 401, 401, 403, 403, 409, 409),
-    "GET /v1/jobs/summary":    (401, 401, 401, 403, 403, 200, 200),
-    "POST /v1/process":        (401, 401, 401, 403, 403, 403, 202),
-    "POST /v1/keys":           (401, 401, 401, 403, 403, 403, 201),
-    "DELETE /v1/keys/{id}":    (401, 401, 401, 403, 403, 403, 204),
+    "GET /healthz":              (200, 200,    200,    200,    200,   200,   200),
+    "GET /metrics":              (401, 401,    401,    403,    403,   200,   200),
+    "POST /v1/trips":            (401, 401,    401,    202,    403,   403,   202),
+    "GET /v1/trips/{id}":        (401, 401,    401,    200,    403,   200,   200),
+    "GET /v1/trips/{id}/poses":  (401, 401,    401,    403,    403,   409,   409),
+    "GET /v1/jobs/summary":      (401, 401,    401,    403,    403,   200,   200),
+    "POST /v1/process":          (401, 401,    401,    403,    403,   403,   202),
+    "POST /v1/keys":             (401, 401,    401,    403,    403,   403,   201),
+    "DELETE /v1/keys/{id}":      (401, 401,    401,    403,    403,   403,   204),
 }
-CASES = [(endpoint, caller, expected[i]) for endpoint, expected in MATRIX.items() for i, caller in enumerate(CALLERS)]
+# fmt: on
+CASES = [
+    (endpoint, caller, expected[i])
+    for endpoint, expected in MATRIX.items()
+    for i, caller in enumerate(CALLERS)
+]
 
 
 def test_the_matrix_names_every_route(deployment: Deployment):
     with deployment.admin() as http:
         spec = http.get("/openapi.json").json()
-    routes = {f"{method.upper()} {path.replace('{trip_pk}', '{id}').replace('{key_id}', '{id}')}"
-              for path, item in spec["paths"].items() for method in item}
+    routes = {
+        f"{method.upper()} {path.replace('{trip_pk}', '{id}').replace('{key_id}', '{id}')}"
+        for path, item in spec["paths"].items()
+        for method in item
+    }
     assert routes == set(MATRIX)
 
 
@@ -101,7 +126,9 @@ def test_role_matrix(deployment: Deployment, world: World, endpoint: str, caller
 def test_keys_are_stored_hashed(deployment: Deployment):
     with deployment.admin() as http:
         created = http.post("/v1/keys", json={"role": "vehicle", "vehicle_id": "veh-h"}).json()
-    stored = deployment.rows("SELECT key_sha256, role, vehicle_id FROM api_keys WHERE id = :i", i=created["id"])
+    stored = deployment.rows(
+        "SELECT key_sha256, role, vehicle_id FROM api_keys WHERE id = :i", i=created["id"]
+    )
     assert len(stored) == 1
     digest, role, vehicle_id = stored[0]
     assert created["key"] not in digest and len(digest) == 64
@@ -110,7 +137,9 @@ def test_keys_are_stored_hashed(deployment: Deployment):
     assert created["key"] not in dump and deployment.admin_key not in dump
 
 
-@pytest.mark.parametrize("body", [{"role": "vehicle"}, {"role": "reader", "vehicle_id": "v"}, {"role": "root"}, {}])
+@pytest.mark.parametrize(
+    "body", [{"role": "vehicle"}, {"role": "reader", "vehicle_id": "v"}, {"role": "root"}, {}]
+)
 def test_invalid_key_requests_are_422(deployment: Deployment, body: dict):
     with deployment.admin() as http:
         response = http.post("/v1/keys", json=body)

@@ -19,7 +19,9 @@ MIB = 1024 * 1024
 
 
 def _trip_rows(dep: Deployment, vehicle_id: str, trip_id: str) -> int:
-    return dep.scalar("SELECT count(*) FROM trips WHERE vehicle_id = :v AND trip_id = :t", v=vehicle_id, t=trip_id)
+    return dep.scalar(
+        "SELECT count(*) FROM trips WHERE vehicle_id = :v AND trip_id = :t", v=vehicle_id, t=trip_id
+    )
 
 
 def _table_counts(dep: Deployment) -> tuple[int, ...]:
@@ -51,10 +53,14 @@ def test_gzip_upload_is_accepted_and_the_raw_upload_is_kept_compressed(deploymen
     response = deployment.upload(doc, gzipped=True)
     assert response.status_code == 202, response.text
     trip_pk = response.json()["id"]
-    encoding, raw = deployment.rows("SELECT encoding, body FROM trip_uploads WHERE trip_pk = :p", p=trip_pk)[0]
+    encoding, raw = deployment.rows("SELECT encoding, body FROM trip_uploads WHERE trip_pk = :p", p=trip_pk)[
+        0
+    ]
     assert encoding == "gzip"
     assert gzip.decompress(bytes(raw)) == plain
-    assert deployment.scalar("SELECT body_bytes FROM trips WHERE id = :p", p=trip_pk) == len(gzip.compress(plain))
+    assert deployment.scalar("SELECT body_bytes FROM trips WHERE id = :p", p=trip_pk) == len(
+        gzip.compress(plain)
+    )
 
 
 def test_plain_upload_is_stored_gzip_compressed(deployment: Deployment):
@@ -107,6 +113,7 @@ def test_twenty_concurrent_identical_uploads_make_one_trip(deployment: Deploymen
 
 def _bad_json_bodies() -> list[tuple[str, bytes, int, str, str]]:
     """(case, body, status, error code, expected location)"""
+
     def mutate(fn) -> bytes:
         doc = unique_trip()
         fn(doc)
@@ -118,31 +125,69 @@ def _bad_json_bodies() -> list[tuple[str, bytes, int, str, str]]:
             for p in path:
                 target = target[p]
             del target[key]
+
         return fn
 
     return [
         ("malformed JSON", b'{"schema_version": "1.0", "frames": [', 400, "json", ""),
         ("not an object", b"[1, 2, 3]", 422, "schema", ""),
         ("missing lat", mutate(drop(["frames", 4, "gnss"], "lat")), 422, "schema", "frames[4].gnss.lat"),
-        ("lat out of range", mutate(lambda d: d["frames"][2]["gnss"].update(lat=91.0)), 422, "schema",
-         "frames[2].gnss.lat"),
-        ("unknown field", mutate(lambda d: d["frames"][1]["odom"].update(z=0.0)), 422, "schema", "frames[1].odom.z"),
-        ("bad status", mutate(lambda d: d["frames"][5]["gnss"].update(status="great")), 422, "schema",
-         "frames[5].gnss.status"),
+        (
+            "lat out of range",
+            mutate(lambda d: d["frames"][2]["gnss"].update(lat=91.0)),
+            422,
+            "schema",
+            "frames[2].gnss.lat",
+        ),
+        (
+            "unknown field",
+            mutate(lambda d: d["frames"][1]["odom"].update(z=0.0)),
+            422,
+            "schema",
+            "frames[1].odom.z",
+        ),
+        (
+            "bad status",
+            mutate(lambda d: d["frames"][5]["gnss"].update(status="great")),
+            422,
+            "schema",
+            "frames[5].gnss.status",
+        ),
         ("one frame", mutate(lambda d: d.update(frames=d["frames"][:1])), 422, "schema", "frames"),
         ("bad vehicle id", mutate(lambda d: d.update(vehicle_id="a b")), 422, "schema", "vehicle_id"),
         ("bad started_at", mutate(lambda d: d.update(started_at="yesterday")), 422, "schema", "started_at"),
-        ("element with one point", mutate(lambda d: d["frames"][6]["elements"][0].update(points=[[0.0, 0.0]])),
-         422, "schema", "frames[6].elements[0].points"),
-        ("t not increasing", mutate(lambda d: d["frames"][7].update(t=d["frames"][6]["t"])), 422, "time_order",
-         "frames[7].t"),
-        ("unknown schema version", mutate(lambda d: d.update(schema_version="2.0")), 422, "version", "schema_version"),
+        (
+            "element with one point",
+            mutate(lambda d: d["frames"][6]["elements"][0].update(points=[[0.0, 0.0]])),
+            422,
+            "schema",
+            "frames[6].elements[0].points",
+        ),
+        (
+            "t not increasing",
+            mutate(lambda d: d["frames"][7].update(t=d["frames"][6]["t"])),
+            422,
+            "time_order",
+            "frames[7].t",
+        ),
+        (
+            "unknown schema version",
+            mutate(lambda d: d.update(schema_version="2.0")),
+            422,
+            "version",
+            "schema_version",
+        ),
     ]
 
 
-@pytest.mark.parametrize("case,body,status,error,location", _bad_json_bodies(), ids=lambda v: v if isinstance(v, str) and " " in v else None)
-def test_invalid_upload_is_rejected_with_frame_and_field_and_leaves_no_trace(deployment, case, body, status, error,
-                                                                             location):
+@pytest.mark.parametrize(
+    "case,body,status,error,location",
+    _bad_json_bodies(),
+    ids=lambda v: v if isinstance(v, str) and " " in v else None,
+)
+def test_invalid_upload_is_rejected_with_frame_and_field_and_leaves_no_trace(
+    deployment, case, body, status, error, location
+):
     before = _table_counts(deployment)
     response = deployment.upload(body)
     assert response.status_code == status, response.text
@@ -151,7 +196,7 @@ def test_invalid_upload_is_rejected_with_frame_and_field_and_leaves_no_trace(dep
     assert answer["location"] == location
     assert answer["message"]
     if location.startswith("frames["):
-        index = location[len("frames["):].split("]")[0]
+        index = location[len("frames[") :].split("]")[0]
         assert f"frame {index}" in answer["message"]
     assert _table_counts(deployment) == before
 
@@ -183,7 +228,9 @@ def test_wrong_content_type_or_encoding_is_415(deployment: Deployment):
     body = orjson.dumps(unique_trip())
     with deployment.admin() as http:
         r1 = http.post("/v1/trips", content=body, headers={"Content-Type": "text/plain"})
-        r2 = http.post("/v1/trips", content=body, headers={"Content-Type": "application/json", "Content-Encoding": "br"})
+        r2 = http.post(
+            "/v1/trips", content=body, headers={"Content-Type": "application/json", "Content-Encoding": "br"}
+        )
     assert (r1.status_code, r1.json()["error"]) == (415, "content_type")
     assert (r2.status_code, r2.json()["error"]) == (415, "content_encoding")
 
@@ -206,7 +253,9 @@ def test_body_over_the_limit_is_413_while_streaming(deployment: Deployment):
 
 def test_declared_length_over_the_limit_is_413(deployment: Deployment):
     with deployment.admin() as http:
-        response = http.post("/v1/trips", content=b"{" + b" " * (33 * MIB), headers={"Content-Type": "application/json"})
+        response = http.post(
+            "/v1/trips", content=b"{" + b" " * (33 * MIB), headers={"Content-Type": "application/json"}
+        )
     assert response.status_code == 413
 
 
@@ -222,8 +271,11 @@ def test_zip_bomb_is_413_after_decompression(deployment: Deployment):
     assert len(bomb) < MIB
     before = _table_counts(deployment)
     with deployment.admin() as http:
-        response = http.post("/v1/trips", content=bomb,
-                             headers={"Content-Type": "application/json", "Content-Encoding": "gzip"})
+        response = http.post(
+            "/v1/trips",
+            content=bomb,
+            headers={"Content-Type": "application/json", "Content-Encoding": "gzip"},
+        )
     assert response.status_code == 413
     assert "after decompression" in response.json()["message"]
     assert _table_counts(deployment) == before

@@ -72,16 +72,19 @@ def test_bootstrap_admin_key_is_replaced_when_it_changes(session_factory):
         authenticate(session_factory, "Bearer first")
 
 
-@pytest.mark.parametrize("body,ok", [
-    ({"role": "vehicle", "vehicle_id": "veh-1"}, True),
-    ({"role": "reader"}, True),
-    ({"role": "admin"}, True),
-    ({"role": "vehicle"}, False),
-    ({"role": "reader", "vehicle_id": "veh-1"}, False),
-    ({"role": "vehicle", "vehicle_id": "bad id"}, False),
-    ({"role": "superuser"}, False),
-    ({"role": "reader", "extra": 1}, False),
-])
+@pytest.mark.parametrize(
+    "body,ok",
+    [
+        ({"role": "vehicle", "vehicle_id": "veh-1"}, True),
+        ({"role": "reader"}, True),
+        ({"role": "admin"}, True),
+        ({"role": "vehicle"}, False),
+        ({"role": "reader", "vehicle_id": "veh-1"}, False),
+        ({"role": "vehicle", "vehicle_id": "bad id"}, False),
+        ({"role": "superuser"}, False),
+        ({"role": "reader", "extra": 1}, False),
+    ],
+)
 def test_key_request_validation(body, ok):
     if ok:
         assert KeyRequest(**body).role == body["role"]

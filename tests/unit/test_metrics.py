@@ -253,7 +253,7 @@ def test_evaluation_of_a_20_trip_by_2_km_scenario_takes_seconds():
     ev = evaluate(true_xy, est_xy, truth, pred)
     elapsed = time.perf_counter() - t0
     assert ev.map_aligned.mcd < 0.3
-    assert elapsed < 20.0, f"evaluation took {elapsed:.1f} s"  # ~3 s on an idle 2-core machine
+    assert elapsed < 20.0, f"evaluation took {elapsed:.1f} s"  # 3-7 s measured on the shared 2-core machine
     assert metrics.TABLE_TYPES[0] == LD
 
 

@@ -13,7 +13,13 @@ pytestmark = pytest.mark.unit
 
 
 def test_defaults_accept_the_contract_sizes(tmp_path, monkeypatch):
-    for var in ("CSR_DATABASE_URL", "CSR_REDIS_URL", "CSR_MAX_BODY_BYTES", "CSR_MAX_DECOMPRESSED_BYTES", "CSR_TILE_ZOOM"):
+    for var in (
+        "CSR_DATABASE_URL",
+        "CSR_REDIS_URL",
+        "CSR_MAX_BODY_BYTES",
+        "CSR_MAX_DECOMPRESSED_BYTES",
+        "CSR_TILE_ZOOM",
+    ):
         monkeypatch.delenv(var, raising=False)
     settings = Settings(data_dir=tmp_path)
     assert settings.max_body_bytes >= 32 * 1024 * 1024

@@ -8,7 +8,7 @@ import shapely
 
 from csr_core import se2
 from csr_core.sim import load_world
-from csr_core.sim.gnss import simulate_gnss
+from csr_core.sim.gnss import Receiver, simulate_gnss
 from csr_core.sim.odometry import simulate_odometry
 from csr_core.sim.perception import build_truth_index, perceive_trip
 from csr_core.sim.profiles import GnssParams, OdometryParams, get_profile, hard, noiseless, standard
@@ -18,6 +18,7 @@ from csr_core.types import ElementType, GnssStatus
 pytestmark = pytest.mark.unit
 
 SINGLE = 3
+AT_EPOCH = Receiver("rtk", 0.0, 0.0, (0, 1, 2, 3))
 
 
 def _single_only(params: GnssParams) -> GnssParams:
@@ -39,7 +40,7 @@ def test_single_status_error_matches_the_model_parameters():
     t, poses, speed = _straight(30000, 0.0)  # at rest: no latency lag; 3000 s, ~30 bias time constants
     errors, stds = [], []
     for seed in range(6):
-        g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(seed))
+        g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(seed), AT_EPOCH)
         assert (g.status == GnssStatus.SINGLE).all()
         errors.append(g.error_xy_m)
         stds.append(g.std_m)
@@ -55,9 +56,10 @@ def test_single_status_error_matches_the_model_parameters():
 
 
 def test_latency_shows_as_along_track_lag():
-    params = dataclasses.replace(_single_only(standard().gnss), latency_sigma_s=0.0)
+    params = _single_only(standard().gnss)
     t, poses, speed = _straight(6000, 20.0)
-    g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(1))
+    consumer = Receiver("consumer", params.latency_mean_s, params.latency_jitter_s, (2, 3))
+    g = simulate_gnss(t, poses, speed, params, np.zeros((0, 3)), np.random.default_rng(1), consumer)
     along = g.error_xy_m[10:, 0]
     assert np.mean(along) == pytest.approx(-20.0 * params.latency_mean_s, abs=0.5)
     assert np.nanmedian(np.abs((g.heading_deg - 90.0 + 180) % 360 - 180)) < 1.0  # course east = 90 deg
@@ -78,7 +80,9 @@ def test_odometry_scale_error_and_noiseless_identity():
     t, poses, _ = _straight(1000, 10.0)
     poses[:, 1] = 5 * np.sin(poses[:, 0] / 50.0)
     poses[:, 2] = np.arctan2(np.gradient(poses[:, 1]), np.gradient(poses[:, 0]))
-    odom, info = simulate_odometry(t, poses, OdometryParams(0.0, 0.0, 0.0, 0.0), np.random.default_rng(0))
+    odom, info = simulate_odometry(
+        t, poses, OdometryParams(0.0, 0.0, 0.0, 0.0, 0.0), np.random.default_rng(0)
+    )
     rel = se2.between(np.repeat(poses[:1], len(poses), 0), poses)
     np.testing.assert_allclose(odom, rel, atol=1e-9)
     odom, info = simulate_odometry(t, poses, OdometryParams(0.01, 0.0, 0.0, 0.0), np.random.default_rng(3))
@@ -163,3 +167,33 @@ def test_docs_list_every_parameter_of_every_profile():
     text = doc.read_text()
     missing = [row for row in parameter_table_markdown().splitlines()[2:] if row not in text]
     assert missing == [], "docs/simulator.md is out of date; regenerate its parameter table"
+
+
+def test_gnss_calibration_reproduces_the_real_ublox_figures():
+    from csr_core.sim import gnss_calibration as cal
+
+    if not (cal.segment_dir() / "global_pose" / "frame_positions").exists():
+        pytest.skip("comma2k19 segment not available")
+    ref = cal.load_reference()
+    real = cal.error_stats(ref.t_s, ref.xy_m, ref.fix_t_s, ref.fix_xy_m)
+    assert real["median_m"] == pytest.approx(1.44, abs=0.05)  # shared/realdata/README.md
+    assert real["p95_m"] == pytest.approx(1.87, abs=0.05)
+    assert real["latency_s"] == pytest.approx(0.082, abs=0.01)
+    model = cal.model_stats(ref, standard().gnss, n_runs=20)
+    assert model["median_m"]["p05"] < real["median_m"] < model["median_m"]["p95"]
+    assert model["latency_s"]["median"] == pytest.approx(standard().gnss.latency_mean_s, abs=0.02)
+
+
+def test_fleet_mixes_rtk_and_consumer_receivers():
+    from csr_core.sim.gnss import draw_receiver, status_sequence
+
+    params = standard().gnss
+    rng = np.random.default_rng(4)
+    receivers = [draw_receiver(params, rng) for _ in range(400)]
+    rtk = [r for r in receivers if r.kind == "rtk"]
+    assert len(rtk) / len(receivers) == pytest.approx(params.rtk_receiver_share, abs=0.07)
+    assert all(r.latency_s == 0.0 for r in rtk)
+    consumer = next(r for r in receivers if r.kind == "consumer")
+    assert consumer.latency_s > 0
+    seq = status_sequence(params, 20000, 0.1, rng, consumer.statuses)
+    assert set(np.unique(seq).tolist()) <= {int(GnssStatus.DGPS), int(GnssStatus.SINGLE)}

@@ -18,7 +18,9 @@ pytestmark = pytest.mark.unit
 ROOT = Path(__file__).resolve().parents[2]
 SCHEMA = json.loads((ROOT / "csr_core" / "schemas" / "trip-upload.schema.json").read_text())
 EXAMPLE = json.loads((ROOT / "tests" / "data" / "example-trip.json").read_text())
-JSONSCHEMA = jsonschema.Draft202012Validator(SCHEMA, format_checker=jsonschema.Draft202012Validator.FORMAT_CHECKER)
+JSONSCHEMA = jsonschema.Draft202012Validator(
+    SCHEMA, format_checker=jsonschema.Draft202012Validator.FORMAT_CHECKER
+)
 
 
 def _set(path: tuple, value):
@@ -27,6 +29,7 @@ def _set(path: tuple, value):
         for p in path[:-1]:
             target = target[p]
         target[path[-1]] = value
+
     return fn
 
 
@@ -36,6 +39,7 @@ def _del(path: tuple):
         for p in path[:-1]:
             target = target[p]
         del target[path[-1]]
+
     return fn
 
 
@@ -59,10 +63,21 @@ SCHEMA_VIOLATIONS = [
     ("status unknown", _set(("frames", 6, "gnss", "status"), "rtk"), "frames[6].gnss.status"),
     ("odom missing yaw", _del(("frames", 7, "odom", "yaw")), "frames[7].odom.yaw"),
     ("odom bool", _set(("frames", 7, "odom", "x"), True), "frames[7].odom.x"),
-    ("element type unknown", _set(("frames", 8, "elements", 0, "type"), "tree"), "frames[8].elements[0].type"),
-    ("element one point", _set(("frames", 8, "elements", 0, "points"), [[0.0, 0.0]]), "frames[8].elements[0].points"),
-    ("element point of 3", _set(("frames", 8, "elements", 0, "points"), [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]),
-     "frames[8].elements[0].points[0]"),
+    (
+        "element type unknown",
+        _set(("frames", 8, "elements", 0, "type"), "tree"),
+        "frames[8].elements[0].type",
+    ),
+    (
+        "element one point",
+        _set(("frames", 8, "elements", 0, "points"), [[0.0, 0.0]]),
+        "frames[8].elements[0].points",
+    ),
+    (
+        "element point of 3",
+        _set(("frames", 8, "elements", 0, "points"), [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]),
+        "frames[8].elements[0].points[0]",
+    ),
     ("score over 1", _set(("frames", 9, "elements", 0, "score"), 1.5), "frames[9].elements[0].score"),
     ("track_id float", _set(("frames", 9, "elements", 0, "track_id"), 1.5), "frames[9].elements[0].track_id"),
     ("style unknown", _set(("frames", 9, "elements", 0, "style"), "zigzag"), "frames[9].elements[0].style"),

@@ -50,7 +50,9 @@ def test_zip_bomb_is_413_with_memory_bounded_by_the_limit():
     assert peak < 3 * 4 * MIB  # a small multiple of the limit (output + one chunk), never the 200 MiB
 
 
-@pytest.mark.parametrize("body", [b"not gzip", gzip.compress(b"{}" * 5000)[:40], gzip.compress(b"{}") + b"trailing"])
+@pytest.mark.parametrize(
+    "body", [b"not gzip", gzip.compress(b"{}" * 5000)[:40], gzip.compress(b"{}") + b"trailing"]
+)
 def test_malformed_or_truncated_gzip_is_400(body):
     with pytest.raises(ApiError) as caught:
         gunzip_limited(body, max_bytes=MIB)

@@ -37,7 +37,9 @@ def store(tmp_path):
 
 def _accept(store, body: bytes, *, caller: Caller = ADMIN, gzipped: bool = False):
     settings, session_factory = store
-    return accept_upload(session_factory=session_factory, settings=settings, caller=caller, body=body, gzipped=gzipped)
+    return accept_upload(
+        session_factory=session_factory, settings=settings, caller=caller, body=body, gzipped=gzipped
+    )
 
 
 def _counts(store) -> tuple[int, int, int]:

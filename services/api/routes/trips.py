@@ -55,7 +55,9 @@ def _check_headers(request: Request, max_body_bytes: int) -> bool:
     returns whether the body is gzip."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type not in _JSON_TYPES:
-        raise ApiError(415, "content_type", f"Content-Type must be application/json, not {content_type or 'missing'!r}")
+        raise ApiError(
+            415, "content_type", f"Content-Type must be application/json, not {content_type or 'missing'!r}"
+        )
     encoding = request.headers.get("content-encoding", "").strip().lower()
     if encoding not in _ENCODINGS:
         raise ApiError(415, "content_encoding", f"Content-Encoding must be gzip or absent, not {encoding!r}")
@@ -73,7 +75,11 @@ async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONRespo
         body = await read_limited(request.stream(), max_bytes=settings.max_body_bytes)
         started = time.perf_counter()
         accepted = await run_in_threadpool(
-            accept_upload, session_factory=ctx.session_factory, settings=settings, caller=caller, body=body,
+            accept_upload,
+            session_factory=ctx.session_factory,
+            settings=settings,
+            caller=caller,
+            body=body,
             gzipped=gzipped,
         )
     except (ApiError, UploadError) as exc:
@@ -88,8 +94,9 @@ async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONRespo
     else:
         metrics.uploads.labels("duplicate").inc()
     location = f"/v1/trips/{accepted.trip.id}"
-    return JSONResponse(trip_json(accepted.trip), status_code=202 if accepted.created else 200,
-                        headers={"Location": location})
+    return JSONResponse(
+        trip_json(accepted.trip), status_code=202 if accepted.created else 200, headers={"Location": location}
+    )
 
 
 def _load_trip(session: SessionDep, trip_pk: str) -> Trip:
