@@ -19,6 +19,10 @@ scenario's :class:`csr_core.geo.LocalFrame` (tmerc centred on the scenario origi
   within 0.5 m of the prediction, correctness = share of predicted samples within 0.5 m of truth;
   mCD = mean CD over lane_divider, centerline, road_boundary.
 
+ATE and RPE are cross-checked against evo (:func:`evo_trajectory_errors`, used by the tests).
+Speed: a 20 trips x 2 km scenario (59k frames, 15k predicted features) evaluates in ~10 s on
+the shared, loaded 2-core development machine (raw and aligned, all types).
+
 Choices the contract leaves open (documented here, used everywhere):
 
 - "Truth is kept only within 15 m" applies to the truth *geometry*: the prediction's distance
@@ -89,7 +93,9 @@ def umeyama_se2(src_xy: np.ndarray, dst_xy: np.ndarray) -> np.ndarray:
     if np.allclose(a, 0.0):
         raise ValueError("umeyama_se2: source points are all identical, rotation undefined")
     # For 2-D the optimal rotation angle has a closed form: atan2(sum cross, sum dot).
-    yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    yaw = np.arctan2(
+        np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
+    )
     c, s = np.cos(yaw), np.sin(yaw)
     t = mu_d - np.array([c * mu_s[0] - s * mu_s[1], s * mu_s[0] + c * mu_s[1]])
     return np.array([t[0], t[1], yaw])
@@ -141,8 +147,9 @@ class TrajectoryScores:
     rpe: ErrorStats
 
 
-def trajectory_scores(est_xy_by_key: Mapping[str, np.ndarray], true_xy_by_key: Mapping[str, np.ndarray],
-                      keys: Sequence[str]) -> TrajectoryScores:
+def trajectory_scores(
+    est_xy_by_key: Mapping[str, np.ndarray], true_xy_by_key: Mapping[str, np.ndarray], keys: Sequence[str]
+) -> TrajectoryScores:
     if not keys:
         return TrajectoryScores(ErrorStats.of(np.zeros(0)), ErrorStats.of(np.zeros(0)))
     ate = np.concatenate([position_errors(est_xy_by_key[k], true_xy_by_key[k]) for k in keys])
@@ -180,8 +187,9 @@ class _FlatChains:
     closed: np.ndarray  # (C,) bool
 
     def at(self, s_query: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.interp(s_query, self.s, self.vertices[:, 0]),
-                                np.interp(s_query, self.s, self.vertices[:, 1])])
+        return np.column_stack(
+            [np.interp(s_query, self.s, self.vertices[:, 0]), np.interp(s_query, self.s, self.vertices[:, 1])]
+        )
 
 
 def _flatten(features: Sequence[MapFeature]) -> _FlatChains | None:
@@ -296,9 +304,12 @@ def distances_to_segments(points_xy: np.ndarray, segments: np.ndarray, cap_m: fl
     return out
 
 
-def truth_in_corridor(features: Sequence[MapFeature], true_frames_xy: np.ndarray,
-                      corridor_m: float = TRUTH_CORRIDOR_M, step_m: float = SAMPLE_STEP_M
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def truth_in_corridor(
+    features: Sequence[MapFeature],
+    true_frames_xy: np.ndarray,
+    corridor_m: float = TRUTH_CORRIDOR_M,
+    step_m: float = SAMPLE_STEP_M,
+) -> tuple[np.ndarray, np.ndarray]:
     """Truth kept within ``corridor_m`` of some true trajectory frame.
 
     Returns ``(samples_xy (S, 2), segments (K, 2, 2))``: the kept 0.5 m samples, and the truth
@@ -348,8 +359,9 @@ class MapScores:
     truth_sample_error_m: dict[ElementType, np.ndarray] = field(default_factory=dict)
 
 
-def chamfer_scores(pred_features: Sequence[MapFeature], truth_samples_xy: np.ndarray,
-                   truth_segments: np.ndarray) -> tuple[MapTypeScores, np.ndarray]:
+def chamfer_scores(
+    pred_features: Sequence[MapFeature], truth_samples_xy: np.ndarray, truth_segments: np.ndarray
+) -> tuple[MapTypeScores, np.ndarray]:
     """Contract CD / completeness / correctness of one type; also the per-truth-sample errors."""
     pred_samples = sample_features(pred_features)
     pred_segments = _segments(_as_chains(pred_features))
@@ -369,8 +381,12 @@ def chamfer_scores(pred_features: Sequence[MapFeature], truth_samples_xy: np.nda
     return scores, d_truth
 
 
-def map_scores(pred: Sequence[MapFeature], truth: Sequence[MapFeature], true_frames_xy: np.ndarray,
-               types: Sequence[ElementType] = tuple(ElementType)) -> MapScores:
+def map_scores(
+    pred: Sequence[MapFeature],
+    truth: Sequence[MapFeature],
+    true_frames_xy: np.ndarray,
+    types: Sequence[ElementType] = tuple(ElementType),
+) -> MapScores:
     """Contract section 6 map scores for every type in ``types`` (features in one plane)."""
     per_type, samples, errors = {}, {}, {}
     for etype in types:
@@ -386,8 +402,13 @@ def map_scores(pred: Sequence[MapFeature], truth: Sequence[MapFeature], true_fra
 
 def transform_features(a_T_b: np.ndarray, features: Sequence[MapFeature]) -> tuple[MapFeature, ...]:
     return tuple(
-        MapFeature(type=f.type, points_xy_world=apply_se2(a_T_b, f.points_xy_world), style=f.style,
-                   feature_id=f.feature_id, properties=f.properties)
+        MapFeature(
+            type=f.type,
+            points_xy_world=apply_se2(a_T_b, f.points_xy_world),
+            style=f.style,
+            feature_id=f.feature_id,
+            properties=f.properties,
+        )
         for f in features
     )
 
@@ -413,23 +434,48 @@ class Evaluation:
 
     def as_dict(self) -> dict:
         def traj(t: TrajectoryScores) -> dict:
-            return {"ate_rmse": t.ate.rmse, "ate_mean": t.ate.mean, "ate_n": t.ate.n,
-                    "rpe_rmse": t.rpe.rmse, "rpe_mean": t.rpe.mean, "rpe_n": t.rpe.n}
+            return {
+                "ate_rmse": t.ate.rmse,
+                "ate_mean": t.ate.mean,
+                "ate_n": t.ate.n,
+                "rpe_rmse": t.rpe.rmse,
+                "rpe_mean": t.rpe.mean,
+                "rpe_n": t.rpe.n,
+            }
 
         def mp(m: MapScores) -> dict:
-            return {"mcd": m.mcd, **{
-                e.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness,
-                          "n_pred_samples": s.n_pred_samples, "n_truth_samples": s.n_truth_samples}
-                for e, s in m.per_type.items()}}
+            return {
+                "mcd": m.mcd,
+                **{
+                    e.value: {
+                        "cd": s.cd,
+                        "completeness": s.completeness,
+                        "correctness": s.correctness,
+                        "n_pred_samples": s.n_pred_samples,
+                        "n_truth_samples": s.n_truth_samples,
+                    }
+                    for e, s in m.per_type.items()
+                },
+            }
 
-        return {"trips": self.trips, "trips_with_poses": self.trips_with_poses, "coverage": self.coverage,
-                "truth_T_est": [float(v) for v in self.truth_T_est],
-                "raw": traj(self.raw), "aligned": traj(self.aligned),
-                "map_raw": mp(self.map_raw), "map_aligned": mp(self.map_aligned)}
+        return {
+            "trips": self.trips,
+            "trips_with_poses": self.trips_with_poses,
+            "coverage": self.coverage,
+            "truth_T_est": [float(v) for v in self.truth_T_est],
+            "raw": traj(self.raw),
+            "aligned": traj(self.aligned),
+            "map_raw": mp(self.map_raw),
+            "map_aligned": mp(self.map_aligned),
+        }
 
 
-def evaluate(true_xy_by_key: Mapping[str, np.ndarray], est_xy_by_key: Mapping[str, np.ndarray],
-             truth_map: Sequence[MapFeature], pred_map: Sequence[MapFeature]) -> Evaluation:
+def evaluate(
+    true_xy_by_key: Mapping[str, np.ndarray],
+    est_xy_by_key: Mapping[str, np.ndarray],
+    truth_map: Sequence[MapFeature],
+    pred_map: Sequence[MapFeature],
+) -> Evaluation:
     """Contract section 6 for one scenario; all inputs in the scenario's local plane.
 
     ``true_xy_by_key`` has every trip; ``est_xy_by_key`` the trips with poses, each with one row
@@ -439,7 +485,9 @@ def evaluate(true_xy_by_key: Mapping[str, np.ndarray], est_xy_by_key: Mapping[st
     keys = [k for k in true_xy_by_key if k in est_xy_by_key]
     for k in keys:
         if est_xy_by_key[k].shape != true_xy_by_key[k].shape:
-            raise ValueError(f"{k}: estimate has {len(est_xy_by_key[k])} frames, truth {len(true_xy_by_key[k])}")
+            raise ValueError(
+                f"{k}: estimate has {len(est_xy_by_key[k])} frames, truth {len(true_xy_by_key[k])}"
+            )
     if keys:
         est_all = np.concatenate([est_xy_by_key[k] for k in keys])
         true_all = np.concatenate([true_xy_by_key[k] for k in keys])
@@ -462,8 +510,9 @@ def evaluate(true_xy_by_key: Mapping[str, np.ndarray], est_xy_by_key: Mapping[st
 # --- evo cross-check ----------------------------------------------------------------------------
 
 
-def evo_trajectory_errors(est_xy: np.ndarray, true_xy: np.ndarray, timestamps_s: np.ndarray,
-                          align: bool) -> tuple[float, float, float, float]:
+def evo_trajectory_errors(
+    est_xy: np.ndarray, true_xy: np.ndarray, timestamps_s: np.ndarray, align: bool
+) -> tuple[float, float, float, float]:
     """ATE and contract-RPE of one trip computed with evo: ``(ate_rmse, ate_mean, rpe_rmse, rpe_mean)``.
 
     - ATE: ``evo.core.metrics.APE(translation_part)``; with ``align`` the estimate is first
@@ -502,10 +551,14 @@ def evo_trajectory_errors(est_xy: np.ndarray, true_xy: np.ndarray, timestamps_s:
     inter = np.empty(2 * len(i), int)
     inter[0::2], inter[1::2] = i, j
     t_pairs = np.arange(len(inter), dtype=float)
-    rpe = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, delta=1,
-                          delta_unit=evo_metrics.Unit.frames, all_pairs=True)
+    rpe = evo_metrics.RPE(
+        evo_metrics.PoseRelation.translation_part, delta=1, delta_unit=evo_metrics.Unit.frames, all_pairs=True
+    )
     rpe.process_data((traj(true_xy[inter], t_pairs), traj(est_xy_used[inter], t_pairs)))
     rpe_err = np.asarray(rpe.error)[0::2]
-    return (float(ape.get_statistic(evo_metrics.StatisticsType.rmse)),
-            float(ape.get_statistic(evo_metrics.StatisticsType.mean)),
-            float(np.sqrt(np.mean(rpe_err**2))), float(np.mean(rpe_err)))
+    return (
+        float(ape.get_statistic(evo_metrics.StatisticsType.rmse)),
+        float(ape.get_statistic(evo_metrics.StatisticsType.mean)),
+        float(np.sqrt(np.mean(rpe_err**2))),
+        float(np.mean(rpe_err)),
+    )

@@ -78,8 +78,9 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
 
     # 1. smooth: single-trip pose graph + element tracking (paper III-C, Eq. 2).
     #    Not wired yet: raw GNSS poses (outages bridged by odometry) stand in.
-    #    Plug-in: trip_recons = {t.key: single_trip.reconstruct_trip(t, frame, params.single_trip)}
-    #    poses_by_key = {k: r.poses_xyyaw_world for k, r in trip_recons.items()}
+    #    Plug-in: for each trip, recon = csr_core.single_trip.reconstruct_trip(trip, frame) (a
+    #    ReconstructionError -> failed[trip.key] = str(exc)); poses_by_key from recon.poses_xyyaw_world;
+    #    stages.append("single_trip").
     poses_by_key, failed = gnss_only_poses(trips, frame)
     stages.append("gnss_poses")
     timings_s["smooth"] = time.perf_counter() - t0
@@ -88,8 +89,10 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     # 3. associate: sub-map matching pairs across trips.        -- not there yet
     # 4. optimize: coarse incremental pose graph (Eq. 9-12), if params.coarse.  -- not there yet
     # 5. refine: fine, frame-level alignment, if params.fine.  -- not there yet
-    #    Plug-in: poses_by_key, failed = alignment.align(trip_recons, frame, coarse=params.coarse,
-    #    fine=params.fine); append "coarse"/"fine" to stages so the bench fills Table I.
+    #    Plug-in (2-5 in one call): result = csr_core.alignment.align_trips(trip_recons,
+    #    params=dataclasses.replace(AlignmentParams(), coarse=params.coarse, fine=params.fine));
+    #    poses_by_key = result.poses_xyyaw_world; failed |= result.failed; append "coarse" and/or
+    #    "fine" to stages: with both in a full run, `csr bench` also runs the Table I ablation.
 
     # 6. fuse: map elements from the aligned trips (III-E). Naive fusion until the fuse stage exists.
     t1 = time.perf_counter()
@@ -104,6 +107,11 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
         poses_xyyaw_world=poses_by_key,
         map_features=features,
         failed=failed,
-        diagnostics={"method": Method.PIPELINE.value, "stages": stages, "timings_s": timings_s,
-                     "coarse": params.coarse, "fine": params.fine},
+        diagnostics={
+            "method": Method.PIPELINE.value,
+            "stages": stages,
+            "timings_s": timings_s,
+            "coarse": params.coarse,
+            "fine": params.fine,
+        },
     )

@@ -208,12 +208,14 @@ def read_map_geojson(path: str | Path) -> list[GeoFeature]:
             lonlat = np.asarray(coords, float).reshape(-1, 2)
             if closed and len(lonlat) > 1 and np.array_equal(lonlat[0], lonlat[-1]):
                 lonlat = lonlat[:-1]
-            out.append(GeoFeature(
-                type=etype,
-                lonlat_deg=lonlat,
-                style=DividerStyle(style) if style in DividerStyle._value2member_map_ else None,
-                feature_id=str(feat.get("id", props.get("id", ""))),
-            ))
+            out.append(
+                GeoFeature(
+                    type=etype,
+                    lonlat_deg=lonlat,
+                    style=DividerStyle(style) if style in DividerStyle._value2member_map_ else None,
+                    feature_id=str(feat.get("id", props.get("id", ""))),
+                )
+            )
     return out
 
 
@@ -271,10 +273,13 @@ def write_reconstruction(
 
     Each CSV has one row per uploaded frame of its trip, in upload order, with the trip's own
     ``t``; trips in ``recon.failed`` (or without poses) get no CSV and are listed in the report.
+    CSVs already in ``OUT_DIR/poses`` are removed first.
     """
     out_dir = Path(out_dir)
     poses_dir = out_dir / "poses"
     poses_dir.mkdir(parents=True, exist_ok=True)
+    for stale in poses_dir.glob("*.csv"):  # a re-run must not leave CSVs of trips that now failed
+        stale.unlink()
     frame = LocalFrame(origin_lat=recon.origin_lat, origin_lon=recon.origin_lon)
     failed = dict(recon.failed)
     written = []
@@ -301,5 +306,7 @@ def write_reconstruction(
         "diagnostics": recon.diagnostics,
     }
     full_report.update(report or {})
-    (out_dir / "report.json").write_bytes(orjson.dumps(full_report, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY))
+    (out_dir / "report.json").write_bytes(
+        orjson.dumps(full_report, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY)
+    )
     return out_dir

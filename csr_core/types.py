@@ -170,6 +170,10 @@ class TripReconstruction:
     keyframe_indices: np.ndarray  # (K,) int, ascending
     instances: tuple[TripInstance, ...]
     noise: dict[ElementType, ElementNoise]
+    # optional: per-frame GNSS fix kept by the robust smoother (N,) bool, or None
+    gnss_inlier: np.ndarray | None = None
+    # optional: per-trip estimates and timings (odometry scale, yaw-rate bias, GNSS latency, ...)
+    diagnostics: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = self.trip.n_frames

@@ -18,6 +18,7 @@ import gzip
 import logging
 import time
 from dataclasses import dataclass
+from datetime import UTC
 
 import numpy as np
 import orjson
@@ -28,7 +29,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from csr_core.geo import LocalFrame, polyline_length_m, tiles_touched
 from csr_core.upload import decode_trip
 from services.db import repo
-from services.db.models import DirtyTile, Job, Trip, TripTile, ewkt_linestring, utcnow
+from services.db.models import DirtyTile, Trip, TripTile, ewkt_linestring, utcnow
 from services.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -73,23 +74,31 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
         raise
     except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
         log.exception("job %s (%s %s) failed", job_id, kind, subject)
-        with session_factory.begin() as session:
-            job = repo.get_job(session, job_id=job_id, for_update=True)
-            if job is None or job.state in ("done", "failed"):
-                return job.state if job else "missing"
-            _close(job, "failed", started, error=f"{type(exc).__name__}: {exc}")
-            if kind == "ingest_trip":
-                session.execute(
-                    update(Trip)
-                    .where(Trip.id == subject)
-                    .values(status="failed", error=str(exc), updated_at=utcnow())
-                )
-        return "failed"
+        return mark_job_failed(session_factory, job_id, exc, started=started)
 
 
-def _close(job: Job, state: str, started: float, *, error: str | None = None) -> None:
-    job.state, job.error, job.finished_at = state, error, utcnow()
-    job.duration_s = time.perf_counter() - started
+def mark_job_failed(
+    session_factory: sessionmaker[Session], job_id: str, exc: BaseException, *, started: float | None = None
+) -> str:
+    """Record a job's failure (and its trip's, for an ingest job), unless it already finished.
+    Also called by the Celery task's ``on_failure`` (hard time limit, retries exhausted)."""
+    with session_factory.begin() as session:
+        job = repo.get_job(session, job_id=job_id, for_update=True)
+        if job is None or job.state in ("done", "failed"):
+            return job.state if job else "missing"
+        job.state, job.error, job.finished_at = "failed", f"{type(exc).__name__}: {exc}", utcnow()
+        if started is not None:
+            job.duration_s = time.perf_counter() - started
+        elif job.started_at is not None:
+            started_at = job.started_at if job.started_at.tzinfo else job.started_at.replace(tzinfo=UTC)
+            job.duration_s = (job.finished_at - started_at).total_seconds()
+        if job.kind == "ingest_trip":
+            session.execute(
+                update(Trip)
+                .where(Trip.id == job.subject)
+                .values(status="failed", error=str(exc), updated_at=utcnow())
+            )
+    return "failed"
 
 
 def _finish(session_factory: sessionmaker[Session], job_id: str, started: float, persist) -> str:
@@ -99,7 +108,8 @@ def _finish(session_factory: sessionmaker[Session], job_id: str, started: float,
             # another delivery of the same message finished first: write nothing
             return job.state if job else "missing"
         persist(session)
-        _close(job, "done", started)
+        job.state, job.error, job.finished_at = "done", None, utcnow()
+        job.duration_s = time.perf_counter() - started
     return "done"
 
 

@@ -29,8 +29,9 @@ def gnss_only_poses(trips: Sequence[Trip], frame: LocalFrame) -> tuple[dict[str,
     return poses, failed
 
 
-def reconstruct_gnss_only(trips: Sequence[Trip], frame: LocalFrame,
-                          spacing_m: float = KEYFRAME_SPACING_M) -> Reconstruction:
+def reconstruct_gnss_only(
+    trips: Sequence[Trip], frame: LocalFrame, spacing_m: float = KEYFRAME_SPACING_M
+) -> Reconstruction:
     poses, failed = gnss_only_poses(trips, frame)
     return Reconstruction(
         origin_lat=frame.origin_lat,

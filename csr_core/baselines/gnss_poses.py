@@ -34,7 +34,9 @@ def odom_to_world_yaw_offset(trip: Trip, fixes_xy_world: np.ndarray) -> float:
     if len(idx) >= 2:
         d_world = np.diff(fixes_xy_world[idx], axis=0)
         d_odom = np.diff(trip.odom_xyyaw[idx, :2], axis=0)
-        ok = (np.linalg.norm(d_world, axis=1) > MIN_COURSE_STEP_M) & (np.linalg.norm(d_odom, axis=1) > MIN_COURSE_STEP_M)
+        ok = (np.linalg.norm(d_world, axis=1) > MIN_COURSE_STEP_M) & (
+            np.linalg.norm(d_odom, axis=1) > MIN_COURSE_STEP_M
+        )
         if ok.any():
             diff = np.arctan2(d_world[ok, 1], d_world[ok, 0]) - np.arctan2(d_odom[ok, 1], d_odom[ok, 0])
             return _circular_mean(np.asarray(wrap_angle(diff)))
@@ -73,7 +75,9 @@ def gnss_poses_xyyaw(trip: Trip, frame: LocalFrame) -> np.ndarray:
             weights.append(1.0 if a is None else (i - a) / (b - a))
         w = np.asarray(weights) / np.sum(weights)
         p_xy = sum(wk * pk[:2] for wk, pk in zip(w, preds, strict=False))
-        p_yaw = np.arctan2(sum(wk * np.sin(pk[2]) for wk, pk in zip(w, preds, strict=False)),
-                           sum(wk * np.cos(pk[2]) for wk, pk in zip(w, preds, strict=False)))
+        p_yaw = np.arctan2(
+            sum(wk * np.sin(pk[2]) for wk, pk in zip(w, preds, strict=False)),
+            sum(wk * np.cos(pk[2]) for wk, pk in zip(w, preds, strict=False)),
+        )
         poses[i] = [p_xy[0], p_xy[1], p_yaw]
     return poses

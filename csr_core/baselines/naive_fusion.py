@@ -58,7 +58,9 @@ def _to_world(poses: np.ndarray, points_xy_vehicle: np.ndarray) -> np.ndarray:
     return np.column_stack([poses[:, 0] + c * x - s * y, poses[:, 1] + s * x + c * y])
 
 
-def place_pieces(trip: Trip, poses_xyyaw_world: np.ndarray, spacing_m: float = KEYFRAME_SPACING_M) -> list[PlacedPiece]:
+def place_pieces(
+    trip: Trip, poses_xyyaw_world: np.ndarray, spacing_m: float = KEYFRAME_SPACING_M
+) -> list[PlacedPiece]:
     """Steps 1-2: the strip pieces of one trip, in keyframe order."""
     kf = keyframe_indices(trip, spacing_m)
     odom_xy = trip.odom_xyyaw[:, :2]
@@ -110,7 +112,7 @@ def _ahead_of_chain(chain: list[np.ndarray], points_xy: np.ndarray, margin_m: fl
         return points_xy
     direction = (tail[1] - tail[0]) / np.linalg.norm(tail[1] - tail[0])
     ahead = (points_xy - tail[1]) @ direction > margin_m
-    return points_xy[int(np.argmax(ahead)):] if ahead.any() else points_xy[:0]
+    return points_xy[int(np.argmax(ahead)) :] if ahead.any() else points_xy[:0]
 
 
 def stitch_pieces(pieces: Sequence[PlacedPiece]) -> list[MapFeature]:
@@ -126,8 +128,15 @@ def stitch_pieces(pieces: Sequence[PlacedPiece]) -> list[MapFeature]:
         keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6])
         xy = xy[keep]
         if len(xy) >= 2:
-            features.append(MapFeature(type=etype, points_xy_world=xy, style=style,
-                                       feature_id=f"{trip_key}/{len(features)}", properties={"trip": trip_key}))
+            features.append(
+                MapFeature(
+                    type=etype,
+                    points_xy_world=xy,
+                    style=style,
+                    feature_id=f"{trip_key}/{len(features)}",
+                    properties={"trip": trip_key},
+                )
+            )
 
     for piece in pieces:
         if piece.type.is_polygon:
@@ -135,8 +144,15 @@ def stitch_pieces(pieces: Sequence[PlacedPiece]) -> list[MapFeature]:
             if piece.track_id is not None and key in seen_polygons:
                 continue
             seen_polygons.add(key)
-            features.append(MapFeature(type=piece.type, points_xy_world=piece.points_xy_world, style=piece.style,
-                                       feature_id=f"{trip_key}/{len(features)}", properties={"trip": trip_key}))
+            features.append(
+                MapFeature(
+                    type=piece.type,
+                    points_xy_world=piece.points_xy_world,
+                    style=piece.style,
+                    feature_id=f"{trip_key}/{len(features)}",
+                    properties={"trip": trip_key},
+                )
+            )
             continue
         if piece.track_id is None:
             emit([piece.points_xy_world], piece.type, piece.style)
@@ -157,8 +173,9 @@ def stitch_pieces(pieces: Sequence[PlacedPiece]) -> list[MapFeature]:
     return features
 
 
-def fuse_naively(trips: Sequence[Trip], poses_by_key: Mapping[str, np.ndarray],
-                 spacing_m: float = KEYFRAME_SPACING_M) -> tuple[MapFeature, ...]:
+def fuse_naively(
+    trips: Sequence[Trip], poses_by_key: Mapping[str, np.ndarray], spacing_m: float = KEYFRAME_SPACING_M
+) -> tuple[MapFeature, ...]:
     """Steps 1-4 over all trips that have poses: the baselines' map."""
     out: list[MapFeature] = []
     for trip in trips:

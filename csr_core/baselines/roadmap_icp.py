@@ -84,20 +84,32 @@ def register_chunk(target, target_tree, source_xyz: np.ndarray, centre_xy: np.nd
     src = source_xyz - [centre_xy[0], centre_xy[1], 0.0]
     result = None
     for max_corr in ICP_MAX_CORRESPONDENCE_M:
-        result = small_gicp.align(target, small_gicp.PointCloud(src), target_tree, init_T_target_source=T,
-                                  registration_type="ICP", max_correspondence_distance=max_corr,
-                                  max_iterations=30)
+        result = small_gicp.align(
+            target,
+            small_gicp.PointCloud(src),
+            target_tree,
+            init_T_target_source=T,
+            registration_type="ICP",
+            max_correspondence_distance=max_corr,
+            max_iterations=30,
+        )
         T = result.T_target_source
     assert result is not None  # ICP_MAX_CORRESPONDENCE_M is not empty
     correction = _se2_from_T(T)
     inlier_share = result.num_inliers / max(len(src), 1)
-    if (not result.converged or inlier_share < MIN_INLIER_SHARE
-            or np.hypot(*correction[:2]) > MAX_CORRECTION_XY_M or abs(correction[2]) > MAX_CORRECTION_YAW_RAD):
+    if (
+        not result.converged
+        or inlier_share < MIN_INLIER_SHARE
+        or np.hypot(*correction[:2]) > MAX_CORRECTION_XY_M
+        or abs(correction[2]) > MAX_CORRECTION_YAW_RAD
+    ):
         return None
     return correction
 
 
-def _interpolate_corrections(poses_xyyaw: np.ndarray, anchors: list[tuple[int, np.ndarray, np.ndarray]]) -> np.ndarray:
+def _interpolate_corrections(
+    poses_xyyaw: np.ndarray, anchors: list[tuple[int, np.ndarray, np.ndarray]]
+) -> np.ndarray:
     """Corrected ``(N, 3)`` poses. Each anchor (chunk) correction, a rotation ``dyaw`` about the
     chunk centre ``c`` plus a shift ``d``, is turned into the displacement it gives the anchor
     frame itself; displacements and ``dyaw`` are interpolated linearly between anchor frames and
@@ -121,8 +133,9 @@ def _interpolate_corrections(poses_xyyaw: np.ndarray, anchors: list[tuple[int, n
     return out
 
 
-def gnss_gauge(poses_by_key: dict[str, np.ndarray], gnss_by_key: dict[str, np.ndarray],
-               radius_m: float = GAUGE_RADIUS_M) -> dict[str, np.ndarray]:
+def gnss_gauge(
+    poses_by_key: dict[str, np.ndarray], gnss_by_key: dict[str, np.ndarray], radius_m: float = GAUGE_RADIUS_M
+) -> dict[str, np.ndarray]:
     """Move the registered trips, together, to where GNSS puts them on average.
 
     Registration fixes where trips lie *relative to each other*, but chaining trips onto the
@@ -154,8 +167,12 @@ def gnss_gauge(poses_by_key: dict[str, np.ndarray], gnss_by_key: dict[str, np.nd
     return out
 
 
-def reconstruct_roadmap_icp(trips: Sequence[Trip], frame: LocalFrame, chunk_length_m: float = CHUNK_LENGTH_M,
-                            spacing_m: float = KEYFRAME_SPACING_M) -> Reconstruction:
+def reconstruct_roadmap_icp(
+    trips: Sequence[Trip],
+    frame: LocalFrame,
+    chunk_length_m: float = CHUNK_LENGTH_M,
+    spacing_m: float = KEYFRAME_SPACING_M,
+) -> Reconstruction:
     import small_gicp
 
     gnss_poses, failed = gnss_only_poses(trips, frame)
@@ -169,7 +186,9 @@ def reconstruct_roadmap_icp(trips: Sequence[Trip], frame: LocalFrame, chunk_leng
         pieces = place_pieces(trip, p_gnss, spacing_m)
         anchors: list[tuple[int, np.ndarray, np.ndarray]] = []
         if len(map_xyz) and pieces:
-            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(trip.odom_xyyaw[:, :2], axis=0), axis=1))])
+            s = np.concatenate(
+                [[0.0], np.cumsum(np.linalg.norm(np.diff(trip.odom_xyyaw[:, :2], axis=0), axis=1))]
+            )
             chunk_of_frame = np.floor(s / chunk_length_m).astype(int)
             piece_chunk = np.array([chunk_of_frame[p.frame] for p in pieces])
             for c in np.unique(piece_chunk):
@@ -200,6 +219,10 @@ def reconstruct_roadmap_icp(trips: Sequence[Trip], frame: LocalFrame, chunk_leng
         poses_xyyaw_world=poses,
         map_features=fuse_naively(trips, poses, spacing_m),
         failed=failed,
-        diagnostics={"method": "roadmap_icp", "icp_library": "small_gicp", "chunks": n_chunks,
-                     "chunks_registered": n_registered},
+        diagnostics={
+            "method": "roadmap_icp",
+            "icp_library": "small_gicp",
+            "chunks": n_chunks,
+            "chunks_registered": n_registered,
+        },
     )

@@ -52,11 +52,16 @@ def evaluate_output(scenario_dir: str | Path, out_dir: str | Path) -> EvaluatedO
     for k, t in est_tracks.items():
         truth_t = truth_tracks[k].timestamps_s
         if len(t.timestamps_s) != len(truth_t) or not np.allclose(t.timestamps_s, truth_t, atol=2e-3):
-            raise ScenarioError(f"{out_dir / 'poses' / (k + '.csv')}: rows do not match the uploaded frames "
-                                f"({len(t.timestamps_s)} rows, {len(truth_t)} frames)")
+            raise ScenarioError(
+                f"{out_dir / 'poses' / (k + '.csv')}: rows do not match the uploaded frames "
+                f"({len(t.timestamps_s)} rows, {len(truth_t)} frames)"
+            )
         est_xy[k] = frame.to_local(t.lonlat_deg)
     truth_map = geo_features_to_local(read_map_geojson(scenario_dir / "truth" / "map.geojson"), frame)
     pred_map = geo_features_to_local(read_map_geojson(out_dir / "map.geojson"), frame)
-    length_km = sum(float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) for xy in true_xy.values()) / 1000.0
-    return EvaluatedOutput(meta, evaluate(true_xy, est_xy, truth_map, pred_map), true_xy, est_xy,
-                           truth_map, pred_map, length_km)
+    length_km = (
+        sum(float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) for xy in true_xy.values()) / 1000.0
+    )
+    return EvaluatedOutput(
+        meta, evaluate(true_xy, est_xy, truth_map, pred_map), true_xy, est_xy, truth_map, pred_map, length_km
+    )

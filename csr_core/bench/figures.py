@@ -85,19 +85,25 @@ def plot_map(records: Sequence[Record], path: Path, half_w: float = 30.0, half_h
             c = _chain(f)
             ax.plot(c[:, 0], c[:, 1], color=TYPE_COLOURS[f.type], lw=0.7, alpha=0.85, zorder=2)
         _window(ax, centre, half_w, half_h)
-        ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}  mCD {ev.evaluation.map_aligned.mcd:.3f} m", fontsize=9)
+        ax.set_title(
+            f"{METHOD_NAMES.get(r.method, r.method)}  mCD {ev.evaluation.map_aligned.mcd:.3f} m", fontsize=9
+        )
     handles = [plt.Line2D([], [], color="0.75", lw=4, label="truth")]
     handles += [plt.Line2D([], [], color=c, lw=1.5, label=t.value) for t, c in TYPE_COLOURS.items()]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    fig.suptitle(f"{ok[0].scenario}: truth vs reconstruction (aligned), {2 * half_w:.0f} m x {2 * half_h:.0f} m",
-                 fontsize=10)
+    fig.suptitle(
+        f"{ok[0].scenario}: truth vs reconstruction (aligned), {2 * half_w:.0f} m x {2 * half_h:.0f} m",
+        fontsize=10,
+    )
     fig.tight_layout(rect=(0, 0.06, 1, 0.95))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def plot_trajectories(records: Sequence[Record], path: Path, half_w: float = 15.0, half_h: float = 9.0) -> Path:
+def plot_trajectories(
+    records: Sequence[Record], path: Path, half_w: float = 15.0, half_h: float = 9.0
+) -> Path:
     ok = [r for r in records if r.ok]
     plt, fig, axes = _panels(len(ok))
     centre = zoom_centre(ok[0])
@@ -113,14 +119,22 @@ def plot_trajectories(records: Sequence[Record], path: Path, half_w: float = 15.
                 ax.plot(al[:, 0], al[:, 1], color="tab:blue", lw=0.8, zorder=2)
         _window(ax, centre, half_w, half_h)
         e = ev.evaluation
-        ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}\nATE raw {e.raw.ate.rmse:.2f} m, aligned "
-                     f"{e.aligned.ate.rmse:.2f} m; RPE {e.aligned.rpe.rmse:.3f} m", fontsize=8)
-    handles = [plt.Line2D([], [], color="k", lw=1.6, label="truth"),
-               plt.Line2D([], [], color="tab:red", lw=1, ls="--", label="estimate, raw"),
-               plt.Line2D([], [], color="tab:blue", lw=1, label="estimate, globally aligned")]
+        ax.set_title(
+            f"{METHOD_NAMES.get(r.method, r.method)}\nATE raw {e.raw.ate.rmse:.2f} m, aligned "
+            f"{e.aligned.ate.rmse:.2f} m; RPE {e.aligned.rpe.rmse:.3f} m",
+            fontsize=8,
+        )
+    handles = [
+        plt.Line2D([], [], color="k", lw=1.6, label="truth"),
+        plt.Line2D([], [], color="tab:red", lw=1, ls="--", label="estimate, raw"),
+        plt.Line2D([], [], color="tab:blue", lw=1, label="estimate, globally aligned"),
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    fig.suptitle(f"{ok[0].scenario}: trajectories before and after the global alignment "
-                 f"({2 * half_w:.0f} m x {2 * half_h:.0f} m)", fontsize=10)
+    fig.suptitle(
+        f"{ok[0].scenario}: trajectories before and after the global alignment "
+        f"({2 * half_w:.0f} m x {2 * half_h:.0f} m)",
+        fontsize=10,
+    )
     fig.tight_layout(rect=(0, 0.06, 1, 0.93))
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -134,15 +148,27 @@ def plot_error_heatmap(records: Sequence[Record], path: Path) -> Path:
     for ax, r in zip(axes, ok, strict=False):
         m = r.ev.evaluation.map_aligned
         xy = np.concatenate([m.truth_samples_xy[t] for t in m.truth_samples_xy if len(m.truth_samples_xy[t])])
-        err = np.concatenate([m.truth_sample_error_m[t] for t in m.truth_samples_xy if len(m.truth_samples_xy[t])])
+        err = np.concatenate(
+            [m.truth_sample_error_m[t] for t in m.truth_samples_xy if len(m.truth_samples_xy[t])]
+        )
         order = np.argsort(err)
-        sc = ax.scatter(xy[order, 0], xy[order, 1], c=err[order], s=0.6, cmap="inferno_r", vmin=0.0,
-                        vmax=CD_CAP_M / 2, linewidths=0)
+        sc = ax.scatter(
+            xy[order, 0],
+            xy[order, 1],
+            c=err[order],
+            s=0.6,
+            cmap="inferno_r",
+            vmin=0.0,
+            vmax=CD_CAP_M / 2,
+            linewidths=0,
+        )
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
         ax.set_title(f"{METHOD_NAMES.get(r.method, r.method)}  mCD {m.mcd:.3f} m", fontsize=9)
     cbar = fig.colorbar(sc, ax=list(axes), shrink=0.8, pad=0.01)
-    cbar.set_label("truth sample -> reconstruction distance [m] (capped 1 m; colour scale to 0.5 m)", fontsize=8)
+    cbar.set_label(
+        "truth sample -> reconstruction distance [m] (capped 1 m; colour scale to 0.5 m)", fontsize=8
+    )
     fig.suptitle(f"{ok[0].scenario}: map error along the truth (aligned)", fontsize=10)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
@@ -153,9 +179,16 @@ def make_figures(records: Sequence[Record], out_dir: Path, stem: str) -> list[tu
     """All three figures for one scenario's records (one per method); ``(caption, path)`` list."""
     out_dir.mkdir(parents=True, exist_ok=True)
     return [
-        ("Truth vs reconstruction per element type (aligned, zoomed)", plot_map(records, out_dir / f"{stem}_map.png")),
-        ("Trajectories before and after the global alignment (zoomed)",
-         plot_trajectories(records, out_dir / f"{stem}_trajectories.png")),
-        ("Map error heat map (distance from each truth sample to the reconstruction)",
-         plot_error_heatmap(records, out_dir / f"{stem}_error_heatmap.png")),
+        (
+            "Truth vs reconstruction per element type (aligned, zoomed)",
+            plot_map(records, out_dir / f"{stem}_map.png"),
+        ),
+        (
+            "Trajectories before and after the global alignment (zoomed)",
+            plot_trajectories(records, out_dir / f"{stem}_trajectories.png"),
+        ),
+        (
+            "Map error heat map (distance from each truth sample to the reconstruction)",
+            plot_error_heatmap(records, out_dir / f"{stem}_error_heatmap.png"),
+        ),
     ]

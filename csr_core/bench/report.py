@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
-from csr_core.bench.runner import Record, scenario_set
+from csr_core.bench.runner import Record, scenario_set, simulator_fingerprint
 from csr_core.bench.tables import table_ablation, table_cost, table_map, table_per_world, table_pose
 
 
@@ -15,13 +15,20 @@ def _rel(path: Path, base: Path) -> str:
     return os.path.relpath(path.resolve(), base.resolve())
 
 
-def render_section(records: Sequence[Record], set_name: str, figures: Sequence[tuple[str, Path]],
-                   doc_dir: Path, elapsed_s: float) -> str:
+def render_section(
+    records: Sequence[Record],
+    set_name: str,
+    figures: Sequence[tuple[str, Path]],
+    doc_dir: Path,
+    elapsed_s: float,
+) -> str:
     specs = scenario_set(set_name)
     scen = ", ".join(f"`{s.name}`" for s in specs)
     failed = [r for r in records if not r.ok]
-    pipeline_stages = next((r.report.get("diagnostics", {}).get("stages") for r in records
-                            if r.method == "pipeline" and r.ok), None)
+    pipeline_stages = next(
+        (r.report.get("diagnostics", {}).get("stages") for r in records if r.method == "pipeline" and r.ok),
+        None,
+    )
     ablation = table_ablation(records)
     parts = [
         "## Accuracy and cost benchmark (`csr bench`)",
@@ -30,15 +37,20 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         f"(this run: {elapsed_s / 60:.1f} min on this machine, scenarios cached in `bench-out/scenarios`). "
         f"Measured {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.",
         "",
-        f"Set `{set_name}`: {scen} (world-profile-trips x trip length-seed, simulated by `csr simulate`). "
+        f"Set `{set_name}`: {scen} (world-profile-trips x trip length-seed, simulated by `csr simulate`; "
+        f"simulator sources fingerprint `{simulator_fingerprint()}`). "
         "Every method runs as `csr reconstruct SCENARIO --out OUT --method M` in a subprocess and its "
         "`OUT` folder is scored exactly as contract section 6 says (`csr_core/metrics.py`). Summary rows are "
         "means over the scenarios; per-scenario rows below.",
         "",
         "Methods:",
         "",
-        f"- **CSR pipeline**: `csr reconstruct` default. Stages in this build: `{pipeline_stages}`. Until the "
-        "single-trip and alignment stages are wired in, it equals the GNSS-only baseline.",
+        f"- **CSR pipeline**: `csr reconstruct` default. Stages in this build: `{pipeline_stages}`."
+        + (
+            " Until the single-trip and alignment stages are wired in, it equals the GNSS-only baseline."
+            if pipeline_stages == ["gnss_poses", "naive_fusion"]
+            else ""
+        ),
         "- **GNSS-only**: raw GNSS poses (outages bridged by odometry, yaw from the GNSS course), every "
         "perceived element placed with them and fused naively (`csr_core/baselines/naive_fusion.py`: each "
         "5 m keyframe keeps the strip of its perception just ahead of the car, strips chained per on-vehicle "
@@ -83,10 +95,13 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         "",
         "### Ablation (Table I), pipeline RPE after the global alignment [m]",
         "",
-        ablation if ablation else (
+        ablation
+        if ablation
+        else (
             "Not measured yet: the pipeline has no coarse/fine alignment stages in this build "
             f"(stages: `{pipeline_stages}`). `csr bench` runs `--no-fine` (coarse only) and `--no-coarse` "
-            "(fine only) automatically as soon as the pipeline reports both stages."),
+            "(fine only) automatically as soon as the pipeline reports both stages."
+        ),
         "",
         "### Per scenario (aligned)",
         "",
@@ -94,7 +109,10 @@ def render_section(records: Sequence[Record], set_name: str, figures: Sequence[t
         "",
     ]
     if failed:
-        parts += ["Failed runs: " + "; ".join(f"{r.scenario} {r.method}: {r.run.stderr_tail}" for r in failed), ""]
+        parts += [
+            "Failed runs: " + "; ".join(f"{r.scenario} {r.method}: {r.run.stderr_tail}" for r in failed),
+            "",
+        ]
     if figures:
         parts += ["### Figures", ""]
         for caption, path in figures:

@@ -53,7 +53,10 @@ class ScenarioSpec:
 
 def scenario_set(name: str) -> list[ScenarioSpec]:
     if name == "quick":
-        return [ScenarioSpec("urban", 6, "standard", 1, 800.0), ScenarioSpec("highway", 6, "standard", 1, 800.0)]
+        return [
+            ScenarioSpec("urban", 6, "standard", 1, 800.0),
+            ScenarioSpec("highway", 6, "standard", 1, 800.0),
+        ]
     if name == "standard":
         return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in WORLDS]
     if name == "hard":
@@ -94,7 +97,9 @@ def run_measured(argv: Sequence[str]) -> CommandRun:
     def drain(name: str, stream) -> None:
         chunks[name] = stream.read()
 
-    threads = [threading.Thread(target=drain, args=(n, s)) for n, s in (("out", proc.stdout), ("err", proc.stderr))]
+    threads = [
+        threading.Thread(target=drain, args=(n, s)) for n, s in (("out", proc.stdout), ("err", proc.stderr))
+    ]
     for t in threads:
         t.start()
     _, status, rusage = os.wait4(proc.pid, 0)
@@ -103,12 +108,27 @@ def run_measured(argv: Sequence[str]) -> CommandRun:
         t.join()
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = chunks.get("err", b"").decode(errors="replace")
-    return CommandRun(proc.returncode, wall, rusage.ru_maxrss / 1024.0, "\n".join(err.strip().splitlines()[-5:]))
+    return CommandRun(
+        proc.returncode, wall, rusage.ru_maxrss / 1024.0, "\n".join(err.strip().splitlines()[-5:])
+    )
+
+
+def simulator_fingerprint() -> str:
+    """8 hex digits of a hash of the simulator's sources: the scenario cache is keyed by it, so a
+    changed simulator never serves stale scenarios."""
+    import hashlib
+
+    sim_dir = Path(__file__).resolve().parents[1] / "sim"
+    digest = hashlib.sha1()
+    for path in sorted(sim_dir.rglob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:8]
 
 
 def ensure_scenario(spec: ScenarioSpec, cache_dir: Path) -> Path:
-    """The scenario folder for ``spec``, simulated with ``csr simulate`` unless cached."""
-    out = cache_dir / spec.name
+    """The scenario folder for ``spec``, simulated with ``csr simulate`` unless cached (cache key:
+    the spec and :func:`simulator_fingerprint`)."""
+    out = cache_dir / (spec.name if spec.world == "toy" else f"{spec.name}-sim{simulator_fingerprint()}")
     if (out / "scenario.json").exists() and (out / "truth" / "map.geojson").exists():
         return out
     if out.exists():
@@ -116,10 +136,22 @@ def ensure_scenario(spec: ScenarioSpec, cache_dir: Path) -> Path:
     if spec.world == "toy":
         from csr_core.bench.toy import ToySpec, write_toy_scenario
 
-        return write_toy_scenario(out, ToySpec(n_trips=spec.trips, length_m=spec.trip_length_m or 300.0,
-                                               seed=spec.seed))
-    argv = csr_command() + ["simulate", "--world", spec.world, "--trips", str(spec.trips), "--profile", spec.profile,
-                            "--seed", str(spec.seed), "--out", str(out)]
+        return write_toy_scenario(
+            out, ToySpec(n_trips=spec.trips, length_m=spec.trip_length_m or 300.0, seed=spec.seed)
+        )
+    argv = csr_command() + [
+        "simulate",
+        "--world",
+        spec.world,
+        "--trips",
+        str(spec.trips),
+        "--profile",
+        spec.profile,
+        "--seed",
+        str(spec.seed),
+        "--out",
+        str(out),
+    ]
     if spec.trip_length_m:
         argv += ["--trip-length-m", str(spec.trip_length_m)]
     log.info("simulating %s", spec.name)
@@ -164,12 +196,27 @@ def _dir_bytes(path: Path) -> int:
 RUN_FILE = "bench_run.json"  # the measured command run, kept next to its outputs for --reuse-runs
 
 
-def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[str] = (), variant: str = "",
-               spec: ScenarioSpec | None = None, reuse: bool = False) -> Record:
+def run_method(
+    scenario_dir: Path,
+    out_dir: Path,
+    method: str,
+    extra: Sequence[str] = (),
+    variant: str = "",
+    spec: ScenarioSpec | None = None,
+    reuse: bool = False,
+) -> Record:
     """``csr reconstruct`` one method on one scenario and evaluate it. With ``reuse``, a previous
     successful run in ``out_dir`` (same command) is evaluated again instead of re-run."""
-    argv = csr_command() + ["reconstruct", str(scenario_dir), "--out", str(out_dir), "--method", method,
-                            "--no-progress", *extra]
+    argv = csr_command() + [
+        "reconstruct",
+        str(scenario_dir),
+        "--out",
+        str(out_dir),
+        "--method",
+        method,
+        "--no-progress",
+        *extra,
+    ]
     run_file = out_dir / RUN_FILE
     previous = orjson.loads(run_file.read_bytes()) if reuse and run_file.exists() else None
     if previous and previous["returncode"] == 0 and previous["argv"][1:] == argv[1:]:
@@ -179,8 +226,16 @@ def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[s
             shutil.rmtree(out_dir)
         run = run_measured(argv)
         out_dir.mkdir(parents=True, exist_ok=True)
-        run_file.write_bytes(orjson.dumps({"argv": argv, "returncode": run.returncode, "wall_s": run.wall_s,
-                                           "peak_rss_mb": run.peak_rss_mb}))
+        run_file.write_bytes(
+            orjson.dumps(
+                {
+                    "argv": argv,
+                    "returncode": run.returncode,
+                    "wall_s": run.wall_s,
+                    "peak_rss_mb": run.peak_rss_mb,
+                }
+            )
+        )
     uploaded = sum(p.stat().st_size for p in (scenario_dir / "trips").glob("*.json.gz"))
     evaluated, report = None, {}
     if run.returncode == 0:
@@ -189,23 +244,32 @@ def run_method(scenario_dir: Path, out_dir: Path, method: str, extra: Sequence[s
     else:
         log.error("csr reconstruct --method %s failed on %s: %s", method, scenario_dir.name, run.stderr_tail)
     return Record(
-        scenario=scenario_dir.name,
+        scenario=spec.name if spec else scenario_dir.name,
         world=spec.world if spec else scenario_dir.name,
         profile=spec.profile if spec else "",
         method=method,
         variant=variant,
         run=run,
         uploaded_bytes=uploaded,
-        output_bytes=(_dir_bytes(out_dir / "poses") + (out_dir / "map.geojson").stat().st_size
-                      if run.returncode == 0 else 0),
+        output_bytes=(
+            _dir_bytes(out_dir / "poses") + (out_dir / "map.geojson").stat().st_size
+            if run.returncode == 0
+            else 0
+        ),
         km=evaluated.trip_length_km if evaluated else float("nan"),
         report=report,
         evaluated=evaluated,
     )
 
 
-def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, ablation: bool = True,
-              progress: Callable[[str], None] | None = None, reuse: bool = False) -> list[Record]:
+def run_bench(
+    set_name: str,
+    out_root: Path,
+    methods: Sequence[str] = METHODS,
+    ablation: bool = True,
+    progress: Callable[[str], None] | None = None,
+    reuse: bool = False,
+) -> list[Record]:
     """Simulate (cached), reconstruct with every method and evaluate. Records in set order."""
     records: list[Record] = []
     for spec in scenario_set(set_name):
@@ -213,8 +277,11 @@ def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, a
         for method in methods:
             if progress:
                 progress(f"{spec.name}: {method}")
-            records.append(run_method(scenario_dir, out_root / "runs" / spec.name / method, method, spec=spec,
-                                      reuse=reuse))
+            records.append(
+                run_method(
+                    scenario_dir, out_root / "runs" / spec.name / method, method, spec=spec, reuse=reuse
+                )
+            )
         pipeline = next((r for r in records if r.scenario == spec.name and r.method == "pipeline"), None)
         stages = set(pipeline.report.get("diagnostics", {}).get("stages", [])) if pipeline else set()
         if ablation and {"coarse", "fine"} <= stages:
@@ -224,6 +291,15 @@ def run_bench(set_name: str, out_root: Path, methods: Sequence[str] = METHODS, a
                 if progress:
                     progress(f"{spec.name}: pipeline ({variant})")
                 slug = variant.replace(" ", "_")
-                records.append(run_method(scenario_dir, out_root / "runs" / spec.name / f"pipeline-{slug}",
-                                          "pipeline", extra, variant, spec, reuse))
+                records.append(
+                    run_method(
+                        scenario_dir,
+                        out_root / "runs" / spec.name / f"pipeline-{slug}",
+                        "pipeline",
+                        extra,
+                        variant,
+                        spec,
+                        reuse,
+                    )
+                )
     return records

@@ -22,10 +22,19 @@ METHOD_NAMES = {
     "gnss_only": "GNSS-only",
     "roadmap_icp": "RoadMap-style (ICP)",
 }
-SHORT = {"lane_divider": "ld", "centerline": "cl", "road_boundary": "bdr", "stop_line": "stop", "crosswalk": "cw"}
+SHORT = {
+    "lane_divider": "ld",
+    "centerline": "cl",
+    "road_boundary": "bdr",
+    "stop_line": "stop",
+    "crosswalk": "cw",
+}
 
 # Paper figures (Tables I-IV), for side-by-side reading only: real data, different noise.
-PAPER_MAP = {"RoadMap++ [paper]": (0.0636, 0.0611, 0.0824, 0.0690), "CSR [paper]": (0.0521, 0.0537, 0.0681, 0.0580)}
+PAPER_MAP = {
+    "RoadMap++ [paper]": (0.0636, 0.0611, 0.0824, 0.0690),
+    "CSR [paper]": (0.0521, 0.0537, 0.0681, 0.0580),
+}
 PAPER_POSE = {"RoadMap++ [paper]": (0.194, 0.177, 0.107, 0.076), "CSR [paper]": (0.155, 0.135, 0.087, 0.056)}
 PAPER_ABLATION = {"coarse only": (0.096, 0.064), "fine only": (0.111, 0.078), "coarse + fine": (0.087, 0.056)}
 
@@ -82,8 +91,13 @@ def _map_row(rs: Sequence[Record], aligned: bool = True) -> list[str]:
 def _pose_row(rs: Sequence[Record], aligned: bool) -> list[str]:
     ts = [t for t in (_traj(r, aligned) for r in rs) if t is not None]
     cov = _mean([r.ev.evaluation.coverage for r in rs if r.ok])
-    return [fmt(_mean([t.ate.rmse for t in ts])), fmt(_mean([t.ate.mean for t in ts])),
-            fmt(_mean([t.rpe.rmse for t in ts])), fmt(_mean([t.rpe.mean for t in ts])), fmt(cov, 2)]
+    return [
+        fmt(_mean([t.ate.rmse for t in ts])),
+        fmt(_mean([t.ate.mean for t in ts])),
+        fmt(_mean([t.rpe.rmse for t in ts])),
+        fmt(_mean([t.rpe.mean for t in ts])),
+        fmt(cov, 2),
+    ]
 
 
 def _cost_row(rs: Sequence[Record]) -> list[str]:
@@ -95,17 +109,28 @@ def _cost_row(rs: Sequence[Record]) -> list[str]:
     proc = sum(r.report.get("timings_s", {}).get("reconstruct", float("nan")) for r in ok)
     up = sum(r.uploaded_bytes for r in ok)
     out = sum(r.output_bytes for r in ok)
-    return [fmt(wall / km, 2), fmt(proc / km, 2), fmt(up / km / 1e6, 2), fmt(out / km / 1e6, 3),
-            fmt((up + out) / km / 1e6, 2), fmt(max(r.run.peak_rss_mb for r in ok), 0)]
+    return [
+        fmt(wall / km, 2),
+        fmt(proc / km, 2),
+        fmt(up / km / 1e6, 2),
+        fmt(out / km / 1e6, 3),
+        fmt((up + out) / km / 1e6, 2),
+        fmt(max(r.run.peak_rss_mb for r in ok), 0),
+    ]
 
 
 def table_map(records: Sequence[Record], aligned: bool = True) -> str:
     main = _main_records(records)
     header = ["method", *[f"CD_{SHORT[t.value]}" for t in TABLE_TYPES], "mCD", "completeness", "correctness"]
-    rows = [[METHOD_NAMES.get(m, m), *_map_row([r for r in main if r.method == m], aligned)] for m in _methods(main)]
+    rows = [
+        [METHOD_NAMES.get(m, m), *_map_row([r for r in main if r.method == m], aligned)]
+        for m in _methods(main)
+    ]
     if aligned:
-        rows += [[name, fmt(v[0], 4), fmt(v[1], 4), fmt(v[2], 4), "", "", fmt(v[3], 4), "", ""]
-                 for name, v in PAPER_MAP.items()]
+        rows += [
+            [name, fmt(v[0], 4), fmt(v[1], 4), fmt(v[2], 4), "", "", fmt(v[3], 4), "", ""]
+            for name, v in PAPER_MAP.items()
+        ]
     return _table(header, rows)
 
 
@@ -123,8 +148,15 @@ def table_pose(records: Sequence[Record]) -> str:
 
 def table_cost(records: Sequence[Record]) -> str:
     main = _main_records(records)
-    header = ["method", "wall s/km", "processing s/km", "uploaded MB/km", "output MB/km", "stored MB/km",
-              "peak memory MB"]
+    header = [
+        "method",
+        "wall s/km",
+        "processing s/km",
+        "uploaded MB/km",
+        "output MB/km",
+        "stored MB/km",
+        "peak memory MB",
+    ]
     rows = [[METHOD_NAMES.get(m, m), *_cost_row([r for r in main if r.method == m])] for m in _methods(main)]
     rows.append(["CSR [paper]", "17.1 (0.285 min/km)", "", "", "", "27 (0.027 Gb/km, read as GB)", ""])
     rows.append(["traditional LiDAR [paper]", "352.9 (5.881 min/km)", "", "", "", "2400 (2.4 Gb/km)", ""])
@@ -140,26 +172,66 @@ def table_ablation(records: Sequence[Record]) -> str | None:
     for name, paper in PAPER_ABLATION.items():
         rs = full if name == "coarse + fine" else [r for r in variants if r.variant == name]
         ts = [t for t in (_traj(r, True) for r in rs) if t is not None]
-        rows.append([name, fmt(_mean([t.rpe.rmse for t in ts])), fmt(_mean([t.rpe.mean for t in ts])),
-                     fmt(paper[0]), fmt(paper[1])])
+        rows.append(
+            [
+                name,
+                fmt(_mean([t.rpe.rmse for t in ts])),
+                fmt(_mean([t.rpe.mean for t in ts])),
+                fmt(paper[0]),
+                fmt(paper[1]),
+            ]
+        )
     return _table(["alignment", "RPE RMSE", "RPE ME", "paper RPE RMSE", "paper RPE ME"], rows)
 
 
 def table_per_world(records: Sequence[Record]) -> str:
     main = _main_records(records)
-    header = ["scenario", "method", "km", "mCD", "compl.", "corr.", "ATE RMSE", "RPE RMSE", "coverage", "wall s"]
+    header = [
+        "scenario",
+        "method",
+        "km",
+        "mCD",
+        "compl.",
+        "corr.",
+        "ATE RMSE",
+        "RPE RMSE",
+        "coverage",
+        "wall s",
+    ]
     rows = []
     for r in main:
         if not r.ok:
-            rows.append([r.scenario, METHOD_NAMES.get(r.method, r.method), "-", "failed", "", "", "", "", "",
-                         fmt(r.run.wall_s, 1)])
+            rows.append(
+                [
+                    r.scenario,
+                    METHOD_NAMES.get(r.method, r.method),
+                    "-",
+                    "failed",
+                    "",
+                    "",
+                    "",
+                    "",
+                    "",
+                    fmt(r.run.wall_s, 1),
+                ]
+            )
             continue
         ev = r.ev.evaluation
         m = ev.map_aligned
-        rows.append([r.scenario, METHOD_NAMES.get(r.method, r.method), fmt(r.km, 1), fmt(m.mcd),
-                     fmt(_mean([m.per_type[t].completeness for t in MCD_TYPES]), 2),
-                     fmt(_mean([m.per_type[t].correctness for t in MCD_TYPES]), 2),
-                     fmt(ev.aligned.ate.rmse), fmt(ev.aligned.rpe.rmse), fmt(ev.coverage, 2), fmt(r.run.wall_s, 1)])
+        rows.append(
+            [
+                r.scenario,
+                METHOD_NAMES.get(r.method, r.method),
+                fmt(r.km, 1),
+                fmt(m.mcd),
+                fmt(_mean([m.per_type[t].completeness for t in MCD_TYPES]), 2),
+                fmt(_mean([m.per_type[t].correctness for t in MCD_TYPES]), 2),
+                fmt(ev.aligned.ate.rmse),
+                fmt(ev.aligned.rpe.rmse),
+                fmt(ev.coverage, 2),
+                fmt(r.run.wall_s, 1),
+            ]
+        )
     return _table(header, rows)
 
 

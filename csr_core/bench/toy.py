@@ -73,9 +73,16 @@ def toy_truth_map(length_m: float) -> tuple[MapFeature, ...]:
     t /= np.linalg.norm(t)
     n = np.array([-t[1], t[0]])
     feats.append(MapFeature(ElementType.STOP_LINE, np.array([c[i] - 2 * lw * n, c[i]])))
-    corners = [c[i] + 2 * t - 2 * lw * n, c[i] + 6 * t - 2 * lw * n, c[i] + 6 * t + 2 * lw * n, c[i] + 2 * t + 2 * lw * n]
+    corners = [
+        c[i] + 2 * t - 2 * lw * n,
+        c[i] + 6 * t - 2 * lw * n,
+        c[i] + 6 * t + 2 * lw * n,
+        c[i] + 2 * t + 2 * lw * n,
+    ]
     feats.append(MapFeature(ElementType.CROSSWALK, np.array(corners)))
-    return tuple(MapFeature(f.type, f.points_xy_world, f.style, feature_id=f"truth{k}") for k, f in enumerate(feats))
+    return tuple(
+        MapFeature(f.type, f.points_xy_world, f.style, feature_id=f"truth{k}") for k, f in enumerate(feats)
+    )
 
 
 def _true_poses(spec: ToySpec) -> np.ndarray:
@@ -87,8 +94,9 @@ def _true_poses(spec: ToySpec) -> np.ndarray:
     return np.column_stack([xy, np.arctan2(d[:, 1], d[:, 0])])
 
 
-def _perceive(world_T_vehicle: np.ndarray, truth: tuple[MapFeature, ...], rng: np.random.Generator,
-              noise_m: float) -> tuple[PerceivedElement, ...]:
+def _perceive(
+    world_T_vehicle: np.ndarray, truth: tuple[MapFeature, ...], rng: np.random.Generator, noise_m: float
+) -> tuple[PerceivedElement, ...]:
     v_T_w = inverse(world_T_vehicle)
     c, s = np.cos(v_T_w[2]), np.sin(v_T_w[2])
     out = []
@@ -104,12 +112,17 @@ def _perceive(world_T_vehicle: np.ndarray, truth: tuple[MapFeature, ...], rng: n
                 continue
             d = np.append(np.arange(0.0, part.length, 2.0), part.length)
             q = shapely.get_coordinates(shapely.line_interpolate_point(part, d))
-            out.append(PerceivedElement(f.type, q + rng.normal(0, noise_m, q.shape), style=f.style, score=0.9,
-                                        track_id=k))
+            out.append(
+                PerceivedElement(
+                    f.type, q + rng.normal(0, noise_m, q.shape), style=f.style, score=0.9, track_id=k
+                )
+            )
     return tuple(out)
 
 
-def make_toy_trips(spec: ToySpec = ToySpec()) -> tuple[list[Trip], dict[str, np.ndarray], tuple[MapFeature, ...], LocalFrame]:
+def make_toy_trips(
+    spec: ToySpec = ToySpec(),
+) -> tuple[list[Trip], dict[str, np.ndarray], tuple[MapFeature, ...], LocalFrame]:
     """``(trips, true poses (N, 3) per key in the toy plane, truth map, the toy plane)``."""
     rng = np.random.default_rng(spec.seed)
     frame = LocalFrame(TOY_ORIGIN_LAT, TOY_ORIGIN_LON)
@@ -122,17 +135,21 @@ def make_toy_trips(spec: ToySpec = ToySpec()) -> tuple[list[Trip], dict[str, np.
         gnss_xy = poses[:, :2] + bias + rng.normal(0, spec.gnss_noise_m, (n, 2))
         status = np.full(n, GnssStatus.DGPS, np.uint8)
         if spec.outage is not None:
-            status[spec.outage[0]:spec.outage[1]] = GnssStatus.NONE
+            status[spec.outage[0] : spec.outage[1]] = GnssStatus.NONE
         incr = between(poses[:-1], poses[1:]) + rng.normal(0, spec.odom_noise_m, (n - 1, 3)) * [1, 1, 0.1]
         odom = [np.array([0.0, 0.0, 0.0])]
         for d in incr:
             odom.append(compose(odom[-1], d))
         heading = yaw_rad_to_heading_deg(wrap_angle(poses[:, 2] + rng.normal(0, 0.005, n)))
         trip = Trip(
-            vehicle_id=f"toy-{k % 2}", trip_id=f"trip-{k:03d}", started_at="2026-11-21T08:00:00Z",
+            vehicle_id=f"toy-{k % 2}",
+            trip_id=f"trip-{k:03d}",
+            started_at="2026-11-21T08:00:00Z",
             timestamps_s=np.arange(n) / spec.rate_hz,
-            gnss_lonlat_deg=frame.to_lonlat(gnss_xy), gnss_status=status,
-            gnss_std_m=np.full(n, spec.gnss_noise_m), gnss_heading_deg=np.asarray(heading) % 360.0,
+            gnss_lonlat_deg=frame.to_lonlat(gnss_xy),
+            gnss_status=status,
+            gnss_std_m=np.full(n, spec.gnss_noise_m),
+            gnss_heading_deg=np.asarray(heading) % 360.0,
             odom_xyyaw=np.array(odom),
             elements=tuple(_perceive(p, truth, rng, spec.perception_noise_m) for p in poses),
         )
@@ -147,17 +164,35 @@ def write_toy_scenario(out_dir: str | Path, spec: ToySpec = ToySpec()) -> Path:
     (out_dir / "trips").mkdir(parents=True, exist_ok=True)
     (out_dir / "truth" / "poses").mkdir(parents=True, exist_ok=True)
     trips, true_by_key, truth, frame = make_toy_trips(spec)
-    (out_dir / "scenario.json").write_bytes(orjson.dumps({
-        "name": "toy", "origin": {"lat": TOY_ORIGIN_LAT, "lon": TOY_ORIGIN_LON},
-        "profile": {"gnss_bias_sigma_m": spec.gnss_bias_sigma_m, "gnss_noise_m": spec.gnss_noise_m,
-                    "perception_noise_m": spec.perception_noise_m}}))
+    (out_dir / "scenario.json").write_bytes(
+        orjson.dumps(
+            {
+                "name": "toy",
+                "origin": {"lat": TOY_ORIGIN_LAT, "lon": TOY_ORIGIN_LON},
+                "profile": {
+                    "gnss_bias_sigma_m": spec.gnss_bias_sigma_m,
+                    "gnss_noise_m": spec.gnss_noise_m,
+                    "perception_noise_m": spec.perception_noise_m,
+                },
+            }
+        )
+    )
     for trip in trips:
-        (out_dir / "trips" / f"{trip.key}.json.gz").write_bytes(gzip.compress(orjson.dumps(encode_trip(trip))))
+        (out_dir / "trips" / f"{trip.key}.json.gz").write_bytes(
+            gzip.compress(orjson.dumps(encode_trip(trip)))
+        )
         p = true_by_key[trip.key]
         lonlat = frame.to_lonlat(p[:, :2])
         rows = ["t,lat,lon,heading_deg"] + [
             f"{t:.3f},{la:.9f},{lo:.9f},{h:.4f}"
-            for t, la, lo, h in zip(trip.timestamps_s, lonlat[:, 1], lonlat[:, 0], np.asarray(yaw_rad_to_heading_deg(p[:, 2])), strict=False)]
+            for t, la, lo, h in zip(
+                trip.timestamps_s,
+                lonlat[:, 1],
+                lonlat[:, 0],
+                np.asarray(yaw_rad_to_heading_deg(p[:, 2])),
+                strict=False,
+            )
+        ]
         (out_dir / "truth" / "poses" / f"{trip.key}.csv").write_text("\n".join(rows) + "\n")
     (out_dir / "truth" / "map.geojson").write_bytes(orjson.dumps(map_features_to_geojson(truth, frame)))
     return out_dir

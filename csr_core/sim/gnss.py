@@ -9,8 +9,8 @@
 - Latency (consumer receivers): the fix reports the true position ``latency`` seconds earlier
   (per vehicle, plus a small per-fix time-tag jitter), which shows as an along-track lag, as in
   the real u-blox log (comma2k19: 82 ms, 1.4 m behind at 17 m/s).
-- ``std_m``: the status' honest per-axis std ``sqrt(sigma_b^2 + sigma_w^2)`` with a log-normal
-  jitter; it does not include the latency lag nor canyon jumps (real receivers do not know them).
+- ``std_m``: the status' honest per-axis std ``sqrt(sigma_b^2 + sigma_w^2)`` times a slowly
+  varying log-normal factor; it does not include the latency lag nor canyon jumps (real receivers do not know them).
 - Course heading: direction of true motion plus noise that grows at low speed; absent when slow.
 - Urban canyons (``hard``): inside ``World.canyon_zones_xyr`` the status is at best `single`,
   multipath jumps of several metres last seconds, and outages report status `none`.
@@ -169,7 +169,11 @@ def simulate_gnss(
         status[i0:i1] = GnssStatus.NONE
     position = lagged_xy + error
     honest = np.sqrt(sigma_b**2 + sigma_w**2)
-    std = np.maximum(honest * np.exp(params.std_report_log_sigma * rng.standard_normal(n)), MIN_STD_M)
+    # the receiver's own estimate wanders slowly around the honest value (not white per fix)
+    log_factor = (
+        params.std_report_log_sigma * gauss_markov_unit(n, dt, np.full(n, params.std_report_tau_s), rng)[:, 0]
+    )
+    std = np.maximum(honest * np.exp(log_factor), MIN_STD_M)
     # course over ground from the true motion (at the lagged time) with speed-dependent noise
     v_xy = np.gradient(lagged_xy, timestamps_s, axis=0) if n > 1 else np.zeros((n, 2))
     course_deg = np.mod(np.degrees(np.arctan2(v_xy[:, 0], v_xy[:, 1])), 360.0)

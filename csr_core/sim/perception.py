@@ -8,7 +8,9 @@ Per frame, every truth element inside the BEV range (vehicle frame x in ``range_
 - noise: a per-frame BEV distortion (small yaw and longitudinal scale, common to all elements
   of the frame), a per-element offset (the same for all points of the element: correlated
   along it) made of a per-trip part (``track_bias_sigma_m``, the same in every frame) and a
-  per-frame part (sigma ``base + per_m * distance``), plus white noise per point (likewise);
+  per-frame part (sigma ``base + per_m * distance``) that partly varies slowly with the distance
+  travelled (frame-to-frame correlated, as a detector's errors on the same scene are), plus
+  white noise per point (likewise);
   road boundaries ``boundary_noise_factor`` times noisier;
 - missed detections (more likely far away), false positives (short spurious lines), ghosts (a
   divider/boundary copy shifted sideways by about one lane width for a few frames);
@@ -143,7 +145,14 @@ def _line_sigma(
 class _FramePerceiver:
     """Holds the per-trip state (RNG, ghosts, id scrambling) across frames."""
 
-    def __init__(self, index: TruthIndex, params: PerceptionParams, rng: np.random.Generator, n_frames: int):
+    def __init__(
+        self,
+        index: TruthIndex,
+        params: PerceptionParams,
+        rng: np.random.Generator,
+        n_frames: int,
+        travelled_m: np.ndarray | None = None,
+    ):
         self.index, self.p, self.rng = index, params, rng
         self.salt = int(rng.integers(1, 1 << 30))
         self.box = np.array(
@@ -164,6 +173,11 @@ class _FramePerceiver:
         self.frame_scale = params.frame_scale_sigma * rng.standard_normal(n_frames)
         n_tracks = len(index.element_type) + len(index.polygons_xy)
         self.track_bias = params.track_bias_sigma_m * rng.standard_normal((n_tracks, 2))
+        # slowly varying part of the per-frame offset: per track and axis a sinusoid of the
+        # distance the vehicle has travelled (unit variance over the phase)
+        self.offset_wavelength_m = rng.uniform(*params.offset_wavelength_m, size=(n_tracks, 2))
+        self.offset_phase = rng.uniform(0.0, 2 * np.pi, size=(n_tracks, 2))
+        self.travelled_m = travelled_m if travelled_m is not None else np.zeros(n_frames)
         self.false_count = 0
 
     def _extend_to_range_edge(self, xv, yv, sel, elem, dash, starts, lengths, frame_of, poses_xyyaw) -> None:
@@ -195,6 +209,20 @@ class _FramePerceiver:
             t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, 1.0)
             xv[k] = inside[:, 0] + t * delta[:, 0]
             yv[k] = inside[:, 1] + t * delta[:, 1]
+
+    def _offset_unit(self, track: np.ndarray, frame: np.ndarray) -> np.ndarray:
+        """Unit-variance per-frame offsets ``(R, 2)`` of tracks seen in frames: a part that varies
+        slowly with the distance travelled (share ``offset_temporal_share`` of the variance;
+        constant while the vehicle stands) and a white part, new in every frame."""
+        share = self.p.offset_temporal_share
+        white = self.rng.standard_normal((track.size, 2))
+        if share <= 0:
+            return white
+        s = self.travelled_m[frame][:, None]
+        smooth = np.sqrt(2.0) * np.sin(
+            2 * np.pi * s / self.offset_wavelength_m[track] + self.offset_phase[track]
+        )
+        return np.sqrt(share) * smooth + np.sqrt(1.0 - share) * white
 
     def _distort(self, xy: np.ndarray, frame_of: np.ndarray | int) -> np.ndarray:
         """Per-frame BEV distortion: a small yaw (camera/IMU extrinsic jitter) and a longitudinal
@@ -266,7 +294,7 @@ class _FramePerceiver:
             xy += (self.track_bias[run_elem] * factor[:, None])[run_of]
         off_sigma = _line_sigma(p, run_type, run_dist, offset=True)
         if off_sigma.any():
-            xy += (off_sigma[:, None] * rng.standard_normal((n_runs, 2)))[run_of]
+            xy += (off_sigma[:, None] * self._offset_unit(run_elem, run_frame))[run_of]
         white = _line_sigma(p, run_type[run_of], np.hypot(xv, yv), offset=False)
         if white.any():
             xy += white[:, None] * rng.standard_normal((sel.size, 2))
@@ -279,33 +307,20 @@ class _FramePerceiver:
             (rng.random(n_runs) < p.style_error_prob) if p.style_error_prob > 0 else np.zeros(n_runs, bool)
         )
         keys = ((ix.element_id[run_elem] * _DASH_KEYS + np.maximum(dash[starts], 0)) ^ self.salt).tolist()
-        bounds_a = np.asarray(bounds)
-        emit = np.flatnonzero(report & (np.diff(bounds_a) >= 2))
-        # per-run values as Python lists, points as one list sliced per run (much faster than
-        # converting each run's numpy slice)
-        style_of_elem = np.array([s or "" for s in ix.element_style] + ["unknown"], dtype=object)
-        style_idx = np.where(style_wrong, len(ix.element_style), run_elem)
-        run_style = np.where(run_type == _DIVIDER, style_of_elem[style_idx], None).tolist()
-        type_names = np.array(_TYPE_NAMES, dtype=object)[run_type].tolist()
-        run_frame_l = run_frame.tolist()
-        points = kept_xy.tolist()
-        for r in emit.tolist():
-            style = run_style[r]
-            if style is None:
-                item = {
-                    "type": type_names[r],
-                    "points": points[bounds[r] : bounds[r + 1]],
-                    "score": scores[r],
-                    "track_id": keys[r],
-                }
-            else:
-                item = {
-                    "type": type_names[r],
-                    "points": points[bounds[r] : bounds[r + 1]],
-                    "style": style,
-                    "score": scores[r],
-                    "track_id": keys[r],
-                }
+        run_elem_l, run_type_l, run_frame_l = run_elem.tolist(), run_type.tolist(), run_frame.tolist()
+        style_wrong_l = style_wrong.tolist()
+        styles = ix.element_style
+        points = kept_xy.tolist()  # one conversion, sliced per run
+        for r in np.flatnonzero(report).tolist():
+            b0, b1 = bounds[r], bounds[r + 1]
+            if b1 - b0 < 2:
+                continue
+            t = run_type_l[r]
+            item: dict[str, Any] = {"type": _TYPE_NAMES[t], "points": points[b0:b1]}
+            if t == _DIVIDER:
+                item["style"] = "unknown" if style_wrong_l[r] else styles[run_elem_l[r]]
+            item["score"] = scores[r]
+            item["track_id"] = keys[r]
             out[run_frame_l[r]].append(item)
         # ghosts: frames inside a ghost event copy one visible divider/boundary sideways
         ghost_frames = np.flatnonzero(self.ghost_event[run_frame] >= 0)
@@ -413,7 +428,12 @@ class _FramePerceiver:
             off = (p.line_offset_base_m + p.line_offset_per_m * dist) * p.polygon_noise_factor
             v = self._distort(v, frame) + self.track_bias[len(ix.element_type) + q] * p.polygon_noise_factor
             if sigma > 0 or off > 0:
-                v = v + off * rng.standard_normal(2) + sigma * rng.standard_normal(v.shape)
+                track = np.array([len(ix.element_type) + q])
+                v = (
+                    v
+                    + off * self._offset_unit(track, np.array([frame]))[0]
+                    + sigma * rng.standard_normal(v.shape)
+                )
             out[frame].append(
                 {
                     "type": "crosswalk",
@@ -433,7 +453,9 @@ def perceive_trip(
 ) -> list[list[dict[str, Any]]]:
     """Per frame, the perceived elements as upload dicts (vehicle frame), from TRUE poses ``(N, 3)``."""
     n = len(poses_xyyaw_world)
-    perceiver = _FramePerceiver(index, params, rng, n)
+    steps = np.linalg.norm(np.diff(poses_xyyaw_world[:, :2], axis=0), axis=1)
+    travelled = np.concatenate([[0.0], np.cumsum(steps)])
+    perceiver = _FramePerceiver(index, params, rng, n, travelled)
     cx = (params.range_x_m[0] + params.range_x_m[1]) / 2.0
     half_diag = float(
         np.hypot(

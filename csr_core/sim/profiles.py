@@ -48,7 +48,8 @@ class GnssParams:
     latency_mean_s: float = 0.08  # consumer: fix = position this long before its stamp (comma2k19: 0.082 s)
     latency_sigma_s: float = 0.02  # consumer: spread of the latency between vehicles
     latency_jitter_s: float = 0.01  # consumer: per-fix time-tag jitter (along-track noise = speed * jitter)
-    std_report_log_sigma: float = 0.15  # reported std_m = honest std * exp(N(0, this))
+    std_report_log_sigma: float = 0.15  # reported std_m = honest std * exp(this * z), z unit Gauss-Markov
+    std_report_tau_s: float = 10.0  # correlation time of that factor
     heading_sigma_deg_at_10mps: float = 1.0  # course noise, scales with 10 / speed
     heading_min_speed_mps: float = 1.0  # no course below this speed
     # urban canyons (``World.canyon_zones_xyr``); zero rates disable them
@@ -85,6 +86,8 @@ class PerceptionParams:
     line_white_per_m: float = 0.003
     line_offset_base_m: float = 0.05  # per-element, per-frame offset (correlated along the element)
     line_offset_per_m: float = 0.004
+    offset_temporal_share: float = 0.7  # share of that offset's variance varying slowly with travel
+    offset_wavelength_m: tuple[float, float] = (15.0, 60.0)  # its wavelength range (per track, uniform)
     track_bias_sigma_m: float = 0.04  # per-element offset drawn once per trip (same in every frame)
     frame_yaw_sigma_deg: float = 0.1  # per-frame BEV rotation (extrinsic jitter), common to all elements
     frame_scale_sigma: float = 0.003  # per-frame longitudinal scale error (ground-plane pitch)

@@ -19,7 +19,7 @@ import numpy as np
 
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
-from csr_core.single_trip.noise import estimate_noise
+from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import smooth_poses
 from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
@@ -111,6 +111,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     lateral: dict[ElementType, list[np.ndarray]] = {}
     along: dict[ElementType, list[np.ndarray]] = {}
     n_dropped = 0
+    candidates: list[tuple[TripInstance, np.ndarray, np.ndarray]] = []
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     for track in tracks:
@@ -122,8 +123,9 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         counts = np.fromiter((len(v) for v in raw_v), dtype=np.int64, count=len(raw_v))
         offsets = np.r_[0, np.cumsum(counts)]
         pts_v = np.concatenate(raw_v)
+        original = np.ones(len(pts_v), dtype=bool)
         if not track.type.is_polygon:  # vertices as sent can be far apart (a stop line: two)
-            pts_v, offsets = densify_flat(pts_v, offsets, params.SPLICE_BIN_M)
+            pts_v, offsets, original = densify_flat(pts_v, offsets, params.SPLICE_BIN_M)
             counts = np.diff(offsets)
         obs_id = np.repeat(np.arange(len(raw_v)), counts)
         pose = poses[upload_frames][obs_id]
@@ -144,7 +146,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             t0 = np.searchsorted(travel, travel[upload_frames.min()] - reach)
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
             guide = poses[t0:t1 + 1, :2]
-            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params):
+            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original):
                 spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m,
                                 np.unique(track_frames[piece.observations])))
         for points_w, lat, alo, seen in spliced:
@@ -159,17 +161,39 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             if ratio < params.TRACK_MIN_VISIBILITY_RATIO:
                 n_dropped += 1
                 continue
-            lateral.setdefault(track.type, []).append(lat)
-            along.setdefault(track.type, []).append(alo)
             styles = [trip.elements[f][j].style for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
-            instances.append(TripInstance(
+            candidates.append((TripInstance(
                 type=track.type, points_xy_world=points_w, style=_style(styles),
-                n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])))
-    # 6. noise per element type from the residuals
+                n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
+                lat, alo))
+    # 6. noise per element type from the residuals; an instance whose own residuals are far
+    # wider than its type's (a mixture of elements: connectors crossing in a junction) is dropped
+    noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in ElementType},
+                           {t: [c[2] for c in candidates if c[0].type == t] for t in ElementType}, params)
+    for inst, lat, alo in candidates:
+        ref = noise[inst.type]
+        if (len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
+                and robust_sigma(lat) > params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m):
+            n_dropped += 1
+            continue
+        lateral.setdefault(inst.type, []).append(lat)
+        along.setdefault(inst.type, []).append(alo)
+        instances.append(inst)
     noise = estimate_noise(lateral, along, params)
     t_end = time.perf_counter()
     log.info("trip %s: %d frames, %d tracks, %d instances (%d dropped); %.3f s (poses %.3f, tracking %.3f)",
              trip.key, trip.n_frames, len(tracks), len(instances), n_dropped, t_end - t_start,
              t_pose - t_start, t_track - t_pose)
+    diagnostics = {
+        "odom_scale": smoothed.odom_scale,
+        "odom_yaw_rate_bias_deg_s": float(np.degrees(smoothed.odom_yaw_rate_bias_rad_s)),
+        "gnss_latency_s": smoothed.gnss_latency_s,
+        "gnss_rejected_share": float(1.0 - smoothed.gnss_inlier[trip.has_fix].mean()) if trip.has_fix.any() else 0.0,
+        "tracked_frames": int(len(frames)),
+        "tracks": len(tracks),
+        "dropped": n_dropped,
+        "seconds": {"poses": t_pose - t_start, "tracking": t_track - t_pose, "total": t_end - t_start},
+    }
     return TripReconstruction(trip=trip, poses_xyyaw_world=poses, pose_sigma_xy_m=smoothed.sigma_xy_m,
-                              keyframe_indices=keyframes, instances=tuple(instances), noise=noise)
+                              keyframe_indices=keyframes, instances=tuple(instances), noise=noise,
+                              gnss_inlier=smoothed.gnss_inlier, diagnostics=diagnostics)

@@ -26,8 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from csr_core import metrics
-from csr_core.scenario import (geo_features_to_local, list_trip_files, load_trip, read_map_geojson,
-                               read_poses_dir, read_scenario_meta)
+from csr_core.scenario import (
+    geo_features_to_local,
+    list_trip_files,
+    load_trip,
+    read_map_geojson,
+    read_poses_dir,
+    read_scenario_meta,
+)
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.types import ElementType, GnssStatus, MapFeature

@@ -23,7 +23,7 @@ class SingleTripParams:
     GNSS_SIGMA_FLOOR_M: float = 0.05
     # GNSS errors (multipath, atmosphere) are correlated over seconds; fixes within this time
     # count as one independent fix in the graph (0: every fix independent).
-    GNSS_CORRELATION_S: float = 10.0
+    GNSS_CORRELATION_S: float = 30.0
     # GNSS latency (fix stamped t = position at t - L), estimated per trip; windows remove the bias
     GNSS_LATENCY_ESTIMATE: bool = True
     GNSS_LATENCY_WINDOW_S: float = 20.0
@@ -87,6 +87,7 @@ class SingleTripParams:
     TRACK_MIN_FRAMES: int = 4  # tracked frames supporting an instance
     TRACK_MIN_VISIBILITY_RATIO: float = 0.35  # seen / in-range tracked frames
     BEV_RANGE_MARGIN_M: float = 2.0  # an instance point counts as in range this far inside the BEV box
+    INSTANCE_MAX_SIGMA_RATIO: float = 2.0  # own lateral residual sigma / its type's, above: a mixture
     INSTANCE_MIN_LENGTH_M: dict[ElementType, float] | None = None  # None: defaults below
 
     # --- splicing ------------------------------------------------------------------------------------

@@ -207,18 +207,21 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, backbone: np.
 
 
 def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
-                guide_xy: np.ndarray | None, params: SingleTripParams) -> list[SplicedLine]:
+                guide_xy: np.ndarray | None, params: SingleTripParams,
+                original: np.ndarray | None = None) -> list[SplicedLine]:
     """Observations of one track -> one smoothed polyline per element found in it (usually one).
 
     ``points_w (P, 2)`` all observation points (world), ``obs_id (P,)`` their observation,
     ``obs_ends (n_obs, 2)`` indices of each observation's first and last point, ``end_free
     (n_obs, 2)`` whether those are element ends seen inside the BEV range (not cuts by the
-    range): only those give along-track residuals. ``guide_xy`` the vehicle path while the track
+    range): only those give along-track residuals; ``original (P,)`` marks the points as sent
+    (not inserted by densification): only those give lateral residuals. ``guide_xy`` the vehicle path while the track
     was seen: the backbone when the element runs along it (curves, roundabouts), else the
     principal axis of the points, refined by a second pass on the first result.
     """
     bin_m = params.SPLICE_BIN_M
-    n_obs = len(obs_ends)
+    if original is None:
+        original = np.ones(len(points_w), dtype=bool)
     guide = None
     if guide_xy is not None and len(guide_xy) >= 2:
         guide = _extend_ends(resample_polyline(guide_xy, bin_m / 2), params.SPLICE_GUIDE_EXTENSION_M, bin_m / 2)
@@ -235,11 +238,12 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
             if len(np.unique(obs_id[sel])) < params.TRACK_MIN_FRAMES:
                 continue
             if _runs_along(s[sel], points_w[sel], obs_id[sel]) >= params.SPLICE_ALONG_GUIDE_MIN:
-                out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide, False, obs_id, obs_ends, end_free, params))
+                out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide, False, obs_id, obs_ends, end_free, params,
+                                      original))
             else:
-                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params))
+                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original))
         return out
-    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params)
+    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original)
 
 
 def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
@@ -256,7 +260,7 @@ def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
 
 
 def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
-                      end_free: np.ndarray, params: SingleTripParams) -> list[SplicedLine]:
+                      end_free: np.ndarray, params: SingleTripParams, original: np.ndarray) -> list[SplicedLine]:
     """Splice the points ``sel`` on a backbone grown from their own observations (any shape),
     or their principal axis, refined by a second pass; clustered on it first."""
     bin_m = params.SPLICE_BIN_M
@@ -279,16 +283,16 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
         sub = np.flatnonzero(labels == lab)
         if len(np.unique(ids[sub])) < params.TRACK_MIN_FRAMES:
             continue
-        out.extend(_splice_on(points_w, sel[sub], s[sub], d[sub], backbone, True, obs_id, obs_ends, end_free, params))
+        out.extend(_splice_on(points_w, sel[sub], s[sub], d[sub], backbone, True, obs_id, obs_ends, end_free, params,
+                              original))
     return out
 
 
 def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: np.ndarray, backbone: np.ndarray,
                refine: bool, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
-               params: SingleTripParams) -> list[SplicedLine]:
+               params: SingleTripParams, original: np.ndarray) -> list[SplicedLine]:
     """One element (points ``sel`` with backbone coordinates) -> its SplicedLine (or none)."""
     bin_m = params.SPLICE_BIN_M
-    n_obs = len(obs_ends)
     fit = _fit_profile(s_sel, d_sel, obs_id[sel], backbone, params)
     if fit is not None and refine and fit[3] - fit[2] >= 2 * bin_m:
         bb2 = resample_polyline(fit[0], bin_m / 2)
@@ -302,7 +306,7 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     line, inl, s_lo, s_hi, d_fit = fit
     # lateral residuals against the fitted profile; along-track: observation ends that are
     # element ends against the instance ends (both in backbone arclength)
-    lat = (d_sel - d_fit)[inl]
+    lat = (d_sel - d_fit)[inl & original[sel]]
     s_all = np.full(len(points_w), np.nan)
     s_all[sel[inl]] = s_sel[inl]
     s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
@@ -316,7 +320,6 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
     along_res = np.r_[s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi]
     obs = np.unique(obs_id[sel[inl]])
-    del n_obs
     return [SplicedLine(line, lat, along_res, obs)]
 
 

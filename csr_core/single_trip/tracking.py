@@ -76,9 +76,10 @@ def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray
     return points[left] * (1.0 - w) + points[right] * w
 
 
-def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float) -> tuple[np.ndarray, np.ndarray]:
+def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Polylines (concatenated ``points`` with ``offsets``) with points inserted so that no step
-    exceeds ``max_step_m``; returns the new points and offsets. Vectorised."""
+    exceeds ``max_step_m``; returns the new points, offsets and which points are original."""
     n = len(points)
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     same = np.ones(n - 1, dtype=bool)
@@ -92,7 +93,7 @@ def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float) -> 
     nxt = np.minimum(start + 1, n - 1)
     out = points[start] + frac[:, None] * (points[nxt] - points[start])
     new_off = np.r_[0, np.cumsum(counts)][offsets]
-    return out, new_off
+    return out, new_off, frac == 0
 
 
 def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:

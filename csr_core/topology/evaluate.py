@@ -1,18 +1,20 @@
 """Measure topology generation on a scenario folder (contract section 5) against its truth.
 
-    python -m csr_core.topology.evaluate SCENARIO_DIR [--poses truth|smoothed] [--cache FILE]
+    python -m csr_core.topology.evaluate SCENARIO_DIR [--poses truth|smoothed|aligned] [--cache FILE]
 
 Per trip, single-trip reconstruction (``csr_core.single_trip``) gives the instances; with
 ``--poses truth`` its pose smoothing is replaced by the trip's TRUE poses (truth/poses), so the
 instances carry perception and splicing errors only and the map scores are the fusion's own
 error floor; with ``--poses smoothed`` they are placed with each trip's own GNSS-smoothed poses
-(no multi-trip alignment: the errors validation has to find). Then ``generate_topology`` and:
+(no multi-trip alignment); with ``--poses aligned`` by ``alignment.align_trips`` (each point
+moved with the correction of the frame nearest to it). Then ``generate_topology`` and:
 
 - map scores per type exactly as contract section 6 (``csr_core.metrics.map_scores``), for the
   fused map and, for reference, for all trips' instances overlaid (no fusion);
 - the validator: an instance is *really wrong* when at least ``WRONG_SHARE`` of its 0.5 m
   samples are more than 0.5 m from the truth of its type (inside the evaluated corridor);
-  *flagged* when it has a suspect flag (``validation.SUSPECT``). Recall = flagged wrong / wrong,
+  *flagged* when it has a suspect flag (only instances mostly within 12 m of a true frame
+  are judged: truth beyond 15 m is cut away by the contract) (``validation.SUSPECT``). Recall = flagged wrong / wrong,
   precision = flagged wrong / flagged.
 """
 
@@ -22,6 +24,7 @@ import argparse
 import json
 import pickle
 import time
+from dataclasses import replace
 from pathlib import Path
 from unittest import mock
 
@@ -41,10 +44,38 @@ from csr_core.topology import SUSPECT, TopologyResult, generate_topology
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
+CORRIDOR_INSIDE_M = 12.0  # truth is kept within 15 m of true frames; judge 3 m inside
+
+
+def move_instances(instances, from_xyyaw: np.ndarray, to_xyyaw: np.ndarray) -> tuple:
+    """Instances placed with poses ``from`` re-placed with poses ``to`` (world_T_vehicle, (N, 3)):
+    each point moves with the correction ``to @ inv(from)`` of the frame (among the instance's
+    frames) whose vehicle was nearest to it."""
+    from dataclasses import replace
+
+    from scipy.spatial import cKDTree
+
+    from csr_core.se2 import compose, inverse
+
+    out = []
+    for inst in instances:
+        f0, f1 = int(inst.first_frame), int(inst.last_frame) + 1
+        frames = np.arange(max(f0, 0), max(min(f1, len(from_xyyaw)), f0 + 1))
+        _, i = cKDTree(from_xyyaw[frames, :2]).query(inst.points_xy_world)
+        fr = frames[i]
+        corr = np.array([compose(to_xyyaw[f], inverse(from_xyyaw[f])) for f in fr])
+        c, s = np.cos(corr[:, 2]), np.sin(corr[:, 2])
+        p = inst.points_xy_world
+        moved = np.column_stack([c * p[:, 0] - s * p[:, 1] + corr[:, 0], s * p[:, 0] + c * p[:, 1] + corr[:, 1]])
+        out.append(replace(inst, points_xy_world=moved))
+    return tuple(out)
 
 
 def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
-    """trip key -> (instances, noise, poses used (N, 3), true poses (N, 3), started_at)."""
+    """trip key -> (instances, noise, poses used (N, 3), true poses (N, 3), started_at).
+
+    ``poses``: ``truth`` (pose smoothing replaced by the true poses), ``smoothed`` (each trip's
+    own), ``aligned`` (``alignment.align_trips`` over all trips, instances moved with it)."""
     import csr_core.single_trip as single_trip
     from csr_core.single_trip.pose_graph import SmoothedPoses
 
@@ -53,6 +84,7 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
     frame = meta.frame
     truth = read_poses_dir(scenario_dir / "truth" / "poses")
     out = {}
+    recs = []
     for tf in list_trip_files(scenario_dir):
         trip = load_trip(tf)
         pt = truth[tf.key]
@@ -64,11 +96,29 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
                 rec = single_trip.reconstruct_trip(trip, frame)
         else:
             rec = single_trip.reconstruct_trip(trip, frame)
+        recs.append(rec)
         out[tf.key] = (rec.instances, rec.noise, rec.poses_xyyaw_world, true_poses, trip.started_at)
+    if poses == "aligned":
+        from csr_core.alignment import align_trips
+
+        aligned = align_trips(recs)
+        for rec in recs:
+            k = rec.trip.key
+            if k not in aligned.poses_xyyaw_world:
+                out.pop(k)
+                continue
+            to = aligned.poses_xyyaw_world[k]
+            out[k] = (move_instances(rec.instances, rec.poses_xyyaw_world, to), rec.noise, to, out[k][3], out[k][4])
     return out
 
 
 def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> dict:
+    """Recall and precision of the suspect flags against really wrong instances (module
+    docstring). Only samples well inside the evaluated corridor (``CORRIDOR_INSIDE_M`` of a true
+    frame: truth beyond 15 m is cut away) are judged; instances mostly outside are left out."""
+    from scipy.spatial import cKDTree
+
+    frames = cKDTree(true_xy)
     wrong, flagged = [], []
     for etype in ElementType:
         feats = [f for f in (*result.features, *result.suppressed) if f.type == etype]
@@ -76,8 +126,12 @@ def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> 
             continue
         _, segs = metrics.truth_in_corridor([f for f in truth_map if f.type == etype], true_xy)
         for f in feats:
-            d = metrics.distances_to_segments(metrics.sample_features([f]), segs)
-            wrong.append(bool(len(d)) and float(np.mean(d > metrics.MATCH_THRESHOLD_M)) >= WRONG_SHARE)
+            samples = metrics.sample_features([f])
+            inside = frames.query(samples)[0] <= CORRIDOR_INSIDE_M
+            if inside.mean() < 0.5:
+                continue
+            d = metrics.distances_to_segments(samples[inside], segs)
+            wrong.append(float(np.mean(d > metrics.MATCH_THRESHOLD_M)) >= WRONG_SHARE)
             flagged.append(bool(set(f.properties.get("flags", ())) & SUSPECT))
     w, fl = np.array(wrong), np.array(flagged)
     return {"instances": int(len(w)), "wrong": int(w.sum()), "flagged": int(fl.sum()),
@@ -100,15 +154,19 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
                                trip_times={k: v[4] for k, v in data.items()},
                                paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()})
     seconds = time.perf_counter() - t0
+    # contract section 6 "aligned" figures: one rigid SE(2) of all poses onto truth, applied to the map
+    truth_T_est = metrics.umeyama_se2(np.concatenate([v[2][:, :2] for v in data.values()]), true_xy)
+    result = replace(result, features=metrics.transform_features(truth_T_est, result.features),
+                     suppressed=metrics.transform_features(truth_T_est, result.suppressed))
     fused = metrics.map_scores(result.features, truth_map, true_xy)
-    overlaid = metrics.map_scores([MapFeature(i.type, i.points_xy_world, i.style) for v in data.values() for i in v[0]],
-                                  truth_map, true_xy)
+    overlaid = metrics.map_scores(metrics.transform_features(truth_T_est, [
+        MapFeature(i.type, i.points_xy_world, i.style) for v in data.values() for i in v[0]]), truth_map, true_xy)
 
     def table(ms: metrics.MapScores) -> dict:
         return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
                                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
 
-    return {"scenario": meta.name, "poses": poses, "trips": len(data), "features": len(result.features),
+    return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est], "trips": len(data), "features": len(result.features),
             "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
             "validator": validator_scores(result, truth_map, true_xy),
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
@@ -119,7 +177,7 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenario")
-    ap.add_argument("--poses", choices=("truth", "smoothed"), default="truth")
+    ap.add_argument("--poses", choices=("truth", "smoothed", "aligned"), default="truth")
     ap.add_argument("--cache", help="pickle of the trips' instances (written if missing)")
     args = ap.parse_args(argv)
     r = evaluate_scenario(args.scenario, args.poses, args.cache)

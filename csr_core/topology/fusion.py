@@ -149,9 +149,29 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         backbone = np.vstack([backbone, ext]) if end else np.vstack([ext[::-1], backbone])
     backbone = resample_polyline(backbone, spacing)
     if len(backbone) >= 5:
-        sm = np.column_stack([gaussian_filter1d(backbone[:, i], 2.0 / spacing, mode="nearest") for i in (0, 1)])
-        backbone = resample_polyline(sm, spacing)
-    return backbone
+        # smoothed with point-reflected ends (a straight line stays straight and keeps its
+        # length), then prolonged straight so that the members' ends project inside it
+        sigma = 2.0 / spacing
+        pad = int(np.ceil(3 * sigma))
+        head = 2 * backbone[0] - backbone[1:pad + 1][::-1]
+        tail = 2 * backbone[-1] - backbone[-pad - 1:-1][::-1]
+        padded = np.vstack([head, backbone, tail])
+        sm = np.column_stack([gaussian_filter1d(padded[:, i], sigma, mode="nearest") for i in (0, 1)])
+        backbone = resample_polyline(sm[len(head):len(head) + len(backbone)], spacing)
+    return _extend_straight(backbone, 3.0, spacing)
+
+
+def _extend_straight(line: np.ndarray, length_m: float, spacing: float) -> np.ndarray:
+    """``line`` prolonged by ``length_m`` along its end tangents (over 2 m) at both ends."""
+    if len(line) < 3:
+        return line
+    k = min(max(int(2.0 / spacing), 1), len(line) - 1)
+    t0 = line[0] - line[k]
+    t1 = line[-1] - line[-1 - k]
+    t0 /= max(float(np.linalg.norm(t0)), 1e-12)
+    t1 /= max(float(np.linalg.norm(t1)), 1e-12)
+    q = np.arange(spacing, length_m + 1e-9, spacing)[:, None]
+    return np.vstack([line[0] + q[::-1] * t0, line, line[-1] + q * t1])
 
 
 def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int) -> np.ndarray:

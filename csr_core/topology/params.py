@@ -59,6 +59,8 @@ class TopologyParams:
     TILE_SIZE_M: float = 200.0  # square tiles of the world plane (the service may use its own)
     COVERAGE_RADIUS_M: float = 10.0  # a trip "passed" an instance if it has elements this close
     LOW_SUPPORT_SHARE: float = 0.34  # of the trips that passed, fewer than this saw it
+    # fewer trips than this cannot outvote one bad trip (a robust fit needs a majority of 3)
+    MIN_SUPPORT_TRIPS: int = 3
     HIGH_VARIANCE_RATIO: float = 2.0  # trip scatter / expected sigma above this
     DISAGREE_WEIGHT_SHARE: float = 0.25  # rejected (outlier) trips hold this share of the weight
     GAP_MIN_M: float = 5.0  # unsupported run inside an instance, or break to a collinear one

@@ -3,8 +3,9 @@ variance of noise are used to determine whether there is noise in the map").
 
 Per instance (thresholds from the noise model, see ``TopologyParams``):
 
-- ``low_support``: of the trips that passed it (trips with any element within
-  ``COVERAGE_RADIUS_M``), fewer than ``LOW_SUPPORT_SHARE`` saw it, or only one of several did;
+- ``low_support``: fewer than ``MIN_SUPPORT_TRIPS`` trips saw it (with two, a robust fit
+  cannot tell which one is off), or fewer than ``LOW_SUPPORT_SHARE`` of the trips that passed
+  it (trips with any element within ``COVERAGE_RADIUS_M``);
 - ``high_variance``: the inlier trips scatter around the fused line by more than
   ``HIGH_VARIANCE_RATIO`` times their own sigma (chi-like ratio; 1 when the noise model holds);
 - ``trips_disagree``: trips the robust fit rejected hold at least ``DISAGREE_WEIGHT_SHARE`` of
@@ -170,10 +171,11 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
     breaks = _breaks(features, params)
     pts, _, own = _samples(features, params.SAMPLE_SPACING_M)
     tiles = tile_of(pts, params.TILE_SIZE_M)
-    home = {}
+    home: dict[int, tuple[int, int]] = {}
     for k, f in enumerate(features):
         p = np.asarray(f.points_xy_world, float)
-        home[k] = tuple(int(v) for v in tile_of(p[len(p) // 2], params.TILE_SIZE_M))
+        tx, ty = tile_of(p[len(p) // 2], params.TILE_SIZE_M)
+        home[k] = (int(tx), int(ty))
     bad_pairs = [mp for mp in match_pairs
                  if float(mp.residual_rms_m) > params.HIGH_RESIDUAL_SIGMAS * params.ALIGNMENT_SIGMA_M]
     for k, f in enumerate(features):
@@ -182,8 +184,8 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
         fid = f.feature_id
         support = int(pr.get("support_trips", 1))
         cover = int(coverage_trips[k])
-        if cover >= 2 and (support < params.LOW_SUPPORT_SHARE * cover or (support == 1 and cover >= 3)):
-            flags.append(ValidationFlag("low_support", fid, tile, value=support / cover))
+        if support < params.MIN_SUPPORT_TRIPS or support < params.LOW_SUPPORT_SHARE * cover:
+            flags.append(ValidationFlag("low_support", fid, tile, value=support / max(cover, 1)))
         if support >= 2 and pr.get("scatter_ratio", 0.0) > params.HIGH_VARIANCE_RATIO:
             flags.append(ValidationFlag("high_variance", fid, tile, value=float(pr["scatter_ratio"])))
         if pr.get("rejected_weight_share", 0.0) >= params.DISAGREE_WEIGHT_SHARE:

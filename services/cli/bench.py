@@ -16,12 +16,19 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark the pipeline and baselines on simulated scenarios")
-    p.add_argument("--set", dest="set_name", default="quick", choices=("quick", "standard", "hard", "full", "toy"))
+    p.add_argument(
+        "--set", dest="set_name", default="quick", choices=("quick", "standard", "hard", "full", "toy")
+    )
     p.add_argument("--out", default="bench-out", help="work folder: scenarios cache, runs, results.json")
-    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the bench section of this file (e.g. BENCHMARKS.md)")
+    p.add_argument(
+        "--write", metavar="MARKDOWN", help="rewrite the bench section of this file (e.g. BENCHMARKS.md)"
+    )
     p.add_argument("--figures", default="docs/figures", help="where the PNG figures go")
-    p.add_argument("--reuse-runs", action="store_true",
-                   help="re-evaluate earlier successful runs found in --out instead of re-running them")
+    p.add_argument(
+        "--reuse-runs",
+        action="store_true",
+        help="re-evaluate earlier successful runs found in --out instead of re-running them",
+    )
     p.add_argument("--methods", default="pipeline,gnss_only,roadmap_icp", help="comma-separated methods")
     p.set_defaults(func=_run)
 
@@ -40,20 +47,35 @@ def _run(args: argparse.Namespace) -> int:
     out_root.mkdir(parents=True, exist_ok=True)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        records = run_bench(args.set_name, out_root, methods,
-                            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr),
-                            reuse=args.reuse_runs)
+        records = run_bench(
+            args.set_name,
+            out_root,
+            methods,
+            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr),
+            reuse=args.reuse_runs,
+        )
     except CsrError as exc:
         print(f"csr bench: {exc}", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - t0
-    results = [{
-        "scenario": r.scenario, "method": r.method, "variant": r.variant, "returncode": r.run.returncode,
-        "wall_s": r.run.wall_s, "peak_rss_mb": r.run.peak_rss_mb, "uploaded_bytes": r.uploaded_bytes,
-        "output_bytes": r.output_bytes, "km": r.km,
-        "evaluation": r.evaluated.evaluation.as_dict() if r.evaluated else None,
-    } for r in records]
-    (out_root / "results.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY))
+    results = [
+        {
+            "scenario": r.scenario,
+            "method": r.method,
+            "variant": r.variant,
+            "returncode": r.run.returncode,
+            "wall_s": r.run.wall_s,
+            "peak_rss_mb": r.run.peak_rss_mb,
+            "uploaded_bytes": r.uploaded_bytes,
+            "output_bytes": r.output_bytes,
+            "km": r.km,
+            "evaluation": r.evaluated.evaluation.as_dict() if r.evaluated else None,
+        }
+        for r in records
+    ]
+    (out_root / "results.json").write_bytes(
+        orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY)
+    )
     figures = []
     first = records[0].scenario if records else None
     fig_records = [r for r in records if r.scenario == first and not r.variant and r.ok]

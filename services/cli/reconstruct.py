@@ -14,11 +14,21 @@ import time
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("reconstruct", help="reconstruct poses and map of a scenario folder's trips (no server)")
-    p.add_argument("scenario_dir", metavar="SCENARIO_DIR", help="scenario folder (contract section 5); only trips/ is read")
+    p = sub.add_parser(
+        "reconstruct", help="reconstruct poses and map of a scenario folder's trips (no server)"
+    )
+    p.add_argument(
+        "scenario_dir",
+        metavar="SCENARIO_DIR",
+        help="scenario folder (contract section 5); only trips/ is read",
+    )
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output folder (poses/*.csv, map.geojson)")
-    p.add_argument("--method", choices=("pipeline", "gnss_only", "roadmap_icp"), default="pipeline",
-                   help="the project's pipeline (default) or a benchmark baseline")
+    p.add_argument(
+        "--method",
+        choices=("pipeline", "gnss_only", "roadmap_icp"),
+        default="pipeline",
+        help="the project's pipeline (default) or a benchmark baseline",
+    )
     p.add_argument("--no-coarse", action="store_true", help="pipeline without coarse alignment (ablation)")
     p.add_argument("--no-fine", action="store_true", help="pipeline without fine alignment (ablation)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -35,8 +45,10 @@ def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     try:
         files = list_trip_files(args.scenario_dir)
-        trips = [load_trip(f) for f in tqdm(files, desc="load trips", unit="trip", file=sys.stderr,
-                                            disable=args.no_progress)]
+        trips = [
+            load_trip(f)
+            for f in tqdm(files, desc="load trips", unit="trip", file=sys.stderr, disable=args.no_progress)
+        ]
     except ScenarioError as exc:
         print(f"csr reconstruct: {exc}", file=sys.stderr)
         return 2

@@ -29,8 +29,23 @@ def test_bench_toy_set_end_to_end(tmp_path):
     doc = tmp_path / "BENCHMARKS.md"
     doc.write_text(OTHER)
     figs = tmp_path / "figs"
-    proc = subprocess.run(CSR + ["bench", "--set", "toy", "--out", str(tmp_path / "bench"), "--write", str(doc),
-                                 "--figures", str(figs)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        CSR
+        + [
+            "bench",
+            "--set",
+            "toy",
+            "--out",
+            str(tmp_path / "bench"),
+            "--write",
+            str(doc),
+            "--figures",
+            str(figs),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = doc.read_text()
     assert text.startswith(OTHER) and text.count(BEGIN) == 1
@@ -38,7 +53,9 @@ def test_bench_toy_set_end_to_end(tmp_path):
         assert heading in text
     assert "RoadMap-style (ICP)" in text and "GNSS-only" in text and "small_gicp" in text
     pngs = sorted(figs.glob("*.png"))
-    assert len(pngs) == 3 and all(p.stat().st_size > 10_000 and p.read_bytes()[:4] == b"\x89PNG" for p in pngs)
+    assert len(pngs) == 3 and all(
+        p.stat().st_size > 10_000 and p.read_bytes()[:4] == b"\x89PNG" for p in pngs
+    )
     for p in pngs:
         assert f"({p.relative_to(tmp_path)})" in text
     results = orjson.loads((tmp_path / "bench" / "results.json").read_bytes())

@@ -32,8 +32,21 @@ def _run(*args: str, check: bool = True) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def scenario(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sim") / "urban"
-    _run("simulate", "--world", "urban", "--trips", "3", "--profile", "standard", "--seed", "7",
-         "--out", str(out), "--trip-length-m", "500")
+    _run(
+        "simulate",
+        "--world",
+        "urban",
+        "--trips",
+        "3",
+        "--profile",
+        "standard",
+        "--seed",
+        "7",
+        "--out",
+        str(out),
+        "--trip-length-m",
+        "500",
+    )
     return out
 
 
@@ -57,7 +70,9 @@ def test_outputs_follow_contract_section_4(scenario, outputs, method):
     out = outputs[method]
     trip_files = sorted((scenario / "trips").glob("*.json.gz"))
     csvs = sorted((out / "poses").glob("*.csv"))
-    assert [p.name.removesuffix(".csv") for p in csvs] == [p.name.removesuffix(".json.gz") for p in trip_files]
+    assert [p.name.removesuffix(".csv") for p in csvs] == [
+        p.name.removesuffix(".json.gz") for p in trip_files
+    ]
     for trip_file, csv in zip(trip_files, csvs, strict=False):
         doc = _upload(trip_file)
         lines = csv.read_text().splitlines()

@@ -98,3 +98,23 @@ def test_pool_process_killed_mid_task_is_rejected_and_requeued(make_isolated, pr
     assert worker.alive()
     assert "WorkerLostError" in worker.log_tail(20000)
     assert dep.scalar("SELECT count(*) FROM trip_tiles WHERE trip_pk = :p", p=trip_pk) == 1
+
+
+def test_job_over_the_hard_time_limit_is_recorded_as_failed(make_isolated, private_redis: RedisServer):
+    """Celery kills the pool process at the hard time limit; the task's on_failure records it."""
+    dep = make_isolated("distributed", redis_url=private_redis.url)
+    dep.start_server()
+    worker = dep.start_worker(
+        CSR_TEST_INGEST_DELAY_S="60", CSR_JOB_TIME_LIMIT_S="2", CSR_VISIBILITY_TIMEOUT_S="30"
+    )
+    trip_pk = dep.upload(unique_trip()).json()["id"]
+    wait_until(
+        lambda: _ingest_jobs(dep, trip_pk) == [("failed", 1)],
+        timeout_s=60,
+        what=lambda: f"the time limit; worker log:\n{worker.log_tail()}",
+    )
+    error, status = dep.rows(
+        "SELECT j.error, t.status FROM jobs j JOIN trips t ON t.id = j.subject WHERE t.id = :p", p=trip_pk
+    )[0]
+    assert "TimeLimitExceeded" in error and status == "failed"
+    assert dep.summary()["failed"] == 1

@@ -18,8 +18,14 @@ from csr_core.types import ElementType, GnssStatus
 
 pytestmark = pytest.mark.unit
 
-EXACT = ToySpec(n_trips=1, length_m=200.0, gnss_bias_sigma_m=0.0, gnss_noise_m=0.0, perception_noise_m=0.0,
-                odom_noise_m=0.0)
+EXACT = ToySpec(
+    n_trips=1,
+    length_m=200.0,
+    gnss_bias_sigma_m=0.0,
+    gnss_noise_m=0.0,
+    perception_noise_m=0.0,
+    odom_noise_m=0.0,
+)
 
 
 def test_gnss_poses_equal_the_truth_when_gnss_is_perfect():
@@ -42,7 +48,7 @@ def test_a_gnss_outage_is_bridged_by_odometry():
 
 
 def test_a_trip_without_any_fix_fails_alone():
-    trips, *_ , frame = make_toy_trips(dataclasses.replace(EXACT, n_trips=2))
+    trips, *_, frame = make_toy_trips(dataclasses.replace(EXACT, n_trips=2))
     dead = dataclasses.replace(trips[1], gnss_status=np.full(trips[1].n_frames, GnssStatus.NONE, np.uint8))
     with pytest.raises(ReconstructionError):
         gnss_poses_xyyaw(dead, frame)
@@ -79,7 +85,9 @@ def test_roadmap_icp_pulls_biased_trips_together():
     assert icp.diagnostics["chunks_registered"] >= 10
 
     def mean_offsets(recon):
-        return np.array([(recon.poses_xyyaw_world[k][:, :2] - v[:, :2]).mean(axis=0) for k, v in true_by_key.items()])
+        return np.array(
+            [(recon.poses_xyyaw_world[k][:, :2] - v[:, :2]).mean(axis=0) for k, v in true_by_key.items()]
+        )
 
     # The toy road runs along x: ICP on parallel lines fixes the lateral (y) offset between trips
     # and is blind along the road (x); the GNSS gauge puts the registered trips where GNSS puts

@@ -46,8 +46,11 @@ def _wiggly_trajectory(n=400, seed=0):
 
 def test_identical_inputs_give_zero_everywhere():
     true_xy = {"a": _wiggly_trajectory(300, 1), "b": _wiggly_trajectory(200, 2) + [5, 5]}
-    truth_map = [_line(0, 100, 0.0), _line(0, 100, 3.5, ElementType.ROAD_BOUNDARY),
-                 MapFeature(ElementType.CROSSWALK, np.array([[10, -2], [14, -2], [14, 2], [10, 2.0]]))]
+    truth_map = [
+        _line(0, 100, 0.0),
+        _line(0, 100, 3.5, ElementType.ROAD_BOUNDARY),
+        MapFeature(ElementType.CROSSWALK, np.array([[10, -2], [14, -2], [14, 2], [10, 2.0]])),
+    ]
     ev = evaluate(true_xy, {k: v.copy() for k, v in true_xy.items()}, truth_map, truth_map)
     for scores in (ev.raw, ev.aligned):
         assert scores.ate.rmse == pytest.approx(0, abs=1e-9)
@@ -80,7 +83,9 @@ def test_longitudinal_offset_gives_the_analytic_chamfer_distance():
     s = map_scores(pred, truth, traj, types=(LD,)).per_type[LD]
     assert s.n_pred_samples == 21 and s.n_truth_samples == 21
     assert s.cd == pytest.approx(3.5 / 21, abs=1e-12)
-    assert s.completeness == pytest.approx(18 / 21)  # truth at x = 0, 0.5, 1 are > 0.5 m away (1.5 is exactly 0.5)
+    assert s.completeness == pytest.approx(
+        18 / 21
+    )  # truth at x = 0, 0.5, 1 are > 0.5 m away (1.5 is exactly 0.5)
     assert s.correctness == pytest.approx(18 / 21)
 
 
@@ -118,8 +123,16 @@ def test_truth_is_kept_only_within_15_m_of_the_trajectory():
 
 def test_mcd_is_the_mean_over_the_three_line_types():
     traj = _straight_trajectory(100)
-    truth = [_line(0, 100, 0, LD), _line(0, 100, 2, ElementType.CENTERLINE), _line(0, 100, 4, ElementType.ROAD_BOUNDARY)]
-    pred = [_line(0, 100, 0.1, LD), _line(0, 100, 2.2, ElementType.CENTERLINE), _line(0, 100, 4.3, ElementType.ROAD_BOUNDARY)]
+    truth = [
+        _line(0, 100, 0, LD),
+        _line(0, 100, 2, ElementType.CENTERLINE),
+        _line(0, 100, 4, ElementType.ROAD_BOUNDARY),
+    ]
+    pred = [
+        _line(0, 100, 0.1, LD),
+        _line(0, 100, 2.2, ElementType.CENTERLINE),
+        _line(0, 100, 4.3, ElementType.ROAD_BOUNDARY),
+    ]
     assert map_scores(pred, truth, traj).mcd == pytest.approx(0.2, abs=1e-9)
 
 
@@ -135,7 +148,9 @@ def test_a_rigid_transform_is_removed_by_the_alignment():
     assert ev.aligned.rpe.rmse == pytest.approx(0, abs=1e-9)
     assert ev.map_raw.per_type[LD].cd > 0.5
     assert ev.map_aligned.per_type[LD].cd == pytest.approx(0, abs=1e-7)
-    np.testing.assert_allclose(apply_se2(ev.truth_T_est, apply_se2(est_T_true, np.eye(2))), np.eye(2), atol=1e-9)
+    np.testing.assert_allclose(
+        apply_se2(ev.truth_T_est, apply_se2(est_T_true, np.eye(2))), np.eye(2), atol=1e-9
+    )
 
 
 def test_a_known_scale_error_gives_the_known_rpe():
@@ -169,7 +184,9 @@ def test_hand_computed_case():
     assert ev.raw.rpe.n == 2
     assert ev.raw.rpe.rmse == pytest.approx(np.sqrt(2)) and ev.raw.rpe.mean == pytest.approx(1.0)
     # evo, fed the same pairs, agrees
-    ate_rmse, ate_mean, rpe_rmse, rpe_mean = evo_trajectory_errors(est_xy, true_xy, np.arange(4.0), align=False)
+    ate_rmse, ate_mean, rpe_rmse, rpe_mean = evo_trajectory_errors(
+        est_xy, true_xy, np.arange(4.0), align=False
+    )
     assert (ate_rmse, ate_mean, rpe_rmse, rpe_mean) == pytest.approx((np.sqrt(0.5), 0.5, np.sqrt(2), 1.0))
 
 
@@ -205,12 +222,20 @@ def test_evo_native_meter_pairing_is_close_but_not_identical():
 
     def tr(xy, yaw):
         z = np.zeros(len(xy))
-        return trajectory.PoseTrajectory3D(positions_xyz=np.c_[xy, z],
-                                           orientations_quat_wxyz=np.c_[np.cos(yaw / 2), z, z, np.sin(yaw / 2)],
-                                           timestamps=np.arange(len(xy), dtype=float))
+        return trajectory.PoseTrajectory3D(
+            positions_xyz=np.c_[xy, z],
+            orientations_quat_wxyz=np.c_[np.cos(yaw / 2), z, z, np.sin(yaw / 2)],
+            timestamps=np.arange(len(xy), dtype=float),
+        )
 
-    rpe = em.RPE(em.PoseRelation.translation_part, delta=10, delta_unit=em.Unit.meters, all_pairs=True,
-                 rel_delta_tol=0.1, pairs_from_reference=True)
+    rpe = em.RPE(
+        em.PoseRelation.translation_part,
+        delta=10,
+        delta_unit=em.Unit.meters,
+        all_pairs=True,
+        rel_delta_tol=0.1,
+        pairs_from_reference=True,
+    )
     rpe.process_data((copy.deepcopy(tr(true_xy, yaw_t)), copy.deepcopy(tr(est_xy, yaw_t))))
     ours = ErrorStats.of(rpe_errors(est_xy, true_xy))
     evo_rmse = rpe.get_statistic(em.StatisticsType.rmse)
@@ -243,12 +268,24 @@ def test_evaluation_of_a_20_trip_by_2_km_scenario_takes_seconds():
     # 20 trips x 2 km at 1.5 m per frame over one 2 km road with 8 lines; each trip contributes its
     # own noisy copy of every line (like the naive baselines: 320 km of predicted lines).
     road = _wiggly_trajectory(1400, 9) * 1.5
-    truth = [MapFeature(t, road + [0, off]) for t, off in
-             [(LD, 0), (LD, 3.5), (LD, -3.5), (ElementType.CENTERLINE, 1.75), (ElementType.CENTERLINE, -1.75),
-              (ElementType.ROAD_BOUNDARY, 7), (ElementType.ROAD_BOUNDARY, -7), (LD, 7.5)]]
+    truth = [
+        MapFeature(t, road + [0, off])
+        for t, off in [
+            (LD, 0),
+            (LD, 3.5),
+            (LD, -3.5),
+            (ElementType.CENTERLINE, 1.75),
+            (ElementType.CENTERLINE, -1.75),
+            (ElementType.ROAD_BOUNDARY, 7),
+            (ElementType.ROAD_BOUNDARY, -7),
+            (LD, 7.5),
+        ]
+    ]
     true_xy = {f"t{k}": road + [0, -1.75] for k in range(20)}
     est_xy = {k: v + rng.normal(0, 0.1, v.shape) for k, v in true_xy.items()}
-    pred = [MapFeature(f.type, f.points_xy_world[::2] + rng.normal(0, 0.1, 2)) for _ in range(20) for f in truth]
+    pred = [
+        MapFeature(f.type, f.points_xy_world[::2] + rng.normal(0, 0.1, 2)) for _ in range(20) for f in truth
+    ]
     t0 = time.perf_counter()
     ev = evaluate(true_xy, est_xy, truth, pred)
     elapsed = time.perf_counter() - t0

@@ -60,17 +60,26 @@ def test_params_are_frozen():
 
 
 def test_outputs_round_trip_through_the_scenario_readers(tmp_path):
-    from csr_core.scenario import geo_features_to_local, read_map_geojson, read_poses_dir, write_reconstruction
+    from csr_core.scenario import (
+        geo_features_to_local,
+        read_map_geojson,
+        read_poses_dir,
+        write_reconstruction,
+    )
     from csr_core.se2 import wrap_angle
 
     trips, *_ = make_toy_trips(SPEC)
     recon = reconstruct(trips, PipelineParams(method=Method.GNSS_ONLY))
     failed_key = trips[1].key
-    partial = dataclasses.replace(recon, poses_xyyaw_world={trips[0].key: recon.poses_xyyaw_world[trips[0].key]},
-                                  failed={failed_key: "test failure"})
+    partial = dataclasses.replace(
+        recon,
+        poses_xyyaw_world={trips[0].key: recon.poses_xyyaw_world[trips[0].key]},
+        failed={failed_key: "test failure"},
+    )
+    write_reconstruction(recon, trips, tmp_path)  # an earlier run with both trips
     write_reconstruction(partial, trips, tmp_path, {"extra": 1})
     tracks = read_poses_dir(tmp_path / "poses")
-    assert list(tracks) == [trips[0].key]  # the failed trip has no CSV
+    assert list(tracks) == [trips[0].key]  # the failed trip has no CSV (not even a stale one)
     frame = world_frame(trips)
     xy = frame.to_local(tracks[trips[0].key].lonlat_deg)
     np.testing.assert_allclose(xy, recon.poses_xyyaw_world[trips[0].key][:, :2], atol=1e-3)

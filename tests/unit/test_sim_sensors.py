@@ -26,6 +26,12 @@ def _single_only(params: GnssParams) -> GnssParams:
     return dataclasses.replace(params, initial_probs=(0.0, 0.0, 0.0, 1.0), transition_probs=stay)
 
 
+def segment_tree(lines: list[np.ndarray]) -> shapely.STRtree:
+    """An STRtree of the 2-point segments of polylines (fast nearest-distance queries)."""
+    segs = np.concatenate([np.stack([ln[:-1], ln[1:]], axis=1) for ln in lines])  # (S, 2, 2)
+    return shapely.STRtree(shapely.linestrings(segs))
+
+
 def _straight(n: int, speed_mps: float, dt_s: float = 0.1):
     t = np.arange(n) * dt_s
     poses = np.column_stack([speed_mps * t, np.zeros(n), np.zeros(n)])
@@ -103,10 +109,6 @@ def test_noiseless_perception_reproduces_truth_geometry(world_name):
     truth = drive(route, rng, prof.traffic)
     index = build_truth_index(world, prof.perception)
     frames = perceive_trip(index, truth.poses_xyyaw_world, prof.perception, rng)
-
-    def segment_tree(lines: list[np.ndarray]) -> shapely.STRtree:
-        segs = np.concatenate([np.stack([ln[:-1], ln[1:]], axis=1) for ln in lines])  # (S, 2, 2)
-        return shapely.STRtree(shapely.linestrings(segs))
 
     trees = {
         t: segment_tree([e.points_xy_world for e in world.elements_of(t)])
@@ -197,3 +199,35 @@ def test_fleet_mixes_rtk_and_consumer_receivers():
     assert consumer.latency_s > 0
     seq = status_sequence(params, 20000, 0.1, rng, consumer.statuses)
     assert set(np.unique(seq).tolist()) <= {int(GnssStatus.DGPS), int(GnssStatus.SINGLE)}
+
+
+def test_perception_noise_grows_with_distance_and_is_larger_for_boundaries():
+    world = load_world("highway")
+    prof = standard()
+    rng = np.random.default_rng(8)
+    route = random_route(world, rng, 600.0, prof.traffic)
+    truth = drive(route, rng, prof.traffic)
+    index = build_truth_index(world, prof.perception)
+    frames = perceive_trip(index, truth.poses_xyyaw_world, prof.perception, rng)
+    trees = {
+        t: segment_tree([e.points_xy_world for e in world.elements_of(t)])
+        for t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY)
+    }
+    resid: dict[tuple[ElementType, bool], list[float]] = {}
+    for pose, items in zip(truth.poses_xyyaw_world, frames, strict=True):
+        for item in items:
+            t = ElementType(item["type"])
+            if t not in trees or item["score"] < 0.65:  # skip ghosts and false positives
+                continue
+            pts_v = np.asarray(item["points"])
+            _, d = trees[t].query_nearest(
+                shapely.points(se2.transform_points(pose, pts_v)), return_distance=True
+            )
+            far = np.hypot(pts_v[:, 0], pts_v[:, 1]) > 20.0
+            for is_far in (False, True):
+                resid.setdefault((t, is_far), []).extend(d[far == is_far].tolist())
+    med = {k: float(np.median(v)) for k, v in resid.items()}
+    div, bnd = ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY
+    assert med[(div, True)] > med[(div, False)] and med[(bnd, True)] > med[(bnd, False)]
+    assert med[(bnd, False)] > 1.5 * med[(div, False)]
+    assert 0.02 < med[(div, False)] < 0.3
