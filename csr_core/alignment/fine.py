@@ -33,6 +33,10 @@ from csr_core.types import ElementType, MapFeature, TripReconstruction
 
 K_CANDIDATES = 4
 MAX_POINTS_PER_DETECTION = 5
+DASH_MIN_M, DASH_MAX_M = 1.0, 5.0  # a divider detection this long is one painted dash
+RANGE_MARGIN_M = 1.0  # ends this close to the trip's perception range limit are cuts, not ends
+DASH_CANDIDATES = 24
+DASH_GATE_M = 2.0  # below half the shortest dash-gap period seen in practice (3 m + 6 m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,6 +123,110 @@ def frame_points(trip: TripReconstruction) -> FramePoints:
                        np.repeat(np.arange(len(pts)), counts))
 
 
+@dataclass(frozen=True, slots=True)
+class DashEnds:
+    """Ends of the painted dashes of dashed dividers seen in each frame (vehicle frame): the
+    along-road landmarks that spliced instances lose (a dashed divider splices into one line)."""
+
+    points_xy_vehicle: np.ndarray  # (E, 2)
+    frame: np.ndarray  # (E,)
+    direction_vehicle: np.ndarray  # (E, 2) unit, from this end towards the other end of its dash
+
+    def select(self, frames: np.ndarray) -> DashEnds:
+        m = np.isin(self.frame, frames)
+        return DashEnds(self.points_xy_vehicle[m], self.frame[m], self.direction_vehicle[m])
+
+
+def dash_ends(trip: TripReconstruction, max_dash_m: float = DASH_MAX_M) -> DashEnds:
+    """Both ends of every short divider detection (a dash), except ends at the edge of the
+    perception range (cut by the range, not painted), which is read from the trip itself."""
+    ends, frames, dirs, all_pts = [], [], [], []
+    for t, elems in enumerate(trip.trip.elements):
+        for e in elems:
+            p = e.points_xy_vehicle
+            if e.type != ElementType.LANE_DIVIDER or len(p) < 2:
+                continue
+            all_pts.append(p[[0, -1]])
+            v = p[-1] - p[0]
+            length = float(np.hypot(*v))
+            if not (DASH_MIN_M <= length <= max_dash_m):
+                continue
+            u = v / length
+            ends += [p[0], p[-1]]
+            dirs += [u, -u]
+            frames += [t, t]
+    if not ends:
+        return DashEnds(np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2)))
+    P, F, U = np.asarray(ends), np.asarray(frames), np.asarray(dirs)
+    ext = np.vstack(all_pts)
+    x_lo, x_hi = np.percentile(ext[:, 0], [0.5, 99.5])
+    y_hi = np.percentile(np.abs(ext[:, 1]), 99.5)
+    inside = (P[:, 0] > x_lo + RANGE_MARGIN_M) & (P[:, 0] < x_hi - RANGE_MARGIN_M) & (np.abs(P[:, 1]) < y_hi - RANGE_MARGIN_M)
+    return DashEnds(P[inside], F[inside], U[inside])
+
+
+@dataclass(frozen=True, slots=True)
+class DashMap:
+    """World dash ends of every trip; ``kind`` tells the two ends of a dash apart (the end
+    pointing along (+1) or against (-1) the dash's canonical world direction)."""
+
+    points_xy: np.ndarray  # (D, 2)
+    owner: np.ndarray  # (D,)
+    kind: np.ndarray  # (D,) +-1
+    trees: dict
+
+
+def _canonical(direction_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Direction of the dash with a sign fixed in the world (x >= 0 half-plane), and the kind."""
+    flip = (direction_world[:, 0] < 0) | ((direction_world[:, 0] == 0) & (direction_world[:, 1] < 0))
+    axis = np.where(flip[:, None], -direction_world, direction_world)
+    return axis, np.where(flip, 1, -1)  # an end whose "towards the other end" points along +axis is the -1 end
+
+
+def _rotate(poses_xyyaw: np.ndarray, v: np.ndarray) -> np.ndarray:
+    c, s_ = np.cos(poses_xyyaw[:, 2]), np.sin(poses_xyyaw[:, 2])
+    return np.column_stack([c * v[:, 0] - s_ * v[:, 1], s_ * v[:, 0] + c * v[:, 1]])
+
+
+def build_dash_map(dashes: Sequence[DashEnds], poses: Sequence[np.ndarray]) -> DashMap:
+    pts, own, kind = [np.zeros((0, 2))], [np.zeros(0, int)], [np.zeros(0, int)]
+    for k, (d, p) in enumerate(zip(dashes, poses)):
+        if len(d.frame) == 0:
+            continue
+        pose = p[d.frame]
+        pts.append(_to_world(pose, d.points_xy_vehicle))
+        own.append(np.full(len(d.frame), k))
+        kind.append(_canonical(_rotate(pose, d.direction_vehicle))[1])
+    P, O, K = np.vstack(pts), np.concatenate(own), np.concatenate(kind)
+    trees = {c: (np.flatnonzero(K == c), cKDTree(P[K == c])) for c in (-1, 1) if np.any(K == c)}
+    return DashMap(P, O, K, trees)
+
+
+def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, dmap: DashMap,
+                        exclude_owner: int, gate_m: float):
+    """Nearest same-kind dash end of another trip within ``gate_m``: foot, along-dash unit
+    normal (the residual direction), validity."""
+    n = len(points_world)
+    foot, normal, valid = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n, bool)
+    if n == 0:
+        return foot, normal, valid
+    axis, kind = _canonical(direction_world)
+    for c, (idx, tree) in dmap.trees.items():
+        sel = np.flatnonzero(kind == c)
+        if len(sel) == 0:
+            continue
+        k = min(DASH_CANDIDATES, len(idx))  # one dash end is seen in ~10 frames of each trip
+        dist, cand = tree.query(points_world[sel], k=k)
+        dist, cand = dist.reshape(len(sel), k), idx[cand.reshape(len(sel), k)]
+        dist = np.where(dmap.owner[cand] == exclude_owner, np.inf, dist)
+        best = np.argmin(dist, axis=1)
+        rows = np.arange(len(sel))
+        foot[sel] = dmap.points_xy[cand[rows, best]]
+        normal[sel] = axis[sel]
+        valid[sel] = dist[rows, best] <= gate_m
+    return foot, normal, valid
+
+
 def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping, exclude_owner: int,
                      gate_m: np.ndarray):
     """Nearest same-type segment of another owner (among the ``K_CANDIDATES`` nearest segment
@@ -169,21 +277,38 @@ def _to_world(poses_xyyaw: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
 
 
 def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, maps: Mapping,
-                        owner: int, noise: NoiseScales, params: AlignmentParams):
+                        owner: int, noise: NoiseScales, params: AlignmentParams,
+                        dashes: DashEnds | None = None, dash_map: DashMap | None = None):
     """Per-frame body-frame correction ``xi (F, 3)``, information ``(F, 3, 3)`` and number of
-    inlier points ``(F,)`` for the keyframes ``frames`` (ascending)."""
+    inlier points ``(F,)`` for the keyframes ``frames`` (ascending).
+
+    Rows: perceived points against the other trips' lines (point to line, across the road),
+    and dash ends against the other trips' dash ends (along the dash: the along-road constraint
+    that lines cannot give)."""
     fp = fp.select(frames)
-    pv, ty, el = fp.points_xy_vehicle, fp.type_code, fp.element
     F = len(frames)
     xi, info, n_in = np.zeros((F, 3)), np.zeros((F, 3, 3)), np.zeros(F, int)
-    if len(pv) == 0:
-        return xi, info, n_in
-    slot = np.searchsorted(frames, fp.frame)
+    pv, ty, el = fp.points_xy_vehicle, fp.type_code, fp.element
     sigma = _point_sigmas(ty, pv, noise)
     gate = params.fine_gate_k * np.sqrt(sigma**2 + params.fine_coarse_sigma_m**2)
     pose = poses[fp.frame]
     # association once (nearest same-type segment of another trip); then fixed lines
     foot, normal, _, valid = associate_points(_to_world(pose, pv), ty, maps, owner, gate)
+    frame_of = fp.frame
+    if dashes is not None and dash_map is not None and len(dashes.frame):
+        d = dashes.select(frames)
+        dpose = poses[d.frame]
+        f2, n2, v2 = associate_dash_ends(_to_world(dpose, d.points_xy_vehicle), _rotate(dpose, d.direction_vehicle),
+                                         dash_map, owner, DASH_GATE_M)
+        pv = np.vstack([pv, d.points_xy_vehicle])
+        foot, normal, valid = np.vstack([foot, f2]), np.vstack([normal, n2]), np.concatenate([valid, v2])
+        sigma = np.concatenate([sigma, np.full(len(d.frame), params.fine_dash_sigma_m)])
+        el = np.concatenate([el, (el.max() + 1 if len(el) else 0) + np.arange(len(d.frame))])
+        frame_of = np.concatenate([frame_of, d.frame])
+        pose = poses[frame_of]
+    if len(pv) == 0:
+        return xi, info, n_in
+    slot = np.searchsorted(frames, frame_of)
     reg = np.diag([1 / params.degenerate_sigma_xy_m**2] * 2 + [1 / params.degenerate_sigma_yaw_rad**2])
     w = valid.astype(float)
     for it in range(4):
@@ -195,30 +320,20 @@ def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, 
         # Jacobian wrt the body-frame increment: d(pw)/d(v, w) = R [I, perp(pv)]
         nb = np.column_stack([cc * normal[:, 0] + ss * normal[:, 1], -ss * normal[:, 0] + cc * normal[:, 1]])
         J = np.column_stack([nb, nb[:, 0] * -pv[:, 1] + nb[:, 1] * pv[:, 0]])
-        wt = w / sigma**2
+        # points of one detection share its offset error: about 2 independent samples each
+        used_per_element = np.bincount(el, weights=w, minlength=int(el.max()) + 1)
+        wt = w * np.minimum(2.0 / np.maximum(used_per_element[el], 1.0), 1.0) / sigma**2
         H = np.zeros((F, 3, 3))
         g = np.zeros((F, 3))
         np.add.at(H, slot, J[:, :, None] * J[:, None, :] * wt[:, None, None])
         np.add.at(g, slot, J * (wt * r)[:, None])
-        # points of one detection share its offset error: about 2 independent samples each
         n_pts = np.bincount(slot, weights=w, minlength=F)
-        n_elem = _elements_per_frame(slot, el, w > 0, F)
-        scale = np.where(n_pts > 0, np.minimum(2.0 * n_elem / np.maximum(n_pts, 1), 1.0), 0.0)
-        H *= scale[:, None, None]
-        g *= scale[:, None]
         step = -np.linalg.solve(H + reg, g[:, :, None])[:, :, 0]
         ok = n_pts >= params.fine_min_points
         xi = np.where(ok[:, None], se2.compose(xi, step), 0.0)
         info = np.where(ok[:, None, None], H + reg, 0.0)
         n_in = np.where(ok, n_pts, 0).astype(int)
     return xi, info, n_in
-
-
-def _elements_per_frame(slot: np.ndarray, element: np.ndarray, used: np.ndarray, n_frames: int) -> np.ndarray:
-    if not used.any():
-        return np.zeros(n_frames)
-    _, first = np.unique(element[used], return_index=True)
-    return np.bincount(slot[used][first], minlength=n_frames).astype(float)
 
 
 def _keyframes(poses: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -229,10 +344,11 @@ def _keyframes(poses: np.ndarray, spacing_m: float) -> np.ndarray:
 
 
 def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, maps: Mapping, owner: int,
-                noise: NoiseScales, params: AlignmentParams) -> np.ndarray:
+                noise: NoiseScales, params: AlignmentParams, dashes: DashEnds | None = None,
+                dash_map: DashMap | None = None) -> np.ndarray:
     """Frame-level pose graph of one trip (odometry chain + frame registrations + coarse prior)."""
     frames = _keyframes(poses, params.fine_keyframe_spacing_m)
-    xi, info, n_in = frame_registrations(fp, poses, frames, maps, owner, noise, params)
+    xi, info, n_in = frame_registrations(fp, poses, frames, maps, owner, noise, params, dashes, dash_map)
     g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
     n = len(poses)
     for t in range(n):
@@ -266,12 +382,15 @@ def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints
               f.type.is_polygon) for f in prior_features]
     if len(trips) < 2 and not prior:
         return current
+    dashes = [dash_ends(t) for t in trips] if len(trips) > 1 and params.fine_dashes else None
     for _ in range(params.fine_iterations):
         owners = {k: _aligned_instances(t, current[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
         if prior:
             owners[-1] = prior
         maps = build_segment_maps(owners)
-        current = {t.trip.key: refine_trip(t, fps[k], current[t.trip.key], maps, k, noise, params)
+        dash_map = build_dash_map(dashes, [current[t.trip.key] for t in trips]) if dashes else None
+        current = {t.trip.key: refine_trip(t, fps[k], current[t.trip.key], maps, k, noise, params,
+                                           dashes[k] if dashes else None, dash_map)
                    for k, t in enumerate(trips)}
     return current
 

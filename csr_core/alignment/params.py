@@ -111,6 +111,8 @@ class AlignmentParams:
     fine_prior_sigma_xy_m: float = 0.5  # keeps along-track where perception is degenerate
     fine_prior_sigma_yaw_rad: float = 0.02
     fine_min_points: int = 6
+    fine_dashes: bool = True  # dash ends as along-road landmarks
+    fine_dash_sigma_m: float = 0.15  # a painted dash end, single frame, along the dash
     fine_iterations: int = 2
 
 

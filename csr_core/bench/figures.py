@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from csr_core.bench.runner import Record
 from csr_core.bench.tables import METHOD_NAMES
@@ -44,18 +45,25 @@ def _chain(f: MapFeature) -> np.ndarray:
 
 
 def zoom_centre(record: Record) -> np.ndarray:
-    """A window centre with many element types: a true stop line or crosswalk near the trips if
-    any, else the middle of the first true trajectory."""
+    """A window centre where many trips pass and many element types meet: the true stop line or
+    crosswalk seen by the most trips (a trip frame within 10 m), else the true trajectory frame
+    with the most trips nearby."""
     ev = record.ev
-    frames = np.concatenate(list(ev.true_xy_by_key.values()))
-    for etype in (ElementType.STOP_LINE, ElementType.CROSSWALK):
-        for f in ev.truth_map:
-            if f.type == etype:
-                c = f.points_xy_world.mean(axis=0)
-                if np.min(np.linalg.norm(frames - c, axis=1)) < 10.0:
-                    return c
-    first = next(iter(ev.true_xy_by_key.values()))
-    return first[len(first) // 2]
+    trees = [cKDTree(xy) for xy in ev.true_xy_by_key.values()]
+
+    def n_trips(point: np.ndarray) -> int:
+        return sum(1 for t in trees if np.isfinite(t.query(point, distance_upper_bound=10.0)[0]))
+
+    candidates = [
+        f.points_xy_world.mean(axis=0)
+        for f in ev.truth_map
+        if f.type in (ElementType.STOP_LINE, ElementType.CROSSWALK)
+    ]
+    if not candidates:
+        frames = np.concatenate(list(ev.true_xy_by_key.values()))
+        candidates = list(frames[:: max(1, len(frames) // 400)])
+    counts = [n_trips(c) for c in candidates]
+    return np.asarray(candidates[int(np.argmax(counts))])
 
 
 def _window(ax, centre: np.ndarray, half_w: float, half_h: float) -> None:

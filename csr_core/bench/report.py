@@ -21,6 +21,7 @@ def render_section(
     figures: Sequence[tuple[str, Path]],
     doc_dir: Path,
     elapsed_s: float,
+    run_s: float | None = None,
 ) -> str:
     specs = scenario_set(set_name)
     scen = ", ".join(f"`{s.name}`" for s in specs)
@@ -34,7 +35,8 @@ def render_section(
         "## Accuracy and cost benchmark (`csr bench`)",
         "",
         f"Regenerate: `csr bench --set {set_name} --write BENCHMARKS.md` "
-        f"(this run: {elapsed_s / 60:.1f} min on this machine, scenarios cached in `bench-out/scenarios`). "
+        f"(~{(run_s if run_s is not None else elapsed_s) / 60:.0f} min of `csr reconstruct` runs plus simulation "
+        "and evaluation on this machine; scenarios are cached in `bench-out/scenarios`). "
         f"Measured {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.",
         "",
         f"Set `{set_name}`: {scen} (world-profile-trips x trip length-seed, simulated by `csr simulate`; "

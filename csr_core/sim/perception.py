@@ -162,7 +162,6 @@ class _FramePerceiver:
         self.subsample = max(int(round(params.point_spacing_m / params.dense_step_m)), 1)
         self.min_run = int(np.ceil(params.min_visible_m / params.dense_step_m)) + 1
         starts = np.flatnonzero(rng.random(n_frames) < params.ghost_rate_per_frame)
-        self.ghost_until = np.full(n_frames, -1)
         self.ghost_event = np.full(n_frames, -1)
         for k, i in enumerate(starts.tolist()):
             n = int(rng.integers(params.ghost_frames[0], params.ghost_frames[1] + 1))
@@ -413,33 +412,46 @@ class _FramePerceiver:
         for side in (below[:, 0], below[:, 1], above[:, 0], above[:, 1]):
             outside |= np.logical_and.reduceat(side, first)  # every vertex beyond one border
         partial = np.logical_or.reduceat(below.any(axis=1) | above.any(axis=1), first)
-        for j in np.flatnonzero(~outside).tolist():
+        visible = np.flatnonzero(~outside)
+        if p.small_miss_prob > 0:
+            visible = visible[rng.random(visible.size) >= p.small_miss_prob]
+        pieces, kept = [], []
+        for j in visible.tolist():
             v = v_all[first[j] : first[j] + n_verts[j]]
             if partial[j]:
                 clipped = shapely.clip_by_rect(shapely.Polygon(v), *self.box)
                 if clipped.is_empty or clipped.geom_type != "Polygon" or clipped.area < 2.0:
                     continue
                 v = np.asarray(clipped.exterior.coords)[:-1, :2]
-            if p.small_miss_prob > 0 and rng.random() < p.small_miss_prob:
-                continue
-            frame, q = int(frames[j]), int(poly_ids[j])
-            dist = float(np.hypot(*v.mean(axis=0)))
-            sigma = (p.line_white_base_m + p.line_white_per_m * dist) * p.polygon_noise_factor
-            off = (p.line_offset_base_m + p.line_offset_per_m * dist) * p.polygon_noise_factor
-            v = self._distort(v, frame) + self.track_bias[len(ix.element_type) + q] * p.polygon_noise_factor
-            if sigma > 0 or off > 0:
-                track = np.array([len(ix.element_type) + q])
-                v = (
-                    v
-                    + off * self._offset_unit(track, np.array([frame]))[0]
-                    + sigma * rng.standard_normal(v.shape)
-                )
-            out[frame].append(
+            pieces.append(v)
+            kept.append(j)
+        if not kept:
+            return
+        # noise for all kept polygons at once
+        kept_a = np.asarray(kept)
+        counts = np.array([len(v) for v in pieces])
+        starts = np.cumsum(counts) - counts
+        pair = np.repeat(np.arange(kept_a.size), counts)
+        v = np.vstack(pieces)
+        frame_k, track = frames[kept_a], len(ix.element_type) + poly_ids[kept_a]
+        dist = np.hypot(*(np.add.reduceat(v, starts, axis=0) / counts[:, None]).T)
+        v = self._distort(v, frame_k[pair]) + (self.track_bias[track] * p.polygon_noise_factor)[pair]
+        off = (p.line_offset_base_m + p.line_offset_per_m * dist) * p.polygon_noise_factor
+        sigma = (p.line_white_base_m + p.line_white_per_m * dist) * p.polygon_noise_factor
+        if off.any() or sigma.any():
+            v = v + (off[:, None] * self._offset_unit(track, frame_k))[pair]
+            v = v + sigma[pair][:, None] * rng.standard_normal(v.shape)
+        points = np.round(v, 3).tolist()
+        scores = self._score(dist).tolist()
+        ids = ((ix.polygon_ids[poly_ids[kept_a]] * _DASH_KEYS) ^ self.salt).tolist()
+        bounds = np.append(starts, len(v)).tolist()
+        for k, f in enumerate(frame_k.tolist()):
+            out[f].append(
                 {
                     "type": "crosswalk",
-                    "points": np.round(v, 3).tolist(),
-                    "score": float(self._score(np.array([dist]))[0]),
-                    "track_id": (int(ix.polygon_ids[q]) * _DASH_KEYS) ^ self.salt,
+                    "points": points[bounds[k] : bounds[k + 1]],
+                    "score": scores[k],
+                    "track_id": ids[k],
                 }
             )
 

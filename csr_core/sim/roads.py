@@ -82,10 +82,13 @@ def add_road(
     span = (s >= lo - 1e-9) & (s <= hi + 1e-9)
     ref_span, s_span = ref[span], s[span]
     curvy = None
-    if solid_when := solid_where_curvature_above_1pm:
+    if solid_where_curvature_above_1pm is not None:
         kappa = np.abs(geo.curvature_1pm(ref_span))
         # widen the no-overtaking zones by ~100 m either side, as painted
-        curvy = np.convolve((kappa > solid_when).astype(float), np.ones(201), mode="same") > 0
+        curvy = (
+            np.convolve((kappa > solid_where_curvature_above_1pm).astype(float), np.ones(201), mode="same")
+            > 0
+        )
     if n_forward and n_backward:
         add_styled_line(builder, ref_span, center_style, curvy)
     for i in range(1, n_forward):

@@ -58,7 +58,7 @@ class World:
         return [e for e in self.elements if e.type == element_type]
 
     def road_length_km(self) -> float:
-        """Total length of visible lane centrelines / number of... (rough road km: centreline km / lanes)."""
+        """Total length of the visible lanes' centrelines (lane km, every lane and direction)."""
         total = 0.0
         for _, data in self.lane_graph.nodes(data=True):
             if data["visible"]:

@@ -344,7 +344,7 @@ def roundabout() -> World:
             road_type="urban",
             center_style=DividerStyle.DASHED,
             boundaries=False,
-            solid_where_curvature_above_1pm=None,
+            divider_span_m=(9.0, 1e9),  # the centre line starts after the crosswalk
         )
         ref_d = geo.resample(ref, 1.0)
         for side in (-1.0, 1.0):

@@ -246,7 +246,9 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     # one fix's information, so each factor's sigma is inflated by sqrt(fixes per correlation time)
     if len(fix_idx) > 1:
         rate_hz = 1.0 / max(float(np.median(np.diff(timestamps_s[fix_idx]))), 1e-3)
-        sigma = sigma * np.sqrt(max(1.0, rate_hz * params.GNSS_CORRELATION_S))
+        inflation = np.sqrt(max(1.0, rate_hz * params.GNSS_CORRELATION_S))
+    else:
+        inflation = 1.0
     if len(fix_idx) == 0:
         raise ReconstructionError("trip has no GNSS fix: it cannot be placed in the world")
     if n < 2:
@@ -271,7 +273,8 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     dist0 = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
     nodes = every_travel_or_time(np.r_[0.0, np.cumsum(dist0)], timestamps_s, params.POSE_NODE_SPACING_M,
                                  params.POSE_NODE_PERIOD_S, keep_last=True)
-    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, params)
+    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, params,
+                       factor_inflation=inflation)
     node_poses = se2.compose(world_T_odom[None, :], odom_xyyaw[nodes])
 
     # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
@@ -294,7 +297,8 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
             scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
             incr[:, :2] *= scale
             corrected = integrate_increments(odom_xyyaw[0], incr)
-        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params, latency)
+        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params, latency,
+                           factor_inflation=inflation)
     # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
     # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
     node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
@@ -305,7 +309,7 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
         node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
     poses = graph.frame_poses(node_poses)
 
-    gnss_var = np.where(inlier, np.square(sigma), np.inf)
+    gnss_var = np.where(inlier, np.square(sigma * inflation), np.inf)
     sigma_xy = _marginal_sigma_xy(gnss_var, graph.step_var)
     log.debug("pose graph: %d frames, %d nodes, %d fixes, %d rejected, scale %.4f, yaw bias %.4f deg/s",
               n, len(nodes), len(fix_idx), int((~inlier[fix_idx]).sum()), scale, np.degrees(yaw_bias))
@@ -320,13 +324,14 @@ class _NodeGraph:
 
     def __init__(self, nodes: np.ndarray, timestamps_s: np.ndarray, odom_xyyaw: np.ndarray,
                  gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray,
-                 params: SingleTripParams, gnss_latency_s: float = 0.0) -> None:
+                 params: SingleTripParams, gnss_latency_s: float = 0.0, factor_inflation: float = 1.0) -> None:
         n = len(timestamps_s)
         self.params = params
         self.odom = odom_xyyaw
         self.nodes = nodes
         self.gnss_xy = gnss_xy_world
-        self.sigma = sigma
+        self.sigma = sigma  # per fix, as reported: the outlier test
+        self.factor_sigma = sigma * factor_inflation  # in the graph (correlated fixes)
         incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
         dist = np.linalg.norm(incr[:, :2], axis=1)
         dt = np.diff(timestamps_s)
@@ -365,7 +370,7 @@ class _NodeGraph:
         else:
             est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS)
         for zi, t in zip(z, gnss_idx, strict=True):
-            base = gtsam.noiseModel.Isotropic.Sigma(2, float(self.sigma[t]))
+            base = gtsam.noiseModel.Isotropic.Sigma(2, float(self.factor_sigma[t]))
             g.add(gtsam.PoseTranslationPrior2D(int(self.node_of[t]), zi, gtsam.noiseModel.Robust.Create(est, base)))
         head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
         head_base = gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD)

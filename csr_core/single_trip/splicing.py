@@ -224,7 +224,7 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         original = np.ones(len(points_w), dtype=bool)
     guide = None
     if guide_xy is not None and len(guide_xy) >= 2:
-        guide = _extend_ends(resample_polyline(guide_xy, bin_m / 2), params.SPLICE_GUIDE_EXTENSION_M, bin_m / 2)
+        guide = _extend_ends(resample_polyline(guide_xy, bin_m), params.SPLICE_GUIDE_EXTENSION_M, bin_m)
         if len(guide) < 3:
             guide = None
     if guide is not None:

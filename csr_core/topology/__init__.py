@@ -35,6 +35,7 @@ from csr_core.topology.instances import (
     make_members,
     orient_centerlines,
     path_probes,
+    reposition_instances,
     trip_probe_points,
 )
 from csr_core.topology.lane_graph import LaneGraph
@@ -45,7 +46,7 @@ from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT", "SUSPECT", "LaneGraph", "TileQuality", "TopologyParams", "TopologyResult", "ValidationFlag",
-           "generate_topology", "update_topology"]
+           "generate_topology", "reposition_instances", "update_topology"]
 
 
 def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
@@ -64,8 +65,8 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     ``paths_xy_per_trip``: trip key -> aligned positions ``(N, 2)`` (directions of centrelines).
     """
     t0 = time.perf_counter()
-    # 1. members: every trip instance with its lateral sigma (noise + alignment)
-    by_type = make_members(instances_per_trip, noise_per_trip, params)
+    # 1. members: every trip instance with its lateral sigma (noise + alignment); zig-zags out
+    by_type, rejected = make_members(instances_per_trip, noise_per_trip, params)
     # 2.-3. associate and fuse, per type
     features: list[MapFeature] = []
     member_lists: list[tuple[Member, ...]] = []
@@ -76,12 +77,13 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     t1 = time.perf_counter()
     # 4. centreline directions from the trips that drove them, stable ids
     features = orient_centerlines(features, path_probes(paths_xy_per_trip), params)
-    features = assign_ids(features, previous.features if previous is not None else (), params)
+    features = assign_ids(features, (*previous.features, *previous.suppressed) if previous is not None else (),
+                          params)
     members = {f.feature_id: m for f, m in zip(features, member_lists, strict=True)}
     t2 = time.perf_counter()
     # 5.-6. lane graph, validation
     result = finish(features, members, trip_probe_points(instances_per_trip), params, match_pairs,
-                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times)
+                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected)
     log.info("topology: %d trips, %d features, %d flags in %.2f s", len(instances_per_trip),
              len(result.features), len(result.flags), time.perf_counter() - t0)
     return result

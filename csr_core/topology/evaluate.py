@@ -40,35 +40,11 @@ from csr_core.scenario import (
     read_scenario_meta,
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
-from csr_core.topology import SUSPECT, TopologyResult, generate_topology
+from csr_core.topology import SUSPECT, TopologyResult, generate_topology, reposition_instances
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
 CORRIDOR_INSIDE_M = 12.0  # truth is kept within 15 m of true frames; judge 3 m inside
-
-
-def move_instances(instances, from_xyyaw: np.ndarray, to_xyyaw: np.ndarray) -> tuple:
-    """Instances placed with poses ``from`` re-placed with poses ``to`` (world_T_vehicle, (N, 3)):
-    each point moves with the correction ``to @ inv(from)`` of the frame (among the instance's
-    frames) whose vehicle was nearest to it."""
-    from dataclasses import replace
-
-    from scipy.spatial import cKDTree
-
-    from csr_core.se2 import compose, inverse
-
-    out = []
-    for inst in instances:
-        f0, f1 = int(inst.first_frame), int(inst.last_frame) + 1
-        frames = np.arange(max(f0, 0), max(min(f1, len(from_xyyaw)), f0 + 1))
-        _, i = cKDTree(from_xyyaw[frames, :2]).query(inst.points_xy_world)
-        fr = frames[i]
-        corr = np.array([compose(to_xyyaw[f], inverse(from_xyyaw[f])) for f in fr])
-        c, s = np.cos(corr[:, 2]), np.sin(corr[:, 2])
-        p = inst.points_xy_world
-        moved = np.column_stack([c * p[:, 0] - s * p[:, 1] + corr[:, 0], s * p[:, 0] + c * p[:, 1] + corr[:, 1]])
-        out.append(replace(inst, points_xy_world=moved))
-    return tuple(out)
 
 
 def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
@@ -108,7 +84,7 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
                 out.pop(k)
                 continue
             to = aligned.poses_xyyaw_world[k]
-            out[k] = (move_instances(rec.instances, rec.poses_xyyaw_world, to), rec.noise, to, out[k][3], out[k][4])
+            out[k] = (reposition_instances(rec.instances, rec.poses_xyyaw_world, to), rec.noise, to, out[k][3], out[k][4])
     return out
 
 

@@ -7,13 +7,16 @@ lateral profile d(s) is estimated per arclength bin robustly, smoothed by a Gaus
 along s and turned back into a polyline; unsupported stretches longer than ``MAX_GAP_M``
 split. What multi-trip fusion adds:
 
-- backbone: the best member (length x weight), prolonged by the members that stick out past
-  its ends (partial overlaps: each trip sees a different part of a long divider), smoothed;
+- backbone: the member most others agree with, prolonged by the members that run on past
+  its ends (partial overlaps: each trip sees a different part of a long divider), smoothed
+  and prolonged straight a little so that every member's end projects inside it;
 - weights: each trip's samples weigh 1 / sigma^2 (its noise estimate plus the alignment
   error), every trip contributes the same number of samples per metre (support = trips);
 - robust: a weighted median starts an IRLS with Tukey's biweight (c = ``TUKEY_C_SIGMAS`` x
   the larger of the trip's sigma and the group's robust scatter), so one bad trip gets weight
   zero where it is off instead of bending the line;
+- peeling: what the fused line does not support (members mostly off it, runs of members off
+  it) is handed back as ``detached`` pieces to be associated again (``instances.fuse_type``);
 - statistics for validation and the map properties: the standard error of the profile per
   bin (model and empirical, the larger), the scatter of the trips around it in units of their
   sigma, and the share of weight held by trips the fit rejected.

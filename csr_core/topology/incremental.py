@@ -48,7 +48,7 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     again = sorted(set(new_instances_per_trip) & known)
     if again:
         raise ReconstructionError(f"trips already in the map (rebuild instead): {again[:3]}")
-    new_by_type = make_members(new_instances_per_trip, new_noise_per_trip, params)
+    new_by_type, rejected = make_members(new_instances_per_trip, new_noise_per_trip, params)
     old_by_type: dict[ElementType, list[MapFeature]] = {t: [] for t in ElementType}
     for f in (*previous.features, *previous.suppressed):
         old_by_type[f.type].append(f)
@@ -98,7 +98,8 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     trip_points = {**previous.trip_points, **trip_probe_points(new_instances_per_trip)}
     features = [_strip(f) for f in kept] + refit
     return finish(features, members, trip_points, params, match_pairs,
-                  {"fuse": t1 - t0, "refit_features": float(len(refit))}, times)
+                  {"fuse": t1 - t0, "refit_features": float(len(refit))}, times,
+                  (*previous.rejected_members, *rejected))
 
 
 def _strip(f: MapFeature) -> MapFeature:

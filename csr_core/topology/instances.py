@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from csr_core.se2 import compose, inverse
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member, associate_lines, associate_polygons
 from csr_core.topology.fusion import FusedInstance, fuse_lines, fuse_polygons
@@ -40,22 +41,44 @@ class TopologyResult:
     trip_times: dict[str, object] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     suppressed: tuple[MapFeature, ...] = ()
+    rejected_members: tuple[Member, ...] = ()  # trip instances left out of fusion (zig-zag lines)
 
     def flags_of(self, feature_id: str) -> list[ValidationFlag]:
         return [f for f in self.flags if f.feature_id == feature_id]
 
 
+def is_zigzag(points_xy: np.ndarray, params: TopologyParams) -> bool:
+    """A line that oscillates sideways (a splice that hopped between neighbouring elements):
+    mean absolute turning above ``ZIGZAG_TURN_RAD_PER_M`` and ``ZIGZAG_TURN_RATIO`` times its
+    net turning, over at least ``ZIGZAG_MIN_LENGTH_M`` (2 m resampling)."""
+    p = resample_polyline(np.asarray(points_xy, float), 2.0)
+    length = 2.0 * (len(p) - 1)
+    if length < params.ZIGZAG_MIN_LENGTH_M:
+        return False
+    d = np.diff(p, axis=0)
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    total = float(np.abs(np.diff(heading)).sum())
+    net = max(abs(float(heading[-1] - heading[0])), 0.3)
+    return total / length > params.ZIGZAG_TURN_RAD_PER_M and total / net > params.ZIGZAG_TURN_RATIO
+
+
 def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
                  noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
-                 params: TopologyParams) -> dict[ElementType, list[Member]]:
+                 params: TopologyParams) -> tuple[dict[ElementType, list[Member]], list[Member]]:
+    """Members per type, and the rejected ones (zig-zag lines, left out of fusion)."""
     out: dict[ElementType, list[Member]] = {t: [] for t in ElementType}
+    rejected: list[Member] = []
     for key, instances in instances_per_trip.items():
         noise = noise_per_trip.get(key, {})
         for k, inst in enumerate(instances):
             if len(inst.points_xy_world) < (3 if inst.type.is_polygon else 2):
                 continue
-            out[inst.type].append(Member(key, k, inst, params.trip_sigma_m(noise.get(inst.type))))
-    return out
+            m = Member(key, k, inst, params.trip_sigma_m(noise.get(inst.type)))
+            if not inst.type.is_polygon and is_zigzag(inst.points_xy_world, params):
+                rejected.append(m)
+            else:
+                out[inst.type].append(m)
+    return out, rejected
 
 
 def fuse_type(members: Sequence[Member], element_type: ElementType, params: TopologyParams
@@ -195,7 +218,8 @@ def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
 
 def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]],
            trip_points: dict[str, np.ndarray], params: TopologyParams, match_pairs: Sequence,
-           timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None) -> TopologyResult:
+           timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None,
+           rejected_members: Sequence[Member] = ()) -> TopologyResult:
     """Validation over the whole map, flags copied into each feature; instances that a single
     trip of at least ``SUPPRESS_MIN_COVERAGE`` passing trips saw are held back (``suppressed``);
     the lane graph of the published ones."""
@@ -217,4 +241,25 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     lane_graph = build_lane_graph(published, params)
     t2 = time.perf_counter()
     return TopologyResult(published, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
-                          {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed)
+                          {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed,
+                          tuple(rejected_members))
+
+
+def reposition_instances(instances: Sequence[TripInstance], from_xyyaw: np.ndarray, to_xyyaw: np.ndarray
+                         ) -> tuple[TripInstance, ...]:
+    """A trip's instances placed with its poses ``from`` (world_T_vehicle ``(N, 3)``, e.g. the
+    single-trip smoothed ones) re-placed with poses ``to`` (e.g. after alignment): each point
+    moves with the correction ``to @ inv(from)`` of the frame, among the instance's frames,
+    whose vehicle was nearest to it (long instances follow a correction that varies along)."""
+    out = []
+    for inst in instances:
+        f0, f1 = int(inst.first_frame), int(inst.last_frame) + 1
+        frames = np.arange(max(f0, 0), max(min(f1, len(from_xyyaw)), f0 + 1))
+        _, i = cKDTree(from_xyyaw[frames, :2]).query(inst.points_xy_world)
+        fr = frames[i]
+        corr = compose(to_xyyaw[fr], inverse(from_xyyaw[fr]))  # (P, 3) to_T_from per point
+        c, s = np.cos(corr[:, 2]), np.sin(corr[:, 2])
+        p = inst.points_xy_world
+        moved = np.column_stack([c * p[:, 0] - s * p[:, 1] + corr[:, 0], s * p[:, 0] + c * p[:, 1] + corr[:, 1]])
+        out.append(replace(inst, points_xy_world=moved))
+    return tuple(out)

@@ -37,6 +37,13 @@ class TopologyParams:
     MAX_ANGLE_RAD: float = math.radians(25.0)  # samples of one element are nearly parallel
     POLYGON_GATE_M: float = 1.0  # polygons: centroid distance beyond the overlap test
 
+    # --- implausible members (left out of fusion) ----------------------------------------------------
+    # a trip instance that zig-zags: turning of more than this per metre on average while its
+    # total turning is several times its net turning (roads curve, they do not oscillate)
+    ZIGZAG_TURN_RAD_PER_M: float = 0.05
+    ZIGZAG_TURN_RATIO: float = 3.0
+    ZIGZAG_MIN_LENGTH_M: float = 30.0
+
     # --- fusion -------------------------------------------------------------------------------------
     BIN_M: float = 1.0  # arclength bins of the fused lateral profile
     SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the profile along arclength

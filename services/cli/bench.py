@@ -84,7 +84,8 @@ def _run(args: argparse.Namespace) -> int:
     print(table_map(records), table_pose(records), table_cost(records), sep="\n\n")
     if args.write:
         doc = Path(args.write)
-        write_section(doc, render_section(records, args.set_name, figures, doc.parent, elapsed))
+        run_s = sum(r.run.wall_s for r in records)
+        write_section(doc, render_section(records, args.set_name, figures, doc.parent, elapsed, run_s))
         print(f"csr bench: wrote the bench section of {doc}", file=sys.stderr)
     failed = [r for r in records if not r.ok]
     print(f"csr bench: {len(records)} runs on set {args.set_name!r}, {len(failed)} failed, {elapsed:.0f} s")

@@ -148,3 +148,11 @@ def test_cli_writes_a_scenario(tmp_path, capsys):
     assert len(list((out / "trips").glob("*.json.gz"))) == 2
     assert (out / "truth" / "map.geojson").exists() and (out / "scenario.json").exists()
     assert "csr simulate: roundabout-standard-n2-s1: 2 trips" in capsys.readouterr().out
+
+
+def test_profiles_share_the_drives_of_a_seed(tmp_path):
+    a = simulate_scenario("highway", 2, "standard", 4, tmp_path / "a", trip_length_m=100.0)
+    b = simulate_scenario("highway", 2, "hard", 4, tmp_path / "b", trip_length_m=100.0)
+    assert [t["key"] for t in a["trips"]] == [t["key"] for t in b["trips"]]
+    assert _hashes(tmp_path / "a" / "truth") == _hashes(tmp_path / "b" / "truth")
+    assert _hashes(tmp_path / "a" / "trips") != _hashes(tmp_path / "b" / "trips")

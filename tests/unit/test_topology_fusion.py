@@ -151,3 +151,35 @@ def test_properties_support_uncertainty_and_times() -> None:
     assert p["first_seen"] == "2026-11-01T10:00:00Z" and p["last_confirmed"] == "2026-11-03T10:00:00Z"
     # three trips of sigma hypot(0.05, 0.10): standard error about 0.11 / sqrt(3)
     assert 0.03 < p["uncertainty_m"] < 0.12
+
+
+def test_reposition_instances_round_trip() -> None:
+    """Instances placed with one set of poses, moved to another related by a known rigid
+    correction, land where that correction puts them; moving back restores them."""
+    from csr_core.se2 import compose, transform_points
+    from csr_core.topology import reposition_instances
+
+    x = np.arange(0.0, 100.0, 1.0)
+    from_poses = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    correction = np.array([0.7, -0.4, 0.01])  # to_T_from
+    to_poses = np.array([compose(correction, p) for p in from_poses])
+    inst = TripInstance(LD, np.column_stack([x[10:60], np.full(50, 3.5)]), DividerStyle.SOLID, 5, 8, 62)
+    (moved,) = reposition_instances([inst], from_poses, to_poses)
+    np.testing.assert_allclose(moved.points_xy_world, transform_points(correction, inst.points_xy_world), atol=1e-9)
+    (back,) = reposition_instances([moved], to_poses, from_poses)
+    np.testing.assert_allclose(back.points_xy_world, inst.points_xy_world, atol=1e-9)
+    assert moved.style == DividerStyle.SOLID and moved.n_observations == 5
+
+
+def test_a_zigzag_trip_instance_is_left_out() -> None:
+    """A splice that hopped between two neighbouring lines (a sideways oscillation of 3 m every
+    10 m) is not a road shape: it is rejected before association, the others fuse."""
+    rng = np.random.default_rng(7)
+    x = np.arange(0.0, 100.0, 1.0)
+    truth = _curve(x)
+    lines = [[_noisy(truth, rng, 0.04)] for _ in range(3)]
+    zigzag = truth + np.column_stack([np.zeros_like(x), 1.5 + 1.5 * np.sin(2 * np.pi * x / 10.0)])
+    trips = _trips([*lines, [zigzag]])
+    res = generate_topology(trips, _noise(trips))
+    assert len(res.features) == 1 and res.features[0].properties["support_trips"] == 3
+    assert [m.trip_key for m in res.rejected_members] == ["veh-1__t03"]
