@@ -142,7 +142,8 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
         return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
                                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
 
-    return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est], "trips": len(data), "features": len(result.features),
+    return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est],
+            "trips": len(data), "features": len(result.features), "rejected_members": len(result.rejected_members),
             "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
             "validator": validator_scores(result, truth_map, true_xy),
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),

@@ -1,5 +1,6 @@
 """The lane graph: lanes from the fused (directed) centrelines, with successors, predecessors,
-left and right neighbours, split and merge points.
+left and right neighbours, split and merge points. Centrelines shorter than
+``LANE_MIN_LENGTH_M`` (fragments) are not lanes.
 
 - A centreline is cut where another centreline starts or ends on it (within ``CONNECT_M``,
   heading within ``CONNECT_MAX_ANGLE_RAD``, away from its own ends): a turn lane that leaves a
@@ -70,7 +71,8 @@ def _heading(points: np.ndarray, at_end: bool, span_m: float = 3.0) -> np.ndarra
 
 def build_lane_graph(features: Sequence[MapFeature], params: TopologyParams) -> LaneGraph:
     """Lanes of the centreline features (directed polylines, world frame, metres)."""
-    cls = [f for f in features if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2]
+    cls = [f for f in features if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2
+           and float(arclength(np.asarray(f.points_xy_world, float))[-1]) >= params.LANE_MIN_LENGTH_M]
     cos_max = math.cos(params.CONNECT_MAX_ANGLE_RAD)
     lines = [resample_polyline(np.asarray(f.points_xy_world, float), 0.5) for f in cls]
     lines = [ln if len(ln) >= 2 else np.asarray(f.points_xy_world, float) for ln, f in zip(lines, cls, strict=True)]

@@ -61,6 +61,7 @@ class TopologyParams:
     # --- lane graph ---------------------------------------------------------------------------------
     CONNECT_M: float = 2.5  # lane end -> lane start within this is a successor link
     CONNECT_MAX_ANGLE_RAD: float = math.radians(45.0)
+    LANE_MIN_LENGTH_M: float = 5.0  # shorter centreline pieces (fragments) are not lanes
 
     # --- validation ---------------------------------------------------------------------------------
     TILE_SIZE_M: float = 200.0  # square tiles of the world plane (the service may use its own)

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 MARK_BEGIN, MARK_END = "<!-- ingest:begin -->", "<!-- ingest:end -->"
-EARTH_M_PER_DEG_LAT = 111_320.0
 
 
 def straight_trip(
@@ -43,14 +42,15 @@ def straight_trip(
     each, like the contract example)."""
     import numpy as np
 
+    from csr_core.geo import LocalFrame
+
     rng = np.random.default_rng(seed)
     n = int(round(length_m / speed_mps * rate_hz)) + 1
     t_s = np.arange(n) / rate_hz
     along_m = t_s * speed_mps
     heading_rad = math.radians(heading_deg)
-    east_m, north_m = along_m * math.sin(heading_rad), along_m * math.cos(heading_rad)
-    lat = origin_lat + north_m / EARTH_M_PER_DEG_LAT
-    lon = origin_lon + east_m / (EARTH_M_PER_DEG_LAT * math.cos(math.radians(origin_lat)))
+    points_xy_m = np.column_stack([along_m * math.sin(heading_rad), along_m * math.cos(heading_rad)])
+    lon, lat = LocalFrame(origin_lat=origin_lat, origin_lon=origin_lon).to_lonlat(points_xy_m).T
     xs = np.linspace(-15.0, 30.0, 20)
     frames = []
     for i in range(n):

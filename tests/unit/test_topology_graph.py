@@ -133,3 +133,17 @@ def test_tile_with_a_planted_bad_trip_is_flagged() -> None:
         if f.points_xy_world[:, 0].mean() < 200:
             suspect = bool(f.properties["flags"])
             assert suspect == (f.properties["trips"] == ["veh-1__t0"])
+
+
+def test_a_match_pair_with_a_high_residual_flags_the_instances_near_it() -> None:
+    from types import SimpleNamespace
+
+    trips, noise = _build(4, seed=15)
+    pair = SimpleNamespace(centre_xy_world=(70.0, 3.0), residual_rms_m=0.5, trip_key_i="veh-1__t00",
+                           trip_key_j="veh-1__t01")  # alignment.MatchPairRecord fields used
+    fine = SimpleNamespace(centre_xy_world=(70.0, 3.0), residual_rms_m=0.1, trip_key_i="veh-1__t00",
+                           trip_key_j="veh-1__t01")
+    flagged = generate_topology(trips, noise, match_pairs=[pair])
+    assert all("high_residual_pair" in f.properties["flags"] for f in flagged.features)
+    clean = generate_topology(trips, noise, match_pairs=[fine])
+    assert not any("high_residual_pair" in f.properties["flags"] for f in clean.features)
