@@ -77,6 +77,8 @@ class AlignmentParams:
     gnc_inlier_k: float = 3.0  # TLS threshold = k * point sigma
     gnc_max_outer: int = 25
     min_matched_elements: int = 2
+    registration_prior_sigma_xy_m: float = 1.5  # pull to the start pose (GNSS-relative error scale)
+    registration_prior_sigma_yaw_rad: float = 0.03
     max_registration_rms_k: float = 3.0
     degenerate_sigma_xy_m: float = 5.0  # regulariser on unobservable directions
     degenerate_sigma_yaw_rad: float = 0.2

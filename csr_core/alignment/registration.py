@@ -26,6 +26,7 @@ from csr_core.alignment.graph_matching import ElementSet, element_distances, nod
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 
 MAX_POINTS_PER_ELEMENT = 15
+UNOBSERVED_SIGMA_XY_M, UNOBSERVED_SIGMA_YAW_RAD = 20.0, 0.5
 GNC_MU_FACTOR = 2.0  # Yang et al. use 1.4; 2.0 halves the outer steps, same results here
 
 
@@ -105,6 +106,10 @@ def register_elements(
     if is_fixed.any():  # start from the polygons' mean centroid offset (a unique basin)
         off = (fixed_foot[is_fixed] - se2.transform_points(delta, src_pts[is_fixed])).mean(axis=0)
         delta = se2.compose(np.array([off[0], off[1], 0.0]), delta)
+    # a prior at the start pose keeps directions the elements do not observe (along a straight
+    # road) where the initial pose put them instead of letting them drift
+    delta0 = delta.copy()
+    H_prior = np.diag([1 / params.registration_prior_sigma_xy_m**2] * 2 + [1 / params.registration_prior_sigma_yaw_rad**2])
     c_bar = params.gnc_inlier_k * point_sigma_m
     mu = None
     w = np.ones(len(src_pts))
@@ -123,8 +128,9 @@ def register_elements(
                      c_bar * np.sqrt(mu * (mu + 1)) / np.sqrt(np.maximum(r2, 1e-12)) - mu))
         w = np.clip(w, 0.0, 1.0) * valid
         J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])
-        H = (J * w[:, None]).T @ J + 1e-6 * np.eye(3)
-        g = (J * w[:, None]).T @ r
+        H = (J * w[:, None]).T @ J / point_sigma_m**2 + H_prior
+        dev = np.r_[delta[:2] - delta0[:2], se2.wrap_angle(delta[2] - delta0[2])]
+        g = (J * w[:, None]).T @ r / point_sigma_m**2 + H_prior @ dev
         step = -np.linalg.solve(H, g)
         delta = se2.compose(step, delta)
         if outer == params.gnc_max_outer or (mu >= 1e2 and np.linalg.norm(step) < 1e-4):
@@ -142,7 +148,7 @@ def register_elements(
     # points of one element share its perception error: count ~2 independent samples per element
     n_eff = 2.0 * element_inlier.sum()
     info = J.T @ J / point_sigma_m**2 * (n_eff / max(len(J), 1))
-    info += np.diag([1 / params.degenerate_sigma_xy_m**2] * 2 + [1 / params.degenerate_sigma_yaw_rad**2])
+    info += np.diag([1 / UNOBSERVED_SIGMA_XY_M**2] * 2 + [1 / UNOBSERVED_SIGMA_YAW_RAD**2])  # invertible only
     return Registration(delta, info, element_inlier, rms, int(sel.sum()))
 
 

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
-from csr_core.bench.runner import Record, scenario_set, simulator_fingerprint
+from csr_core.bench.runner import Record, scenario_set
 from csr_core.bench.tables import table_ablation, table_cost, table_map, table_per_world, table_pose
 
 
@@ -24,6 +24,9 @@ def render_section(
     run_s: float | None = None,
 ) -> str:
     specs = scenario_set(set_name)
+    fingerprints = sorted(
+        {r.scenario_dir.name.split("-sim")[-1] for r in records if "-sim" in r.scenario_dir.name}
+    )
     scen = ", ".join(f"`{s.name}`" for s in specs)
     failed = [r for r in records if not r.ok]
     pipeline_stages = next(
@@ -40,7 +43,7 @@ def render_section(
         f"Measured {datetime.now(UTC):%Y-%m-%d %H:%M} UTC.",
         "",
         f"Set `{set_name}`: {scen} (world-profile-trips x trip length-seed, simulated by `csr simulate`; "
-        f"simulator sources fingerprint `{simulator_fingerprint()}`). "
+        f"simulator sources fingerprint `{', '.join(fingerprints) or 'none (hand-made toy)'}`). "
         "Every method runs as `csr reconstruct SCENARIO --out OUT --method M` in a subprocess and its "
         "`OUT` folder is scored exactly as contract section 6 says (`csr_core/metrics.py`). Summary rows are "
         "means over the scenarios; per-scenario rows below.",

@@ -125,10 +125,11 @@ def simulator_fingerprint() -> str:
     return digest.hexdigest()[:8]
 
 
-def ensure_scenario(spec: ScenarioSpec, cache_dir: Path) -> Path:
+def ensure_scenario(spec: ScenarioSpec, cache_dir: Path, fingerprint: str | None = None) -> Path:
     """The scenario folder for ``spec``, simulated with ``csr simulate`` unless cached (cache key:
     the spec and :func:`simulator_fingerprint`)."""
-    out = cache_dir / (spec.name if spec.world == "toy" else f"{spec.name}-sim{simulator_fingerprint()}")
+    fingerprint = fingerprint or simulator_fingerprint()
+    out = cache_dir / (spec.name if spec.world == "toy" else f"{spec.name}-sim{fingerprint}")
     if (out / "scenario.json").exists() and (out / "truth" / "map.geojson").exists():
         return out
     if out.exists():
@@ -166,6 +167,7 @@ class Record:
     """One method on one scenario: the evaluation and the costs."""
 
     scenario: str
+    scenario_dir: Path
     world: str
     profile: str
     method: str
@@ -245,6 +247,7 @@ def run_method(
         log.error("csr reconstruct --method %s failed on %s: %s", method, scenario_dir.name, run.stderr_tail)
     return Record(
         scenario=spec.name if spec else scenario_dir.name,
+        scenario_dir=scenario_dir,
         world=spec.world if spec else scenario_dir.name,
         profile=spec.profile if spec else "",
         method=method,
@@ -272,8 +275,9 @@ def run_bench(
 ) -> list[Record]:
     """Simulate (cached), reconstruct with every method and evaluate. Records in set order."""
     records: list[Record] = []
+    fingerprint = simulator_fingerprint()  # one per bench run, even if the simulator is edited meanwhile
     for spec in scenario_set(set_name):
-        scenario_dir = ensure_scenario(spec, out_root / "scenarios")
+        scenario_dir = ensure_scenario(spec, out_root / "scenarios", fingerprint)
         for method in methods:
             if progress:
                 progress(f"{spec.name}: {method}")

@@ -97,6 +97,9 @@ class SingleTripParams:
     SPLICE_OUTLIER_SIGMAS: float = 3.0
     SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
     SPLICE_CLUSTER_D_M: float = 0.5  # lateral cell of the element clustering inside a track
+    SPLICE_MIXTURE_SIGMA_M: float = 0.35  # lateral spread above which a cluster is split into modes
+    SPLICE_MODE_GAP_M: float = 1.0  # lateral gap between modes of one arclength bin
+    SPLICE_MODE_GATE_M: float = 0.6  # a mode continues the nearest chain within this (per step)
     SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
     SPLICE_ALONG_GUIDE_MIN: float = 0.9  # |d arclength on the path| / chord: element runs along the path
     SPLICE_STRAIGHT_BELOW_M: float = 10.0  # shorter elements (stop lines) spliced on their principal axis

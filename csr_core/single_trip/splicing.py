@@ -69,23 +69,40 @@ def _binned_median(bins: np.ndarray, values: np.ndarray, n_bins: int) -> tuple[n
     return med, counts
 
 
-def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, tangent_m: float = 3.0) -> np.ndarray:
-    """The polyline prolonged straight at both ends by ``length_m`` (tangent over ``tangent_m``)."""
-    if len(line) < 2:
+def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0) -> np.ndarray:
+    """The polyline prolonged at both ends by ``length_m`` along a circular arc with the
+    curvature of its last ``curvature_m`` (a straight line where that is unknown)."""
+    if len(line) < 3:
         return line
     s = _arclength(line)
     if s[-1] < 1e-6:
         return line
     q = np.arange(spacing_m, length_m + 1e-9, spacing_m)
-    i0 = min(int(np.searchsorted(s, tangent_m)), len(line) - 1)
-    i1 = max(int(np.searchsorted(s, s[-1] - tangent_m)) - 1, 0)
-    t0 = line[0] - line[i0]
-    t1 = line[-1] - line[i1]
-    t0 /= max(np.linalg.norm(t0), 1e-12)
-    t1 /= max(np.linalg.norm(t1), 1e-12)
-    head = line[0] + q[::-1, None] * t0
-    tail = line[-1] + q[:, None] * t1
-    return np.vstack([head, line, tail])
+
+    def arc(end: np.ndarray, before: np.ndarray, span: float, head_prev: float) -> np.ndarray:
+        t = end - before
+        head = float(np.arctan2(t[1], t[0]))
+        kappa = float(np.angle(np.exp(1j * (head - head_prev)))) / max(span, 1e-6)
+        kappa = float(np.clip(kappa, -0.1, 0.1))  # radius at least 10 m
+        th = head + kappa * q
+        if abs(kappa) < 1e-6:
+            return end + q[:, None] * np.array([np.cos(head), np.sin(head)])
+        return end + np.column_stack([(np.sin(th) - np.sin(head)) / kappa, -(np.cos(th) - np.cos(head)) / kappa])
+
+    def heading(i: int, j: int) -> float:
+        t = line[j] - line[i]
+        return float(np.arctan2(t[1], t[0]))
+
+    n = len(line)
+    span = min(curvature_m, s[-1] / 2)
+    # tail: heading over the last segment vs the heading span metres earlier
+    i_span = max(int(np.searchsorted(s, s[-1] - span)) - 1, 0)
+    tail = arc(line[-1], line[-2], s[-1] - s[i_span + 1] if i_span + 1 < n - 1 else span,
+               heading(i_span, i_span + 1))
+    # head: the same on the reversed line
+    j_span = min(int(np.searchsorted(s, span)) + 1, n - 1)
+    head = arc(line[0], line[1], s[j_span - 1] if j_span - 1 > 0 else span, heading(j_span, j_span - 1))
+    return np.vstack([head[::-1], line, tail])
 
 
 def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
@@ -233,8 +250,15 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         s, d = _project(points_w, guide)
         labels = _cluster_sd(s, d, params)
         out = []
+        groups = []
         for lab in np.unique(labels):
             sel = np.flatnonzero(labels == lab)
+            if len(sel) > 10 and _mixture_sigma(s[sel], d[sel], bin_m) > params.SPLICE_MIXTURE_SIGMA_M:
+                sub = split_modes(s[sel], d[sel], params)
+                groups.extend(sel[sub == k] for k in np.unique(sub[sub >= 0]))
+            else:
+                groups.append(sel)
+        for sel in groups:
             if len(np.unique(obs_id[sel])) < params.TRACK_MIN_FRAMES:
                 continue
             if _runs_along(s[sel], points_w[sel], obs_id[sel]) >= params.SPLICE_ALONG_GUIDE_MIN:
@@ -244,6 +268,58 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
                 out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original))
         return out
     return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original)
+
+
+def _mixture_sigma(s: np.ndarray, d: np.ndarray, bin_m: float) -> float:
+    """Robust spread (m) of lateral offsets around their per-bin median: large for a cluster that
+    mixes elements (a Y where a connector leaves a lane)."""
+    bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
+    med, _ = _binned_median(bins, d, int(bins.max()) + 1)
+    return 1.4826 * float(np.median(np.abs(d - med[bins])))
+
+
+def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.ndarray:
+    """Labels (P,) separating elements that share cells (a Y): per arclength bin the lateral
+    offsets are split into modes at gaps wider than ``SPLICE_MODE_GAP_M``; modes are chained
+    along arclength to the nearest chain within ``SPLICE_MODE_GATE_M`` (a 1-D tracker along s);
+    a mode that finds no chain starts one. -1: points of modes too small to count."""
+    bin_m = params.SPLICE_BIN_M
+    bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
+    order = np.lexsort((d, bins))
+    b_sorted, d_sorted = bins[order], d[order]
+    new_bin = np.r_[True, b_sorted[1:] != b_sorted[:-1]]
+    gap = np.r_[True, np.diff(d_sorted) > params.SPLICE_MODE_GAP_M]
+    mode_start = np.flatnonzero(new_bin | gap)
+    mode_end = np.r_[mode_start[1:], len(order)]
+    mode_bin = b_sorted[mode_start]
+    mode_d = np.array([np.median(d_sorted[a:b]) for a, b in zip(mode_start, mode_end, strict=True)])
+    mode_n = mode_end - mode_start
+    max_gap_bins = params.SPLICE_MAX_GAP_M / bin_m
+    chains_d: list[float] = []
+    chains_bin: list[int] = []
+    mode_chain = np.full(len(mode_start), -1)
+    for m in range(len(mode_start)):
+        if mode_n[m] < 2:
+            continue
+        best, best_dist = -1, params.SPLICE_MODE_GATE_M
+        for c in range(len(chains_d)):
+            if mode_bin[m] - chains_bin[c] > max_gap_bins or chains_bin[c] == mode_bin[m]:
+                continue
+            dist = abs(mode_d[m] - chains_d[c])
+            if dist < best_dist:
+                best, best_dist = c, dist
+        if best < 0:
+            chains_d.append(float(mode_d[m]))
+            chains_bin.append(int(mode_bin[m]))
+            best = len(chains_d) - 1
+        else:
+            chains_d[best] = float(mode_d[m])
+            chains_bin[best] = int(mode_bin[m])
+        mode_chain[m] = best
+    labels_sorted = np.repeat(mode_chain, mode_n)
+    labels = np.empty(len(s), dtype=np.int64)
+    labels[order] = labels_sorted
+    return labels
 
 
 def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
