@@ -204,8 +204,8 @@ def build_dash_map(dashes: Sequence[DashEnds], poses: Sequence[np.ndarray]) -> D
 
 def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, dmap: DashMap,
                         exclude_owner: int, gate_m: float):
-    """Nearest same-kind dash end of another trip within ``gate_m``: foot, along-dash unit
-    normal (the residual direction), validity."""
+    """The same dash end as seen by the other trips (same kind, within ``gate_m``): foot (their
+    mean, each trip weighted equally), along-dash unit normal (the residual direction), validity."""
     n = len(points_world)
     foot, normal, valid = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n, bool)
     if n == 0:
@@ -218,12 +218,17 @@ def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, d
         k = min(DASH_CANDIDATES, len(idx))  # one dash end is seen in ~10 frames of each trip
         dist, cand = tree.query(points_world[sel], k=k)
         dist, cand = dist.reshape(len(sel), k), idx[cand.reshape(len(sel), k)]
-        dist = np.where(dmap.owner[cand] == exclude_owner, np.inf, dist)
-        best = np.argmin(dist, axis=1)
-        rows = np.arange(len(sel))
-        foot[sel] = dmap.points_xy[cand[rows, best]]
+        own = dmap.owner[cand]
+        ok = (own != exclude_owner) & (dist <= gate_m)
+        # the foot is the mean over the other trips (each trip weighted equally), not the nearest
+        # copy: the nearest copy is biased towards trips that share this trip's error
+        same = (own[:, :, None] == own[:, None, :]) & ok[:, None, :]
+        w = np.where(ok, 1.0 / np.maximum(same.sum(axis=2), 1), 0.0)
+        wsum = w.sum(axis=1)
+        pts = dmap.points_xy[cand]
+        foot[sel] = (w[:, :, None] * pts).sum(axis=1) / np.maximum(wsum, 1e-12)[:, None]
         normal[sel] = axis[sel]
-        valid[sel] = dist[rows, best] <= gate_m
+        valid[sel] = wsum > 0
     return foot, normal, valid
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,7 @@ __all__ = ["DEFAULT", "SingleTripParams", "bev_range_m", "reconstruct_trip"]
 def bev_range_m(trip, quantile: float = 0.002) -> tuple[float, float, float, float]:
     """(x_min, x_max, y_min, y_max) of the perception range in the vehicle frame: from
     ``sensor_setup.bev_range_m`` when the vehicle states it, else from the detections."""
-    rng = trip.sensor_setup.get("bev_range_m") if isinstance(trip.sensor_setup, dict) else None
+    rng: Any = trip.sensor_setup.get("bev_range_m") if isinstance(trip.sensor_setup, dict) else None
     try:
         (x0, x1), (y0, y1) = rng["x"], rng["y"]
         return float(x0), float(x1), float(y0), float(y1)

@@ -85,14 +85,14 @@ def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAU
             p_samples = metrics.sample_features(p_feats)
             d_pred = metrics.distances_to_segments(p_samples, segs)
             d_truth = metrics.distances_to_segments(samples, metrics._segments(metrics._as_chains(p_feats)))
-            hits[etype] += [np.sum(d_pred <= metrics.MATCH_THRESHOLD_M), len(d_pred),
-                            np.sum(d_truth <= metrics.MATCH_THRESHOLD_M), len(d_truth)]
+            hits[etype] += np.array([np.sum(d_pred <= metrics.MATCH_THRESHOLD_M), len(d_pred),
+                                     np.sum(d_truth <= metrics.MATCH_THRESHOLD_M), len(d_truth)], float)
 
     def stats(parts: list[np.ndarray]) -> float:
         a = np.concatenate(parts) if parts else np.zeros(0)
         return float(np.sqrt(np.mean(a * a))) if len(a) else float("nan")
 
-    total = sum(hits.values())
+    total = np.sum(np.stack(list(hits.values())), axis=0)
     je = np.concatenate(jump_err) if jump_err else np.zeros(0)
     return {
         "scenario": meta.name,

@@ -92,8 +92,7 @@ class SingleTripParams:
 
     # --- splicing ------------------------------------------------------------------------------------
     SPLICE_BIN_M: float = 1.0  # arclength bins of the robust lateral profile
-    SPLICE_SMOOTH_SIGMA_M: float = 2.0
-    SPLICE_BACKBONE_SMOOTH_M: float = 4.0  # Gaussian smoothing of the first (raw) backbone  # Gaussian smoothing of the lateral profile along arclength
+    SPLICE_SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the lateral profile along arclength
     SPLICE_OUTLIER_SIGMAS: float = 3.0
     SPLICE_MAX_GAP_M: float = 15.0  # unsupported arclength spanned (dash gaps); longer gaps split
     SPLICE_CLUSTER_D_M: float = 0.5  # lateral cell of the element clustering inside a track

@@ -365,17 +365,16 @@ class _NodeGraph:
         lever = self.node_T_fix[gnss_idx]
         z = self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
                                                       s * lever[:, 0] + c * lever[:, 1]])
-        if kernel == "huber":
-            est = gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS)
-        else:
-            est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS)
+        est: gtsam.noiseModel.mEstimator.Base = (
+            gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS) if kernel == "huber"
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
         for zi, t in zip(z, gnss_idx, strict=True):
             base = gtsam.noiseModel.Isotropic.Sigma(2, float(self.factor_sigma[t]))
             g.add(gtsam.PoseTranslationPrior2D(int(self.node_of[t]), zi, gtsam.noiseModel.Robust.Create(est, base)))
         head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
         head_base = gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD)
-        for k in np.flatnonzero(np.isfinite(self.node_heading)):
-            g.add(gtsam.PoseRotationPrior2D(int(k), gtsam.Rot2(float(self.node_heading[k])),
+        for node in np.flatnonzero(np.isfinite(self.node_heading)):
+            g.add(gtsam.PoseRotationPrior2D(int(node), gtsam.Rot2(float(self.node_heading[node])),
                                             gtsam.noiseModel.Robust.Create(head_est, head_base)))
         return g
 

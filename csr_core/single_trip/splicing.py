@@ -250,7 +250,7 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         s, d = _project(points_w, guide)
         labels = _cluster_sd(s, d, params)
         out = []
-        groups = []
+        groups: list[np.ndarray] = []
         for lab in np.unique(labels):
             sel = np.flatnonzero(labels == lab)
             if len(sel) > 10 and _mixture_sigma(s[sel], d[sel], bin_m) > params.SPLICE_MIXTURE_SIGMA_M:
