@@ -88,3 +88,17 @@ def polyline_length_m(points_xy_m: np.ndarray) -> float:
     if len(points_xy_m) < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(points_xy_m, axis=0), axis=1).sum())
+
+
+REGION_FRAME_ZOOM = 10  # ~40 km tiles: every trip starting in one shares that tile's frame
+
+
+def region_frame_for(lonlat_deg, zoom: int = REGION_FRAME_ZOOM) -> LocalFrame:
+    """The deterministic world frame of a region: a ``LocalFrame`` whose origin is the centre of
+    the web-mercator XYZ tile at ``zoom`` containing the point ``lonlat_deg (2,)`` (lon, lat
+    degrees). Trips that start in the same tile get the same frame, whatever else they cover."""
+    lon, lat = (float(v) for v in np.asarray(lonlat_deg, float).reshape(2))
+    ((_, x, y),) = tiles_touched(np.array([[lon, lat]]), zoom=zoom)
+    # the tile's centre in web-mercator (the mean of its edge latitudes would be off-centre)
+    centre = mercantile.ul(x + 0.5, y + 0.5, zoom)
+    return LocalFrame(origin_lat=float(centre.lat), origin_lon=float(centre.lng))

@@ -1,10 +1,9 @@
 """The whole reconstruction in one process (``csr reconstruct``, contract section 4).
 
 :func:`reconstruct` is the project's pipeline written as a recipe, one comment per stage of the
-paper (section III): smooth, split, associate, optimize, refine, fuse, validate. Stages that do
-not exist yet are not there yet; until they are, the recipe falls back to the GNSS-only
-baseline for poses and the baselines' naive fusion for the map, and says so in
-``diagnostics["stages"]``.
+paper (section III): smooth (``single_trip``), split / associate / optimize / refine
+(``alignment``: coarse sub-map and fine frame-level alignment), fuse and validate (``topology``).
+``diagnostics["stages"]`` lists the stages that ran.
 
 The same entry point runs the benchmark's baselines (``Method.GNSS_ONLY``, ``Method.ROADMAP_ICP``)
 and the ablation of Table I (``coarse`` / ``fine`` flags) so every column of the benchmark goes
@@ -17,17 +16,22 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
-from enum import StrEnum
+import dataclasses
+from dataclasses import dataclass, replace
+from enum import Enum, StrEnum
 
 import numpy as np
 
-from csr_core.baselines.gnss_only import gnss_only_poses, reconstruct_gnss_only
-from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M, fuse_naively
+from csr_core.baselines.gnss_only import reconstruct_gnss_only
+from csr_core.alignment import DEFAULT as ALIGNMENT_DEFAULT
+from csr_core.alignment import align_trips
+from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M
 from csr_core.baselines.roadmap_icp import CHUNK_LENGTH_M, reconstruct_roadmap_icp
 from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame
-from csr_core.types import Reconstruction, Trip
+from csr_core.single_trip import reconstruct_trip
+from csr_core.topology import generate_topology, reposition_instances
+from csr_core.types import Reconstruction, Trip, TripReconstruction
 
 log = logging.getLogger(__name__)
 
@@ -74,38 +78,57 @@ def reconstruct(trips: Sequence[Trip], params: PipelineParams = PipelineParams()
 def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelineParams) -> Reconstruction:
     stages: list[str] = []
     timings_s: dict[str, float] = {}
-    t0 = time.perf_counter()
+    failed: dict[str, str] = {}
+    clock = time.perf_counter()
 
-    # 1. smooth: single-trip pose graph + element tracking (paper III-C, Eq. 2).
-    #    Not wired yet: raw GNSS poses (outages bridged by odometry) stand in.
-    #    Plug-in: for each trip, recon = csr_core.single_trip.reconstruct_trip(trip, frame) (a
-    #    ReconstructionError -> failed[trip.key] = str(exc)); poses_by_key from recon.poses_xyyaw_world;
-    #    stages.append("single_trip").
-    poses_by_key, failed = gnss_only_poses(trips, frame)
-    stages.append("gnss_poses")
-    timings_s["smooth"] = time.perf_counter() - t0
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings_s[stage] = timings_s.get(stage, 0.0) + now - clock
+        clock = now
 
-    # 2. split: sub-maps per trip (III-D-1, Fig. 4).            -- not there yet
-    # 3. associate: sub-map matching pairs across trips.        -- not there yet
-    # 4. optimize: coarse incremental pose graph (Eq. 9-12), if params.coarse.  -- not there yet
-    # 5. refine: fine, frame-level alignment, if params.fine.  -- not there yet
-    #    Plug-in (2-5 in one call): result = csr_core.alignment.align_trips(trip_recons,
-    #    params=dataclasses.replace(AlignmentParams(), coarse=params.coarse, fine=params.fine));
-    #    poses_by_key = result.poses_xyyaw_world; failed |= result.failed; append "coarse" and/or
-    #    "fine" to stages: with both in a full run, `csr bench` also runs the Table I ablation.
+    # 1. smooth: single-trip pose graph, keyframes, element tracking and splicing (III-C, Eq. 2)
+    recons: list[TripReconstruction] = []
+    for trip in trips:
+        try:
+            recons.append(reconstruct_trip(trip, frame))
+        except ReconstructionError as exc:
+            failed[trip.key] = f"single-trip reconstruction: {exc}"
+    stages.append("single_trip")
+    lap("smooth")
+    if not recons:
+        raise ReconstructionError("no trip could be reconstructed: " + "; ".join(failed.values()))
+    poses_by_key = {r.trip.key: r.poses_xyyaw_world for r in recons}
 
-    # 6. fuse: map elements from the aligned trips (III-E). Naive fusion until the fuse stage exists.
-    t1 = time.perf_counter()
-    features = fuse_naively(trips, poses_by_key, params.keyframe_spacing_m)
-    stages.append("naive_fusion")
-    timings_s["fuse"] = time.perf_counter() - t1
+    # 2.-5. split, associate, optimize (coarse, Eq. 3-12) and refine (fine): multi-trip alignment
+    alignment = None
+    if params.coarse or params.fine:
+        alignment = align_trips(recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine))
+        poses_by_key = dict(alignment.poses_xyyaw_world)
+        failed.update(alignment.failed)
+        stages += [s for s, on in (("coarse", params.coarse), ("fine", params.fine)) if on]
+        lap("align")
+    aligned = [r for r in recons if r.trip.key in poses_by_key]
 
-    # 7. validate: automatic validation of alignment and map.   -- not there yet
+    # 6. fuse: instances of all trips moved with their alignment, matched and fused (III-E)
+    instances = {r.trip.key: reposition_instances(r.instances, r.poses_xyyaw_world, poses_by_key[r.trip.key])
+                 for r in aligned}
+    topology = generate_topology(
+        instances, {r.trip.key: r.noise for r in aligned},
+        trip_times={r.trip.key: r.trip.started_at for r in aligned},
+        match_pairs=alignment.match_pairs if alignment is not None else (),
+        paths_xy_per_trip={k: p[:, :2] for k, p in poses_by_key.items()},
+    )
+    stages.append("topology")
+    lap("fuse")
+
+    # 7. validate: the flags and tile quality travel with the map (properties, diagnostics)
+    stages.append("validation")
     return Reconstruction(
         origin_lat=frame.origin_lat,
         origin_lon=frame.origin_lon,
         poses_xyyaw_world=poses_by_key,
-        map_features=features,
+        map_features=tuple(topology.features),
         failed=failed,
         diagnostics={
             "method": Method.PIPELINE.value,
@@ -113,5 +136,23 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "timings_s": timings_s,
             "coarse": params.coarse,
             "fine": params.fine,
+            "match_pairs": len(alignment.match_pairs) if alignment is not None else 0,
+            "tile_quality": _jsonable(topology.tile_quality),
+            "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
         },
     )
+
+
+def _jsonable(value):
+    """Dataclasses / numpy scalars -> plain JSON values (the report is written as JSON)."""
+    if dataclasses.is_dataclass(value):
+        return _jsonable(dataclasses.asdict(value))
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Enum):
+        return value.value
+    return value

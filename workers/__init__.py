@@ -1,2 +1,6 @@
-"""Job execution: the Celery app and tasks (distributed), the in-process pool (embedded) and the
-outbox relay. Tasks are thin: they take a job id and call :mod:`workers.jobs`."""
+"""Celery app and tasks: thin adapters (load -> csr_core -> persist)."""
+
+import os
+
+# One BLAS thread per worker process (see services/cli/__init__.py): set before numpy loads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

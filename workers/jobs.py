@@ -6,7 +6,10 @@ or duplicated message never counts twice. A bad input fails the job (recorded on
 database outage (``OperationalError``) propagates so that the runner retries the job.
 
 - ``ingest_trip``: decode the stored upload (csr_core), compute the GNSS track, its length and
-  the tiles it touches, mark those tiles dirty.
+  the tiles it touches, run single-trip reconstruction (``csr_core.single_trip``) in the trip's
+  region frame, store its result (``trip_reconstructions``, upserted per algorithm version) and
+  mark the tiles dirty. A trip that cannot be reconstructed fails with the reason. The same job
+  recomputes a trip from its kept upload (``csr reprocess``).
 - ``align_tile``: PLACEHOLDER until the alignment issue lands. It takes the tile's unprocessed
   trips, records that this job processed them and clears the dirty flag. It does not align
   anything: trips stay ``processing`` and ``GET /v1/trips/{id}/poses`` answers 409.
@@ -19,6 +22,7 @@ import logging
 import time
 from dataclasses import dataclass
 from datetime import UTC
+from typing import Any
 
 import numpy as np
 import orjson
@@ -26,10 +30,13 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
-from csr_core.geo import LocalFrame, polyline_length_m, tiles_touched
+from csr_core.errors import ReconstructionError
+from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for, tiles_touched
+from csr_core.single_trip import reconstruct_trip
 from csr_core.upload import decode_trip
 from services.db import repo
 from services.db.models import DirtyTile, Trip, TripTile, ewkt_linestring, utcnow
+from services.reconstructions import row_values
 from services.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -44,6 +51,7 @@ class IngestResult:
     length_km: float
     track_ewkt: str
     tiles: list[tuple[int, int, int]]
+    reconstruction: dict[str, Any]  # trip_reconstructions columns (services.reconstructions)
 
 
 def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: str) -> str:
@@ -130,10 +138,16 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
         lonlat_deg = np.repeat(lonlat_deg, 2, axis=0)
     frame = LocalFrame.around(lonlat_deg)
     length_m = polyline_length_m(frame.to_local(lonlat_deg))
+    region = region_frame_for(lonlat_deg[0])  # the first fix's region: shared by the trips around it
+    try:  # single-trip reconstruction (paper III-C)
+        reconstruction = reconstruct_trip(trip, region)
+    except ReconstructionError as exc:  # the input, not a transient fault: fail, do not retry
+        raise JobFailed(f"single-trip reconstruction failed: {exc}") from exc
     return IngestResult(
         length_km=length_m / 1000.0,
         track_ewkt=ewkt_linestring(lonlat_deg),
         tiles=tiles_touched(lonlat_deg, zoom=zoom),
+        reconstruction=row_values(reconstruction, region),
     )
 
 
@@ -142,8 +156,9 @@ def _persist_ingest(session: Session, trip_pk: str, result: IngestResult) -> Non
     if trip is None:
         raise JobFailed(f"trip {trip_pk} does not exist")
     trip.length_km, trip.track, trip.updated_at = result.length_km, result.track_ewkt, utcnow()
-    if trip.status == "received":
-        trip.status = "processing"
+    if trip.status in ("received", "failed"):  # failed: reprocessed after a fix
+        trip.status, trip.error = "processing", None
+    repo.upsert_reconstruction(session, trip_pk=trip_pk, values=result.reconstruction)
     repo.set_trip_tiles(session, trip_pk=trip_pk, tiles=result.tiles)
     repo.mark_tiles_dirty(session, tiles=result.tiles)
 

@@ -22,7 +22,7 @@ from csr_core.geo import LocalFrame
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
-from csr_core.single_trip.pose_graph import smooth_poses
+from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
 from csr_core.single_trip.tracking import densify_flat, track_elements
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
@@ -84,8 +84,12 @@ def _style(styles: list) -> DividerStyle | None:
     return DividerStyle.UNKNOWN if any(s is not None for s in styles) else None
 
 
-def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT) -> TripReconstruction:
+def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT,
+                     smoothed: SmoothedPoses | None = None) -> TripReconstruction:
     """Single-trip reconstruction of ``trip`` in the world frame ``frame`` (paper III-C).
+
+    ``smoothed`` replaces the pose smoothing of step 2 with given poses (for evaluating the
+    element stages in isolation, e.g. on true poses); normally it is computed here.
 
     Returns smoothed world_T_vehicle poses of every frame (Eq. 2) with marginal sigmas,
     keyframes, trip-level instances and per-type noise (lateral/along sigma, metres).
@@ -95,8 +99,9 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # 1. GNSS into the local plane (status none rows carry no fix)
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
     # 2. pose smoothing, Eq. 2
-    smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.gnss_status, trip.gnss_std_m,
-                            trip.gnss_heading_deg, trip.odom_xyyaw, params)
+    if smoothed is None:
+        smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.gnss_status, trip.gnss_std_m,
+                                trip.gnss_heading_deg, trip.odom_xyyaw, params)
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]
     t_pose = time.perf_counter()

@@ -26,7 +26,6 @@ import pickle
 import time
 from dataclasses import replace
 from pathlib import Path
-from unittest import mock
 
 import numpy as np
 
@@ -68,8 +67,7 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
         if poses == "truth":
             n = len(true_poses)
             fixed = SmoothedPoses(true_poses, np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))
-            with mock.patch.object(single_trip, "smooth_poses", lambda *a, _p=fixed, **k: _p):
-                rec = single_trip.reconstruct_trip(trip, frame)
+            rec = single_trip.reconstruct_trip(trip, frame, smoothed=fixed)
         else:
             rec = single_trip.reconstruct_trip(trip, frame)
         recs.append(rec)

@@ -3,13 +3,20 @@ exposes ``register(subparsers)``; heavy imports happen inside the command, not a
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import logging
-import sys
+import os
+
+# One BLAS thread per process, before numpy is first imported: on small matrices (RRWM affinity,
+# gtsam) OpenBLAS's thread hand-off made timings erratic and slower on 2 cores
+# (shared/LIBRARY-NOTES.md, pygmtools). Parallelism comes from processes (workers, trips).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
 
 # module name -> owns these subcommands
-_COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest")
+_COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest", "reprocess")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,6 +10,7 @@ from datetime import UTC, datetime
 
 from geoalchemy2 import Geometry
 from sqlalchemy import (
+    JSON,
     DateTime,
     Float,
     ForeignKey,
@@ -89,6 +90,34 @@ class TripUpload(Base):
     trip_pk: Mapped[str] = mapped_column(ForeignKey("trips.id", ondelete="CASCADE"), primary_key=True)
     encoding: Mapped[str] = mapped_column(String(16), default="gzip")
     body: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class TripReconstructionRecord(Base):
+    """Single-trip reconstruction of one trip (csr_core.single_trip) by one algorithm version,
+    recomputable from the raw upload. Poses and instance points are metres in the trip's region
+    frame: the local transverse Mercator (``csr_core.geo.LocalFrame``) at ``origin_lat/lon``, the
+    centre of the zoom-10 web-mercator tile of the trip's first fix (``region_frame_for``).
+
+    ``arrays``: ``np.savez_compressed`` bytes with ``poses_xyyaw_world (N, 3)``,
+    ``pose_sigma_xy_m (N,)``, ``keyframe_indices (K,)`` and ``gnss_inlier (N,)`` (see
+    ``services.reconstructions``). ``instances``: ``[{"type", "style", "points_xy", "n_observations",
+    "first_frame", "last_frame"}]``; ``noise``: ``{type: {"lateral_sigma_m", "along_sigma_m",
+    "n_samples"}}``."""
+
+    __tablename__ = "trip_reconstructions"
+
+    trip_pk: Mapped[str] = mapped_column(ForeignKey("trips.id", ondelete="CASCADE"), primary_key=True)
+    algorithm_version: Mapped[str] = mapped_column(String(32), primary_key=True)
+    origin_lat: Mapped[float] = mapped_column(Float)
+    origin_lon: Mapped[float] = mapped_column(Float)
+    n_frames: Mapped[int] = mapped_column(Integer)
+    n_keyframes: Mapped[int] = mapped_column(Integer)
+    n_instances: Mapped[int] = mapped_column(Integer)
+    arrays: Mapped[bytes] = mapped_column(LargeBinary)
+    instances: Mapped[list] = mapped_column(JSON)
+    noise: Mapped[dict] = mapped_column(JSON)
+    diagnostics: Mapped[dict] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
 class TripTile(Base):

@@ -9,13 +9,23 @@ import secrets
 import uuid
 from collections.abc import Iterable, Sequence
 from datetime import datetime, timedelta
+from typing import Any
 
 from sqlalchemy import case, delete, func, or_, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session
 
-from services.db.models import ApiKey, DirtyTile, Job, Trip, TripTile, TripUpload, utcnow
+from services.db.models import (
+    ApiKey,
+    DirtyTile,
+    Job,
+    Trip,
+    TripReconstructionRecord,
+    TripTile,
+    TripUpload,
+    utcnow,
+)
 
 ROLES = ("vehicle", "reader", "admin")
 BOOTSTRAP_ADMIN_ID = "admin-bootstrap"
@@ -150,6 +160,79 @@ def mark_tiles_dirty(session: Session, *, tiles: Sequence[tuple[int, int, int]])
         [{"z": z, "x": x, "y": y, "first_marked_at": now, "last_marked_at": now} for z, x, y in tiles]
     )
     session.execute(stmt.on_conflict_do_update(index_elements=["z", "x", "y"], set_={"last_marked_at": now}))
+
+
+# --- single-trip reconstructions -------------------------------------------------------------
+
+
+def upsert_reconstruction(session: Session, *, trip_pk: str, values: dict[str, Any]) -> None:
+    """Write the trip's reconstruction for ``values["algorithm_version"]``, replacing an earlier
+    one of that version (a re-run or re-delivered job leaves exactly one row)."""
+    row = {**values, "trip_pk": trip_pk, "created_at": utcnow()}
+    stmt = _insert(session)(TripReconstructionRecord).values(row)
+    session.execute(
+        stmt.on_conflict_do_update(
+            index_elements=["trip_pk", "algorithm_version"],
+            set_={k: v for k, v in row.items() if k not in ("trip_pk", "algorithm_version")},
+        )
+    )
+
+
+def get_reconstruction(
+    session: Session, *, trip_pk: str, algorithm_version: str
+) -> TripReconstructionRecord | None:
+    return session.get(TripReconstructionRecord, (trip_pk, algorithm_version))
+
+
+def reconstruction_summary(
+    session: Session, *, trip_pk: str, algorithm_version: str
+) -> dict[str, Any] | None:
+    """The small columns of the trip's reconstruction (not the pose blob nor the instance points)."""
+    r = TripReconstructionRecord
+    row = session.execute(
+        select(
+            r.algorithm_version,
+            r.origin_lat,
+            r.origin_lon,
+            r.n_frames,
+            r.n_keyframes,
+            r.n_instances,
+            r.noise,
+            r.created_at,
+        ).where(r.trip_pk == trip_pk, r.algorithm_version == algorithm_version)
+    ).one_or_none()
+    return None if row is None else row._asdict()
+
+
+def trips_to_reprocess(session: Session, *, missing_version: str | None = None) -> list[str]:
+    """Ids of the trips with a stored upload (all, or those without a reconstruction of
+    ``missing_version``), oldest first."""
+    stmt = select(Trip.id).join(TripUpload, TripUpload.trip_pk == Trip.id).order_by(Trip.received_at, Trip.id)
+    if missing_version is not None:
+        stmt = stmt.where(
+            ~select(TripReconstructionRecord.trip_pk)
+            .where(
+                TripReconstructionRecord.trip_pk == Trip.id,
+                TripReconstructionRecord.algorithm_version == missing_version,
+            )
+            .exists()
+        )
+    return list(session.scalars(stmt))
+
+
+def schedule_reprocess(session: Session, *, trip_pks: Sequence[str]) -> list[Job]:
+    """An ingest job (the outbox row) for each trip that has no ingest job queued or running
+    yet: it recomputes the trip from its kept upload."""
+    busy = set(
+        session.scalars(
+            select(Job.subject).where(
+                Job.kind == "ingest_trip", Job.subject.in_(trip_pks), Job.state.in_(("queued", "running"))
+            )
+        )
+    )
+    return [
+        add_job(session, kind="ingest_trip", subject=pk) for pk in dict.fromkeys(trip_pks) if pk not in busy
+    ]
 
 
 # --- jobs ---------------------------------------------------------------------------------------

@@ -74,7 +74,16 @@ def example_doc(**overrides: Any) -> dict[str, Any]:
 
 
 def unique_trip(vehicle_id: str = "veh-0001") -> dict[str, Any]:
+    """The contract example under a new ``trip_id``: 1 s of a standing vehicle, valid as an upload
+    but not reconstructable (single-trip reconstruction cannot orient it: its ingest fails)."""
     return example_doc(vehicle_id=vehicle_id, trip_id="t-" + secrets.token_hex(6))
+
+
+def moving_trip(vehicle_id: str = "veh-0001", length_m: float = 150.0) -> dict[str, Any]:
+    """A short generated drive (straight, 10 Hz, four elements per frame) whose ingest succeeds."""
+    from services.cli.bench_ingest import straight_trip
+
+    return straight_trip(vehicle_id=vehicle_id, trip_id="m-" + secrets.token_hex(6), length_m=length_m)
 
 
 # --- PostgreSQL ---------------------------------------------------------------------------------

@@ -14,7 +14,16 @@ from tests.integration.conftest import BIN, REPO, Deployment, PgDatabases, base_
 
 pytestmark = pytest.mark.integration
 
-TABLES = {"alembic_version", "api_keys", "trips", "trip_uploads", "trip_tiles", "dirty_tiles", "jobs"}
+TABLES = {
+    "alembic_version",
+    "api_keys",
+    "trips",
+    "trip_uploads",
+    "trip_tiles",
+    "dirty_tiles",
+    "jobs",
+    "trip_reconstructions",
+}
 
 
 def test_serve_on_a_fresh_data_dir_generates_a_private_admin_key(tmp_path: Path):

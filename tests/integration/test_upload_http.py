@@ -39,7 +39,8 @@ def test_the_contract_example_is_accepted_with_202_and_location(deployment: Depl
     assert response.headers["location"] == f"/v1/trips/{body['id']}"
     with deployment.admin() as http:
         trip = http.get(response.headers["location"]).json()
-    assert trip["id"] == body["id"] and trip["status"] in ("received", "processing")
+    # the example is 1 s of a standing vehicle: its ingest may already have failed (nothing to orient)
+    assert trip["id"] == body["id"] and trip["status"] in ("received", "processing", "failed")
 
 
 def test_the_verbatim_example_file_is_accepted(deployment: Deployment):

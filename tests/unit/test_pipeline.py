@@ -29,8 +29,12 @@ def test_every_method_returns_poses_for_every_frame(method):
 def test_the_pipeline_reports_which_stages_ran():
     trips, *_ = make_toy_trips(SPEC)
     recon = reconstruct(trips, PipelineParams(coarse=False))
-    assert recon.diagnostics["stages"][0] == "gnss_poses"
+    assert recon.diagnostics["stages"] == ["single_trip", "fine", "topology", "validation"]
     assert recon.diagnostics["coarse"] is False and recon.diagnostics["fine"] is True
+    both = reconstruct(trips, PipelineParams())
+    assert both.diagnostics["stages"] == ["single_trip", "coarse", "fine", "topology", "validation"]
+    neither = reconstruct(trips, PipelineParams(coarse=False, fine=False))
+    assert neither.diagnostics["stages"] == ["single_trip", "topology", "validation"]
 
 
 def test_the_world_frame_comes_from_the_fixes_only():

@@ -17,6 +17,7 @@ from services.api.errors import ApiError, as_api_error
 from services.auth import may_read_trip
 from services.db import repo
 from services.db.models import Trip
+from services.reconstructions import ALGORITHM_VERSION
 from services.uploads import accept_upload
 
 router = APIRouter(prefix="/v1/trips", tags=["trips"])
@@ -29,7 +30,24 @@ def _iso_utc(moment: datetime) -> str:
     return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).isoformat()
 
 
-def trip_json(trip: Trip, *, tiles: list | None = None) -> dict[str, Any]:
+def reconstruction_json(summary: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The single-trip reconstruction's summary (``None`` until the ingest job stored it)."""
+    if summary is None:
+        return None
+    return {
+        "algorithm_version": summary["algorithm_version"],
+        "frame": {"origin_lat": summary["origin_lat"], "origin_lon": summary["origin_lon"]},
+        "frames": summary["n_frames"],
+        "keyframes": summary["n_keyframes"],
+        "instances": summary["n_instances"],
+        "noise": summary["noise"],
+        "created_at": _iso_utc(summary["created_at"]),
+    }
+
+
+def trip_json(
+    trip: Trip, *, tiles: list | None = None, reconstruction: dict[str, Any] | None = None
+) -> dict[str, Any]:
     out: dict[str, Any] = {
         "id": trip.id,
         "vehicle_id": trip.vehicle_id,
@@ -47,6 +65,7 @@ def trip_json(trip: Trip, *, tiles: list | None = None) -> dict[str, Any]:
     if tiles is not None:
         out["tiles"] = [f"{t.z}/{t.x}/{t.y}" for t in tiles]
         out["tiles_pending"] = sum(t.processed_job_id is None for t in tiles)
+        out["reconstruction"] = reconstruction_json(reconstruction)
     return out
 
 
@@ -110,7 +129,8 @@ def _load_trip(session: SessionDep, trip_pk: str) -> Trip:
 def get_trip(trip_pk: str, caller: AnyRole, session: SessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
     may_read_trip(caller, trip.vehicle_id)
-    return trip_json(trip, tiles=repo.tiles_of_trip(session, trip_pk=trip.id))
+    summary = repo.reconstruction_summary(session, trip_pk=trip.id, algorithm_version=ALGORITHM_VERSION)
+    return trip_json(trip, tiles=repo.tiles_of_trip(session, trip_pk=trip.id), reconstruction=summary)
 
 
 @router.get("/{trip_pk}/poses")
