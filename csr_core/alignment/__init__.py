@@ -27,7 +27,7 @@ from csr_core.alignment.association import PairMatch, associate
 from csr_core.alignment.fine import frame_points, frame_residuals, refine_frames
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
-from csr_core.alignment.submaps import Submap, prior_patches, split_submaps, submap_pairs
+from csr_core.alignment.submaps import Submap, prior_patches, reduce_prior_map, split_submaps, submap_pairs
 from csr_core.errors import AlignmentFailed
 from csr_core.types import MapFeature, TripReconstruction
 
@@ -89,6 +89,8 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     if prior_map is not None:
         params = replace(params, prior_map_sigma_xy_m=prior_map.sigma_xy_m,
                          prior_map_sigma_yaw_rad=prior_map.sigma_yaw_rad)
+        # 0. the part of the pre-built map these trips can touch, duplicates removed
+        prior_map = replace(prior_map, features=reduce_prior_map(prior_map.features, trips, params))
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     noise = noise_scales(trips, params)
@@ -125,7 +127,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     # 6. per-frame residuals, failed trips, and the match pairs kept for validation
     residuals = frame_residuals(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
     failed = _failed_trips(trips, submaps, pairs, matches, inlier, prior_map is not None) if params.coarse else {}
-    records = tuple(_record(m, submaps, trips, bool(ok)) for m, ok in zip(matches, inlier))
+    records = tuple(_record(m, submaps, trips, bool(ok)) for m, ok in zip(matches, inlier, strict=False))
     timings["total_s"] = time.perf_counter() - clock
     return AlignmentResult(
         {k: v for k, v in poses.items() if k not in failed}, failed, records, residuals,
@@ -141,7 +143,7 @@ def _failed_trips(trips, submaps, pairs, matches, inlier, has_prior) -> dict[str
     if len(trips) < 2 and not has_prior:
         return {}
     in_pair = {s for p in pairs for s in p}
-    registered = {s for m, ok in zip(matches, inlier) if ok for s in (m.i, m.j)}
+    registered = {s for m, ok in zip(matches, inlier, strict=False) if ok for s in (m.i, m.j)}
     failed = {}
     for k, t in enumerate(trips):
         mine = [s.submap_id for s in submaps if s.trip_index == k]

@@ -15,7 +15,12 @@ import numpy as np
 
 from csr_core import se2
 from csr_core.alignment.graph_matching import (
-    ElementSet, boundary_prealignment, element_distances, eq4_objective, node_similarity, rrwm_match,
+    ElementSet,
+    boundary_prealignment,
+    element_distances,
+    eq4_objective,
+    node_similarity,
+    rrwm_match,
 )
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.alignment.registration import match_confidence, register_elements
@@ -109,7 +114,7 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
     reg = register_elements(a, b, matches, _point_sigma(noise), params, closed, initial)
     if reg is None or reg.residual_rms_m > params.max_registration_rms_k * _point_sigma(noise):
         return None
-    kept = [m for m, ok in zip(matches, reg.element_inlier) if ok]
+    kept = [m for m, ok in zip(matches, reg.element_inlier, strict=False) if ok]
     b_aligned = ElementSet(b.types, tuple(se2.transform_points(reg.delta_xyyaw, p) for p in b.points))
     conf = match_confidence(a, b_aligned, kept, noise, params)
     return PairMatch(
@@ -129,7 +134,7 @@ def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Seque
 
     # 1-2: global topology consistency (Eq. 3) and sliding-window voting
     keep = topology_filter(pairs, submaps, circles, trips, noise, params)
-    candidates = [p for p, ok in zip(pairs, keep) if ok]
+    candidates = [p for p, ok in zip(pairs, keep, strict=False) if ok]
     # 3-4: multi-order graph matching (Eq. 4-6), GNC relative pose, confidence (Eq. 7)
     matched = [m for i, j in candidates
                if (m := match_pair(submaps[i], submaps[j], circles[submaps[i].circle_id], noise, params)) is not None]

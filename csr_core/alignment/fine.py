@@ -83,7 +83,7 @@ def build_segment_maps(elements_by_owner: Mapping[int, Sequence[tuple[ElementTyp
             acc.setdefault(etype, []).append((a, b, np.full(n, owner), first, last))
     out = {}
     for etype, parts in acc.items():
-        a, b, o, f, l_ = (np.concatenate(x) for x in zip(*parts))
+        a, b, o, f, l_ = (np.concatenate(x) for x in zip(*parts, strict=False))
         out[etype] = SegmentMap(a, b, o, f, l_, cKDTree(0.5 * (a + b)))
     return out
 
@@ -190,16 +190,16 @@ def _rotate(poses_xyyaw: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def build_dash_map(dashes: Sequence[DashEnds], poses: Sequence[np.ndarray]) -> DashMap:
     pts, own, kind = [np.zeros((0, 2))], [np.zeros(0, int)], [np.zeros(0, int)]
-    for k, (d, p) in enumerate(zip(dashes, poses)):
+    for k, (d, p) in enumerate(zip(dashes, poses, strict=False)):
         if len(d.frame) == 0:
             continue
         pose = p[d.frame]
         pts.append(_to_world(pose, d.points_xy_vehicle))
         own.append(np.full(len(d.frame), k))
         kind.append(_canonical(_rotate(pose, d.direction_vehicle))[1])
-    P, O, K = np.vstack(pts), np.concatenate(own), np.concatenate(kind)
-    trees = {c: (np.flatnonzero(K == c), cKDTree(P[K == c])) for c in (-1, 1) if np.any(K == c)}
-    return DashMap(P, O, K, trees)
+    xy, owner, kinds = np.vstack(pts), np.concatenate(own), np.concatenate(kind)
+    trees = {c: (np.flatnonzero(kinds == c), cKDTree(xy[kinds == c])) for c in (-1, 1) if np.any(kinds == c)}
+    return DashMap(xy, owner, kinds, trees)
 
 
 def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, dmap: DashMap,

@@ -29,7 +29,6 @@ from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.types import ElementType
 
 
-
 def rrwm(K: np.ndarray, n1: int, n2: int, max_iter: int = 30, sk_iter: int = 6, alpha: float = 0.2,
          beta: float = 30.0) -> np.ndarray:
     """Reweighted random walks for graph matching (Cho et al. 2010), ``(n1, n2)`` soft assignment.
@@ -98,14 +97,14 @@ def overlap_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
         d = principal_direction(pk)
         sk = pk @ d
         lo_k, hi_k = sk.min(), sk.max()
-        for l, pl in enumerate(b.points):
-            if a.types[k] != b.types[l]:
+        for j, pl in enumerate(b.points):
+            if a.types[k] != b.types[j]:
                 continue
             sl = pl @ d
             lo_l, hi_l = sl.min(), sl.max()
             inter = max(0.0, min(hi_k, hi_l) - max(lo_k, lo_l))
             total = (hi_k - lo_k) + (hi_l - lo_l)
-            out[k, l] = 2.0 * inter / total if total > 1e-9 else 1.0
+            out[k, j] = 2.0 * inter / total if total > 1e-9 else 1.0
     return out
 
 
@@ -179,7 +178,7 @@ def rrwm_match(s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: fl
         K *= mask[:, None] * mask[None, :]
         K[np.diag_indices_from(K)] = params.w_node * s.T.reshape(-1) * mask
         r_idx, c_idx = linear_sum_assignment(-rrwm(K, n1, n2, max_iter=params.rrwm_max_iter))  # Hungarian
-        matches = [(int(i), int(j)) for i, j in zip(r_idx, c_idx) if v[i, j]]
+        matches = [(int(i), int(j)) for i, j in zip(r_idx, c_idx, strict=False) if v[i, j]]
     matches = [(int(rows[i]), int(cols[j])) for i, j in matches]
     # greedy pruning: drop a match while that raises the Eq. 4 objective
     best = eq4_objective(matches, s_node, e_a, e_b, sigma_e, params)
@@ -202,7 +201,7 @@ def boundary_prealignment(a: ElementSet, b: ElementSet, direction_xy: np.ndarray
 
     def lateral(es: ElementSet) -> np.ndarray:
         out = []
-        for t, p in zip(es.types, es.points):
+        for t, p in zip(es.types, es.points, strict=False):
             if t == ElementType.ROAD_BOUNDARY:
                 near = p[np.argsort(np.abs(p @ direction_xy))[:5]]  # near the cross-section
                 out.append(float(np.mean(near @ normal)))

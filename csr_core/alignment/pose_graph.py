@@ -114,7 +114,7 @@ def build_factor_graph(
     for k, group in by_trip.items():
         group.sort(key=lambda s: s.anchor_frame)
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
-        for a, b in zip(group[:-1], group[1:]):
+        for a, b in zip(group[:-1], group[1:], strict=False):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
             sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d

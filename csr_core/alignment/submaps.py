@@ -31,6 +31,8 @@ from csr_core.alignment.geometry import arclength_m, resample_polyline
 from csr_core.alignment.params import AlignmentParams
 from csr_core.types import ElementType, MapFeature, TripReconstruction
 
+DUPLICATE_M = 0.75  # pieces of a pre-built map closer than this are one element
+
 
 @dataclass(frozen=True, slots=True)
 class SubmapElement:
@@ -153,7 +155,7 @@ def clip_elements_to_disk(
 ) -> list[tuple[int, np.ndarray, bool]]:
     """Pieces of (resampled) elements inside a disk: ``(element index, points, closed)``."""
     out = []
-    for i, ((pts, closed), etype) in enumerate(zip(prepared, types)):
+    for i, ((pts, closed), etype) in enumerate(zip(prepared, types, strict=False)):
         if len(pts) < 2:
             continue
         lo, hi = pts.min(axis=0), pts.max(axis=0)  # cheap reject by bounding box
@@ -194,7 +196,7 @@ def split_submaps(
     prepared = [_prepared_instances(t, params) for t in trips]
     types = [[inst.type for inst in t.instances] for t in trips]
     submaps: list[Submap] = []
-    for circle, mem in zip(circles, members):
+    for circle, mem in zip(circles, members, strict=False):
         for k in np.unique(graph.trip_index[mem]):
             nodes = mem[graph.trip_index[mem] == k]
             runs = np.split(nodes, np.flatnonzero(np.diff(nodes) > 1) + 1)
@@ -221,6 +223,42 @@ def split_submaps(
                     _limit(elems, params.max_elements_per_submap),
                 ))
     return circles, submaps
+
+
+def reduce_prior_map(features: Sequence[MapFeature], trips: Sequence[TripReconstruction],
+                     params: AlignmentParams, duplicate_m: float = DUPLICATE_M) -> tuple[MapFeature, ...]:
+    """The part of a pre-built map the new trips can touch, with duplicates removed: features
+    outside the trips' bounding box (plus a circle radius and a GNSS margin) are dropped, and
+    the parts of a feature lying within ``duplicate_m`` of a longer kept feature of the same
+    type are cut away. A map handed over unfused (every earlier trip's aligned instances) then
+    matches like a fused one, and the cost of aligning a trip hardly grows with the number of
+    trips that built the map."""
+    xy = np.vstack([t.poses_xyyaw_world[:, :2] for t in trips])
+    margin = params.submap_radius_m + 2 * params.max_prealign_shift_m
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    cand = []
+    for f in features:
+        pts = resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon)
+        if len(pts) and not (np.any(pts.max(axis=0) < lo) or np.any(pts.min(axis=0) > hi)):
+            cand.append((f, pts))
+    cand.sort(key=lambda fp: -arclength_m(fp[1])[-1] if len(fp[1]) > 1 else 0.0)
+    kept: list[MapFeature] = []
+    trees: dict[ElementType, list] = {}
+    for f, pts in cand:
+        covered = np.zeros(len(pts), bool)
+        for tree in trees.get(f.type, []):
+            covered |= tree.query(pts, distance_upper_bound=duplicate_m)[0] < duplicate_m
+        if f.type.is_polygon:
+            if covered.mean() > 0.5:
+                continue
+            runs = [pts]
+        else:
+            runs = [pts[r] for r in np.split(np.arange(len(pts)), np.flatnonzero(np.diff(covered.astype(int))) + 1)
+                    if not covered[r[0]] and len(r) >= 2 and arclength_m(pts[r])[-1] >= params.min_element_length_m]
+        for r in runs:
+            kept.append(MapFeature(f.type, r, f.style, f.feature_id, f.properties))
+            trees.setdefault(f.type, []).append(cKDTree(r))
+    return tuple(kept)
 
 
 def prior_patches(

@@ -24,7 +24,7 @@ def vote_instances(pairs: Sequence[PairMatch]) -> tuple[dict, dict]:
     fwd: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))
     bwd: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))
     for p in pairs:
-        for (a, b), c in zip(p.instance_matches, p.match_confidences):
+        for (a, b), c in zip(p.instance_matches, p.match_confidences, strict=False):
             fwd[a][b] += float(c)
             bwd[b][a] += float(c)
     best_j = {a: max(v, key=v.get) for a, v in fwd.items()}
@@ -45,7 +45,7 @@ def temporal_consistency(matched: Sequence[PairMatch], submaps: Sequence[Submap]
             j_of_instance = {e.instance_index: n for n, e in enumerate(sj.elements)}
             i_of_instance = {e.instance_index: n for n, e in enumerate(si.elements)}
             new, used, changed = [], set(), False
-            for (k, kp), (a, b) in zip(p.element_matches, p.instance_matches):
+            for (k, kp), (a, b) in zip(p.element_matches, p.instance_matches, strict=False):
                 b_hat, a_hat = best_j.get(a), best_i.get(b)
                 # a disagreement counts only when the voted partner is in this sub-map too
                 # (a trip may splice one line into several instances along the road)

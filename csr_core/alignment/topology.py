@@ -45,7 +45,7 @@ def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> 
     crossings: list[float] = []
     boundaries: list[float] = []
     ends = 0
-    for e, pts in zip(submap.elements, pts_world):
+    for e, pts in zip(submap.elements, pts_world, strict=False):
         if e.closed:
             continue
         if e.type in _LINE_TYPES:

@@ -17,6 +17,7 @@ from collections import Counter
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
@@ -24,7 +25,7 @@ from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
-from csr_core.single_trip.tracking import densify_flat, track_elements
+from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, track_elements
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -57,9 +58,18 @@ def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin
 
 
 def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
-                      travel: np.ndarray, box: tuple[float, float, float, float], margin: float) -> float:
+                      box: tuple[float, float, float, float], margin: float,
+                      same_type_w: np.ndarray, same_type_frame: np.ndarray, corroborate_m: float,
+                      enough: float = 1.0) -> float:
     """Tracked frames that saw the element / tracked frames that had it inside the BEV range
-    (shrunk by ``margin``), over the frames whose vehicle is within reach of it."""
+    (shrunk by ``margin``), over the frames whose vehicle is within reach of it.
+
+    A frame whose own detections of the element's type (``same_type_w (P, 2)`` resampled
+    points, ``same_type_frame (P,)`` their tracked-frame index) pass within ``corroborate_m``
+    of it also saw it, even when they went to another track: a road driven twice (out and
+    back, a loop) or an element whose track broke in two is then not taken for a ghost.
+
+    Returns early with a lower bound (seen / all frames near it) once that reaches ``enough``."""
     samples = resample_polyline(points_w, 2.0) if len(points_w) > 1 else points_w
     reach = max(abs(box[0]), abs(box[1]), abs(box[2]), abs(box[3]))
     lo, hi = samples.min(0) - reach, samples.max(0) + reach
@@ -67,14 +77,28 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     cand = np.flatnonzero(((pos >= lo) & (pos <= hi)).all(1))
     if len(cand) == 0:
         return 1.0
-    p = poses[frames[cand]]
+    was_seen = np.isin(cand, seen_frames)
+    n_seen = int(was_seen.sum())
+    if n_seen >= enough * len(cand):
+        return n_seen / len(cand)
+    rest = cand[~was_seen]  # only the frames that did not see it are tested
+    p = poses[frames[rest]]
     c, s = np.cos(p[:, 2])[:, None], np.sin(p[:, 2])[:, None]
-    rel = samples[None, :, :] - p[:, None, :2]
-    xv = c * rel[..., 0] + s * rel[..., 1]
-    yv = -s * rel[..., 0] + c * rel[..., 1]
-    visible = _inside(np.stack([xv, yv], -1), box, margin).any(axis=1)
-    seen = np.isin(cand, seen_frames)
-    return float(seen.sum()) / max(int((visible | seen).sum()), 1)
+    rel_x = samples[None, :, 0] - p[:, 0:1]
+    rel_y = samples[None, :, 1] - p[:, 1:2]
+    x0, x1, y0, y1 = box
+    xv = c * rel_x + s * rel_y
+    yv = -s * rel_x + c * rel_y
+    visible = ((xv >= x0 + margin) & (xv <= x1 - margin) & (yv >= y0 + margin) & (yv <= y1 - margin)).any(1)
+    rest = rest[visible]
+    n_corroborated = 0
+    if len(rest) and len(same_type_w):
+        near = ((same_type_w >= samples.min(0) - corroborate_m) & (same_type_w <= samples.max(0) + corroborate_m)).all(1)
+        if near.any():
+            dense = resample_polyline(points_w, corroborate_m / 2) if len(points_w) > 1 else points_w
+            d, _ = cKDTree(dense).query(same_type_w[near], distance_upper_bound=corroborate_m)
+            n_corroborated = int(np.isin(rest, same_type_frame[near][np.isfinite(d)]).sum())
+    return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
 def _style(styles: list) -> DividerStyle | None:
@@ -120,6 +144,10 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     candidates: list[tuple[TripInstance, np.ndarray, np.ndarray]] = []
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
+    k_pts = pieces.points_w.shape[1]
+    type_points = {t: (pieces.points_w[pieces.type_code == code].reshape(-1, 2),
+                       np.repeat(pieces.frame[pieces.type_code == code], k_pts))
+                   for t, code in TYPE_CODES.items()}
     for track in tracks:
         if len(track.frames) < params.TRACK_MIN_FRAMES:
             n_dropped += 1
@@ -163,8 +191,12 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             if not track.type.is_polygon and length < params.min_length_m(track.type):
                 n_dropped += 1
                 continue
-            ratio = _visibility_ratio(points_w, seen, frames, poses, travel, box, params.BEV_RANGE_MARGIN_M)
+            ratio = _visibility_ratio(points_w, seen, frames, poses, box, params.BEV_RANGE_MARGIN_M,
+                                      *type_points[track.type], params.TRACK_GATE_M,
+                                      enough=params.TRACK_MIN_VISIBILITY_RATIO)
             if ratio < params.TRACK_MIN_VISIBILITY_RATIO:
+                log.debug("dropped %s (%.0f m from %s): visibility %.2f", track.type.value, length,
+                          np.round(points_w[0], 1), ratio)
                 n_dropped += 1
                 continue
             styles = [trip.elements[f][j].style for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
@@ -180,6 +212,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         ref = noise[inst.type]
         if (len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
                 and robust_sigma(lat) > params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m):
+            log.debug("dropped %s from %s: lateral sigma %.2f m vs type %.2f m", inst.type.value,
+                      np.round(inst.points_xy_world[0], 1), robust_sigma(lat), ref.lateral_sigma_m)
             n_dropped += 1
             continue
         lateral.setdefault(inst.type, []).append(lat)

@@ -35,7 +35,19 @@ class SplicedLine:
 
 
 def _arclength(points: np.ndarray) -> np.ndarray:
-    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    out = np.zeros(max(len(points), 1))
+    if len(points) > 1:
+        step = np.diff(points, axis=0)
+        np.cumsum(np.hypot(step[:, 0], step[:, 1]), out=out[1:])
+    return out
+
+
+def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
+    """Unit tangents (B, 2) of a polyline (B >= 2): central differences, one-sided at the ends
+    (as ``np.gradient``)."""
+    tan = np.gradient(backbone, axis=0)
+    norm = np.hypot(tan[:, 0], tan[:, 1])
+    return tan / np.maximum(norm, 1e-12)[:, None]
 
 
 def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -50,12 +62,12 @@ def _project(points: np.ndarray, backbone: np.ndarray) -> tuple[np.ndarray, np.n
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
     sampled backbone (B, 2)."""
     s_b = _arclength(backbone)
-    tan = np.gradient(backbone, axis=0)
-    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    tan = _unit_tangents(backbone)
     _, i = cKDTree(backbone).query(points)
     rel = points - backbone[i]
-    s = s_b[i] + (rel * tan[i]).sum(1)
-    d = tan[i, 0] * rel[:, 1] - tan[i, 1] * rel[:, 0]
+    t = tan[i]
+    s = s_b[i] + rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+    d = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
     return s, d
 
 
@@ -213,8 +225,7 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, backbone: np.
     q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
     q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
     s_b = _arclength(backbone)
-    tan = np.gradient(backbone, axis=0)
-    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    tan = _unit_tangents(backbone)
     dq = np.interp(q, centers, d_s)
     bx, by = np.interp(q, s_b, backbone[:, 0]), np.interp(q, s_b, backbone[:, 1])
     tx, ty = np.interp(q, s_b, tan[:, 0]), np.interp(q, s_b, tan[:, 1])

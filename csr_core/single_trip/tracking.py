@@ -101,26 +101,29 @@ def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: fl
     ``polys (M, K, 2)``, the polyline extended at both ends along its chord (first to last
     point: a noisy end segment of a short dash would swing) by up to ``max_extrapolation_m``;
     farther: ``cap_m``. Returns (M, P)."""
-    a = polys[:, None, :-1, :]  # (M,1,S,2)
-    ab = np.diff(polys, axis=1)[:, None, :, :]
-    p = points[:, :, None, :]  # (M,P,1,2)
-    len2 = np.maximum((ab * ab).sum(-1), 1e-12)
-    t = np.clip(((p - a) * ab).sum(-1) / len2, 0.0, 1.0)  # (M,P,S)
-    diff = p - (a + t[..., None] * ab)
-    d = np.sqrt((diff * diff).sum(-1)).min(-1)  # (M,P)
+    # coordinates kept apart ((M, P, S) arrays, no trailing axis of 2): about twice as fast
+    a = polys[:, :-1, :]  # (M, S, 2) segment starts
+    ab = polys[:, 1:, :] - a
+    inv_len2 = 1.0 / np.maximum(np.einsum("msk,msk->ms", ab, ab), 1e-12)[:, None, :]  # (M, 1, S)
+    bx, by = ab[..., 0][:, None, :], ab[..., 1][:, None, :]
+    rx = points[..., 0][:, :, None] - a[..., 0][:, None, :]  # (M, P, S)
+    ry = points[..., 1][:, :, None] - a[..., 1][:, None, :]
+    t = np.clip((rx * bx + ry * by) * inv_len2, 0.0, 1.0)
+    dx, dy = rx - t * bx, ry - t * by
+    d = np.sqrt((dx * dx + dy * dy).min(-1))  # (M, P)
     chord = polys[:, -1] - polys[:, 0]
-    length = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
-    u = chord / length[:, None]  # (M,2)
-    rel0 = points - polys[:, None, 0]
-    rel1 = points - polys[:, None, -1]
-    along0 = (rel0 * u[:, None]).sum(-1)
-    along1 = (rel1 * u[:, None]).sum(-1)
-    lat0 = np.abs(rel0[..., 0] * u[:, None, 1] - rel0[..., 1] * u[:, None, 0])
-    lat1 = np.abs(rel1[..., 0] * u[:, None, 1] - rel1[..., 1] * u[:, None, 0])
+    length = np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-9)
+    ux, uy = (chord[:, 0] / length)[:, None], (chord[:, 1] / length)[:, None]
+    r0x, r0y = points[..., 0] - polys[:, None, 0, 0], points[..., 1] - polys[:, None, 0, 1]
+    r1x, r1y = points[..., 0] - polys[:, None, -1, 0], points[..., 1] - polys[:, None, -1, 1]
+    along0 = r0x * ux + r0y * uy
+    along1 = r1x * ux + r1y * uy
     before = (along0 < 0) & (along0 >= -max_extrapolation_m)
     after = (along1 > 0) & (along1 <= max_extrapolation_m)
-    d = np.where(before, np.minimum(d, lat0), d)
-    d = np.where(after, np.minimum(d, lat1), d)
+    if before.any():
+        d = np.where(before, np.minimum(d, np.abs(r0x * uy - r0y * ux)), d)
+    if after.any():
+        d = np.where(after, np.minimum(d, np.abs(r1x * uy - r1y * ux)), d)
     return np.minimum(d, cap_m)
 
 

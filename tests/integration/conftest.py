@@ -80,10 +80,13 @@ def unique_trip(vehicle_id: str = "veh-0001") -> dict[str, Any]:
 
 
 def moving_trip(vehicle_id: str = "veh-0001", length_m: float = 150.0) -> dict[str, Any]:
-    """A short generated drive (straight, 10 Hz, four elements per frame) whose ingest succeeds."""
+    """A short generated drive (straight, 10 Hz, four elements per frame) whose ingest succeeds.
+    Westwards: up to ~360 m it stays in the one zoom-16 tile of the contract example."""
     from services.cli.bench_ingest import straight_trip
 
-    return straight_trip(vehicle_id=vehicle_id, trip_id="m-" + secrets.token_hex(6), length_m=length_m)
+    return straight_trip(
+        vehicle_id=vehicle_id, trip_id="m-" + secrets.token_hex(6), length_m=length_m, heading_deg=270.0
+    )
 
 
 # --- PostgreSQL ---------------------------------------------------------------------------------

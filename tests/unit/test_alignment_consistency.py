@@ -12,7 +12,6 @@ from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, gnss_weight, optimize_submap_poses
 from csr_core.alignment.submaps import Submap
 from csr_core.alignment.temporal import vote_instances
-
 from tests.unit.test_alignment_synthetic import LANE_W, make_scenario
 
 pytestmark = pytest.mark.unit

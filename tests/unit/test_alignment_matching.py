@@ -9,14 +9,18 @@ import pytest
 from csr_core import se2
 from csr_core.alignment.association import match_pair
 from csr_core.alignment.graph_matching import (
-    ElementSet, edge_similarity, element_distances, node_similarity, rrwm, rrwm_match,
+    ElementSet,
+    edge_similarity,
+    element_distances,
+    node_similarity,
+    rrwm,
+    rrwm_match,
 )
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.alignment.registration import register_elements
 from csr_core.alignment.submaps import Circle, Submap, SubmapElement
 from csr_core.alignment.topology import sliding_window_vote, topology_consistent, topology_descriptor
 from csr_core.types import ElementType
-
 from tests.unit.test_alignment_synthetic import LANE_W
 
 pytestmark = pytest.mark.unit
@@ -106,7 +110,7 @@ def _submap(es: ElementSet, trip: int, sid: int, pose=(0.0, 0.0, 0.0)) -> Submap
     """A sub-map whose elements are ``es`` in the world, anchored at ``pose``."""
     inv = se2.inverse(np.asarray(pose, float))
     return Submap(sid, 0, trip, f"v{trip}__t", 0, 0, 10, np.asarray(pose, float),
-                  tuple(SubmapElement(t, se2.transform_points(inv, p), n) for n, (t, p) in enumerate(zip(es.types, es.points))))
+                  tuple(SubmapElement(t, se2.transform_points(inv, p), n) for n, (t, p) in enumerate(zip(es.types, es.points, strict=False))))
 
 
 def test_a_sub_map_offset_by_exactly_one_lane_width_is_not_matched_to_the_wrong_lane():

@@ -16,7 +16,13 @@ from csr_core import se2
 from csr_core.alignment.geometry import resample_polyline
 from csr_core.geo import LocalFrame
 from csr_core.types import (
-    ElementNoise, ElementType, GnssStatus, PerceivedElement, Trip, TripInstance, TripReconstruction,
+    ElementNoise,
+    ElementType,
+    GnssStatus,
+    PerceivedElement,
+    Trip,
+    TripInstance,
+    TripReconstruction,
 )
 
 pytestmark = pytest.mark.unit
@@ -118,7 +124,7 @@ def make_trip(key: str, truth_xyyaw: np.ndarray, elements, rng, *, offset_xy=(0.
             if len(pts) < 2:
                 continue
         near = np.argmin(np.linalg.norm(pts[:, None, :] - tree_pos[None, :, :], axis=2), axis=1)
-        moved = np.vstack([se2.transform_points(smoothed_of(t), p[None, :]) for t, p in zip(near, pts)])
+        moved = np.vstack([se2.transform_points(smoothed_of(t), p[None, :]) for t, p in zip(near, pts, strict=False)])
         moved = moved + rng.normal(0, 0.5 * noise_m, 2) + rng.normal(0, 0.01, moved.shape)
         instances.append(TripInstance(etype, moved, None, len(seen_frames[e]), min(seen_frames[e]), max(seen_frames[e])))
     if ghost:  # a divider copy one lane width to the side for 40 m
@@ -160,7 +166,7 @@ def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]
     """Aligned ATE RMSE, RPE(10 m) RMSE and per-trip aligned ATE (one rigid SE(2) over all)."""
     keys = [t.trip.key for t in trips]
     E = np.vstack([est[k][:, :2] for k in keys if k in est])
-    T = np.vstack([tr[:, :2] for k, tr in zip(keys, truths) if k in est])
+    T = np.vstack([tr[:, :2] for k, tr in zip(keys, truths, strict=False) if k in est])
     me, mt = E.mean(0), T.mean(0)
     U, _, Vt = np.linalg.svd((E - me).T @ (T - mt))
     R = (U @ Vt).T
@@ -169,12 +175,12 @@ def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]
     fix = lambda P: (P - me) @ R.T + mt  # noqa: E731
     err = np.linalg.norm(fix(E) - T, axis=1)
     per_trip, rpe = [], []
-    for k, tr in zip(keys, truths):
+    for k, tr in zip(keys, truths, strict=False):
         if k not in est:
             continue
         P = fix(est[k][:, :2])
         per_trip.append(float(np.sqrt(np.mean(np.sum((P - tr[:, :2]) ** 2, axis=1)))))
-        rpe.append(((P[10:] - P[:-10]) - (tr[10:, :2] - tr[:-10, :2])))
+        rpe.append((P[10:] - P[:-10]) - (tr[10:, :2] - tr[:-10, :2]))
     rpe_all = np.vstack(rpe)
     return float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(np.sum(rpe_all**2, axis=1)))), per_trip
 
@@ -248,3 +254,22 @@ def test_empty_input_raises():
 
     with pytest.raises(AlignmentFailed):
         align_trips([])
+
+
+def test_an_unfused_prior_map_is_reduced_to_one_copy_of_each_element():
+    from csr_core.alignment import AlignmentParams
+    from csr_core.alignment.submaps import reduce_prior_map
+    from csr_core.types import MapFeature
+
+    rng = np.random.default_rng(2)
+    elements = truth_elements(200.0)
+    copies = []
+    for k in range(6):  # six earlier trips' aligned instances, a few cm apart
+        t = make_trip(f"v{k}__m", truth_trajectory(0, False, rng, 200.0), elements, rng,
+                      offset_xy=tuple(rng.normal(0, 0.05, 2)), perception=False)
+        copies += [MapFeature(i.type, i.points_xy_world) for i in t.instances]
+    new = make_trip("vn__n", truth_trajectory(1, False, rng, 200.0), elements, rng, perception=False)
+    reduced = reduce_prior_map(copies, [new], AlignmentParams())
+    lines = [f for f in reduced if not f.type.is_polygon]
+    assert len(copies) > 4 * len(elements)
+    assert len(lines) <= len([e for e in elements if not e[0].is_polygon]) + 4
