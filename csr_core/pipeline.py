@@ -35,6 +35,10 @@ from csr_core.types import Reconstruction, Trip, TripReconstruction
 
 log = logging.getLogger(__name__)
 
+# A trip that shares no road with any other trip or the map has nothing to be aligned with: it
+# is not a failed alignment (the first trip of an area), so it keeps its single-trip poses.
+NO_OVERLAP = "no_overlap"
+
 
 class Method(StrEnum):
     PIPELINE = "pipeline"
@@ -102,10 +106,16 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
 
     # 2.-5. split, associate, optimize (coarse, Eq. 3-12) and refine (fine): multi-trip alignment
     alignment = None
+    unaligned: dict[str, str] = {}
     if params.coarse or params.fine:
         alignment = align_trips(recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine))
         poses_by_key = dict(alignment.poses_xyyaw_world)
-        failed.update(alignment.failed)
+        for key, reason in alignment.failed.items():
+            if reason.startswith(NO_OVERLAP):  # nothing to align with: its own smoothed poses stand
+                poses_by_key[key] = next(r.poses_xyyaw_world for r in recons if r.trip.key == key)
+                unaligned[key] = reason
+            else:
+                failed[key] = reason
         stages += [s for s, on in (("coarse", params.coarse), ("fine", params.fine)) if on]
         lap("align")
     aligned = [r for r in recons if r.trip.key in poses_by_key]
@@ -137,6 +147,7 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "coarse": params.coarse,
             "fine": params.fine,
             "match_pairs": len(alignment.match_pairs) if alignment is not None else 0,
+            "unaligned": unaligned,
             "tile_quality": _jsonable(topology.tile_quality),
             "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
         },

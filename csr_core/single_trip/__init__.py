@@ -101,6 +101,21 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
+def _within_reach(points_w: np.ndarray, path_tree: cKDTree, reach_m: float, is_polygon: bool) -> list[np.ndarray]:
+    """The parts of an instance within ``reach_m`` of the vehicle path: a trip covers the lateral
+    reach of its BEV range around its path. Beyond it an element was only seen far ahead
+    (at the far end of the range, where the detector is noisiest) in the few frames before the
+    vehicle turned away; the trips that drive past it see it better. Lines are cut into their
+    runs inside the reach; a polygon is kept whole when its centroid is inside."""
+    if is_polygon:
+        return [points_w] if path_tree.query(points_w.mean(0))[0] <= reach_m else []
+    inside = path_tree.query(points_w, distance_upper_bound=reach_m + 1e-9)[0] <= reach_m
+    if inside.all():
+        return [points_w]
+    edges = np.flatnonzero(np.diff(np.r_[0, inside.astype(np.int8), 0]))
+    return [points_w[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= 2]
+
+
 def _style(styles: list) -> DividerStyle | None:
     votes = Counter(s for s in styles if s is not None and s != DividerStyle.UNKNOWN)
     if votes:
@@ -144,6 +159,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     candidates: list[tuple[TripInstance, np.ndarray, np.ndarray]] = []
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
+    lateral_reach = max(abs(box[2]), abs(box[3]))
+    path_tree = cKDTree(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2])
     k_pts = pieces.points_w.shape[1]
     type_points = {t: (pieces.points_w[pieces.type_code == code].reshape(-1, 2),
                        np.repeat(pieces.frame[pieces.type_code == code], k_pts))
@@ -183,6 +200,10 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original):
                 spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m,
                                 np.unique(track_frames[piece.observations])))
+        spliced = [(part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
+                   for points_w, lat, alo, seen in spliced
+                   for k, part in enumerate(sorted(_within_reach(points_w, path_tree, lateral_reach, track.type.is_polygon),
+                                                   key=len, reverse=True))]
         for points_w, lat, alo, seen in spliced:
             if len(seen) < params.TRACK_MIN_FRAMES:
                 n_dropped += 1

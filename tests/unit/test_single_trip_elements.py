@@ -109,3 +109,49 @@ def test_results_are_recomputed_identically_from_the_raw_upload():
     assert np.allclose(a.poses_xyyaw_world, b.poses_xyyaw_world, atol=1e-6)
     assert len(a.instances) == len(b.instances)
     assert np.array_equal(a.keyframe_indices, b.keyframe_indices)
+
+
+def _out_and_back(n_each: int = 20, step_m: float = 2.0):
+    """Tracked-frame poses (2n, 3): along +x from x = 0, then back along -x on the same road."""
+    x = np.arange(n_each) * step_m
+    out = np.column_stack([x, np.zeros(n_each), np.zeros(n_each)])
+    back = np.column_stack([x[::-1], np.full(n_each, -3.5), np.full(n_each, np.pi)])
+    return np.vstack([out, back])
+
+
+def test_road_driven_twice_is_not_taken_for_a_ghost():
+    # an element seen by one track on the way out: on the way back the same frames see it again
+    # through another track (corroborated: visibility 1), whereas detections 3.5 m away (a
+    # ghost's shift) do not corroborate it (20 of 40 in-range frames: 0.5)
+    from csr_core.single_trip import _visibility_ratio
+
+    poses = _out_and_back()
+    frames = np.arange(len(poses))
+    element = np.column_stack([np.linspace(0.0, 40.0, 41), np.full(41, 3.0)])
+    seen = np.arange(20)
+    back_pts = np.repeat(element[::8][None], 20, axis=0)  # (20, 6, 2): the return pass's detections
+    back_frames = np.repeat(np.arange(20, 40), back_pts.shape[1])
+    box = (-15.0, 30.0, -15.0, 15.0)
+    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, back_pts.reshape(-1, 2), back_frames, 0.9)
+    assert ratio == pytest.approx(1.0)
+    shifted = back_pts.reshape(-1, 2) + (0.0, 3.5)
+    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, shifted, back_frames, 0.9)
+    assert ratio == pytest.approx(0.5)
+
+
+def test_instances_are_cut_to_the_lateral_reach_of_the_path():
+    # a line leaving the road at a right angle is kept up to the BEV range's lateral reach;
+    # a polygon whose centre lies beyond it is left out
+    from scipy.spatial import cKDTree
+
+    from csr_core.single_trip import _within_reach
+
+    path = cKDTree(np.column_stack([np.arange(-50.0, 50.5, 0.5), np.zeros(201)]))
+    line = np.column_stack([np.zeros(41), np.linspace(5.0, 45.0, 41)])
+    parts = _within_reach(line, path, 15.0, is_polygon=False)
+    assert len(parts) == 1
+    assert parts[0][:, 1].min() == pytest.approx(5.0)
+    assert parts[0][:, 1].max() == pytest.approx(15.0)
+    square = np.array([[0.0, 14.0], [4.0, 14.0], [4.0, 18.0], [0.0, 18.0]])
+    assert _within_reach(square, path, 15.0, is_polygon=True) == []
+    assert len(_within_reach(square - (0.0, 2.0), path, 15.0, is_polygon=True)) == 1
