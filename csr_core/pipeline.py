@@ -13,18 +13,18 @@ sees only the trips, never the scenario's truth or its origin.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
-import dataclasses
 from dataclasses import dataclass, replace
 from enum import Enum, StrEnum
 
 import numpy as np
 
-from csr_core.baselines.gnss_only import reconstruct_gnss_only
 from csr_core.alignment import DEFAULT as ALIGNMENT_DEFAULT
 from csr_core.alignment import align_trips
+from csr_core.baselines.gnss_only import reconstruct_gnss_only
 from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M
 from csr_core.baselines.roadmap_icp import CHUNK_LENGTH_M, reconstruct_roadmap_icp
 from csr_core.errors import ReconstructionError

@@ -11,12 +11,12 @@ be finite and ``t`` strictly increasing.
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NotRequired
 
 import numpy as np
 from annotated_types import Ge, Gt, Le, Len, Lt
 from pydantic import ConfigDict, StringConstraints, TypeAdapter, ValidationError, with_config
-from typing_extensions import NotRequired, TypedDict
+from typing_extensions import TypedDict
 
 from csr_core.errors import UploadError
 from csr_core.types import DividerStyle, ElementType, GnssStatus, PerceivedElement, Trip

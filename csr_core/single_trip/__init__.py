@@ -24,8 +24,8 @@ from csr_core.single_trip.keyframes import select_keyframes, select_tracking_fra
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
-from csr_core.single_trip.splicing import resample_polyline, splice_line, splice_polygon
-from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, track_elements
+from csr_core.single_trip.splicing import SplicedLine, resample_polyline, splice_line, splice_polygon
+from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_observations, track_elements
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -116,6 +116,32 @@ def _within_reach(points_w: np.ndarray, path_tree: cKDTree, reach_m: float, is_p
     return [points_w[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= 2]
 
 
+def _resplice_mixture(obs: np.ndarray, obs_points_w: np.ndarray, obs_frame: np.ndarray, pts_w: np.ndarray,
+                      obs_id: np.ndarray, offsets: np.ndarray, end_free: np.ndarray, original: np.ndarray,
+                      params: SingleTripParams) -> list[SplicedLine]:
+    """The observations ``obs`` of a splice that mixes elements, regrouped by
+    ``regroup_observations`` and spliced group by group on their own shapes (observation
+    indices kept)."""
+    labels = regroup_observations(obs_points_w[obs], obs_frame[obs], params.SPLICE_MODE_GATE_M,
+                                  params.TRACK_MAX_ANGLE_RAD, params.TRACK_MAX_SKIP_FRAMES,
+                                  params.TRACK_MAX_EXTRAPOLATION_M)
+    out = []
+    for lab in np.unique(labels):
+        group = obs[labels == lab]
+        if len(np.unique(obs_frame[group])) < params.TRACK_MIN_FRAMES:
+            continue
+        take = np.isin(obs_id, group)
+        counts = np.diff(offsets)[group]
+        sub_off = np.concatenate([[0], np.cumsum(counts)])
+        sub_ends = np.column_stack([sub_off[:-1], sub_off[1:] - 1])
+        # each group on its own shape (junction connectors do not follow the path)
+        for part in splice_line(pts_w[take], np.repeat(np.arange(len(group)), counts), sub_ends, end_free[group],
+                                None, params, original[take]):
+            out.append(SplicedLine(part.points_xy_world, part.lateral_residuals_m, part.along_residuals_m,
+                                   group[part.observations]))
+    return out
+
+
 def _style(styles: list) -> DividerStyle | None:
     votes = Counter(s for s in styles if s is not None and s != DividerStyle.UNKNOWN)
     if votes:
@@ -197,19 +223,27 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             t0 = np.searchsorted(travel, travel[upload_frames.min()] - reach)
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
             guide = poses[t0:t1 + 1, :2]
+            mixed_above = params.INSTANCE_MAX_SIGMA_RATIO * params.NOISE_PRIOR_LATERAL_M
             for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original):
-                spliced.append((piece.points_xy_world, piece.lateral_residuals_m, piece.along_residuals_m,
-                                np.unique(track_frames[piece.observations])))
+                lat = piece.lateral_residuals_m
+                parts = [piece]
+                if len(lat) >= params.NOISE_MIN_SAMPLES and robust_sigma(lat) > mixed_above:
+                    # a mixture of elements (a junction): split its observations apart, splice each
+                    parts = _resplice_mixture(piece.observations, pieces.points_w[track.pieces], track_frames,
+                                              pts_w, obs_id, offsets, end_free, original, params)
+                for part in parts:
+                    spliced.append((part.points_xy_world, part.lateral_residuals_m, part.along_residuals_m,
+                                    np.unique(track_frames[part.observations])))
         spliced = [(part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
                    for points_w, lat, alo, seen in spliced
                    for k, part in enumerate(sorted(_within_reach(points_w, path_tree, lateral_reach, track.type.is_polygon),
                                                    key=len, reverse=True))]
         for points_w, lat, alo, seen in spliced:
-            if len(seen) < params.TRACK_MIN_FRAMES:
-                n_dropped += 1
-                continue
             length = float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) if len(points_w) > 1 else 0.0
-            if not track.type.is_polygon and length < params.min_length_m(track.type):
+            if len(seen) < params.TRACK_MIN_FRAMES or (not track.type.is_polygon
+                                                       and length < params.min_length_m(track.type)):
+                log.debug("dropped %s (%.0f m from %s): %d frames", track.type.value, length,
+                          np.round(points_w[0], 1), len(seen))
                 n_dropped += 1
                 continue
             ratio = _visibility_ratio(points_w, seen, frames, poses, box, params.BEV_RANGE_MARGIN_M,

@@ -17,6 +17,7 @@ one and averaged by a per-vertex median.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,14 @@ def _arclength(points: np.ndarray) -> np.ndarray:
         step = np.diff(points, axis=0)
         np.cumsum(np.hypot(step[:, 0], step[:, 1]), out=out[1:])
     return out
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a 1-D array, without its per-call overhead (called thousands of times
+    per trip on small arrays)."""
+    v = np.sort(values)
+    n = len(v)
+    return 0.5 * float(v[(n - 1) // 2] + v[n // 2])
 
 
 def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
@@ -74,7 +83,7 @@ def _project(points: np.ndarray, backbone: np.ndarray) -> tuple[np.ndarray, np.n
 def _binned_median(bins: np.ndarray, values: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     order = np.lexsort((values, bins))
     counts = np.bincount(bins, minlength=n_bins)
-    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    starts = np.cumsum(counts) - counts
     med = np.full(n_bins, np.nan)
     ok = counts > 0
     med[ok] = values[order][starts[ok] + counts[ok] // 2]
@@ -139,7 +148,8 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
         for end in (1, 0):
             b = bb[-1] if end else bb[0]
             j, step = (len(bb) - 2, -1) if end else (1, 1)
-            while 0 < j < len(bb) - 1 and np.hypot(*(b - bb[j])) < tangent_m:
+            bx, by = float(b[0]), float(b[1])
+            while 0 < j < len(bb) - 1 and math.hypot(bx - bb[j][0], by - bb[j][1]) < tangent_m:
                 j += step
             t = b - bb[j]
             tn = float(np.hypot(t[0], t[1]))
@@ -207,7 +217,7 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, backbone: np.
     n_bins = int(bins.max()) + 1
     med, _ = _binned_median(bins, d, n_bins)
     dev = np.abs(d - med[bins])
-    sigma = max(1.4826 * float(np.median(dev)), 0.02)
+    sigma = max(1.4826 * _median(dev), 0.02)
     inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
     w = np.bincount(bins[inl], minlength=n_bins).astype(float)
     sum_d = np.bincount(bins[inl], weights=d[inl], minlength=n_bins)
@@ -223,7 +233,7 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, backbone: np.
     if s_hi - s_lo < bin_m / 2:
         return None
     q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
-    q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
+    q = np.append(q, s_hi) if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
     s_b = _arclength(backbone)
     tan = _unit_tangents(backbone)
     dq = np.interp(q, centers, d_s)
@@ -259,6 +269,11 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         # separate the elements of the track along the path; each element is then spliced on
         # the path if it runs along it, else on its own shape
         s, d = _project(points_w, guide)
+        if _runs_along(s, points_w, obs_id) < params.SPLICE_ALONG_GUIDE_MIN:
+            # the track runs across the path (a dashed line crossed in a junction): the gaps
+            # between its pieces are along its own shape, not along the path
+            return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params,
+                                     original)
         labels = _cluster_sd(s, d, params)
         out = []
         groups: list[np.ndarray] = []
@@ -286,7 +301,7 @@ def _mixture_sigma(s: np.ndarray, d: np.ndarray, bin_m: float) -> float:
     mixes elements (a Y where a connector leaves a lane)."""
     bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
     med, _ = _binned_median(bins, d, int(bins.max()) + 1)
-    return 1.4826 * float(np.median(np.abs(d - med[bins])))
+    return 1.4826 * _median(np.abs(d - med[bins]))
 
 
 def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.ndarray:
@@ -298,12 +313,14 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
     order = np.lexsort((d, bins))
     b_sorted, d_sorted = bins[order], d[order]
-    new_bin = np.r_[True, b_sorted[1:] != b_sorted[:-1]]
-    gap = np.r_[True, np.diff(d_sorted) > params.SPLICE_MODE_GAP_M]
+    first = np.ones(1, dtype=bool)
+    new_bin = np.concatenate([first, b_sorted[1:] != b_sorted[:-1]])
+    gap = np.concatenate([first, np.diff(d_sorted) > params.SPLICE_MODE_GAP_M])
     mode_start = np.flatnonzero(new_bin | gap)
-    mode_end = np.r_[mode_start[1:], len(order)]
+    mode_end = np.append(mode_start[1:], len(order))
     mode_bin = b_sorted[mode_start]
-    mode_d = np.array([np.median(d_sorted[a:b]) for a, b in zip(mode_start, mode_end, strict=True)])
+    # within a bin d is sorted, so each mode is a sorted run: its median is its middle element(s)
+    mode_d = 0.5 * (d_sorted[(mode_start + mode_end - 1) // 2] + d_sorted[(mode_start + mode_end) // 2])
     mode_n = mode_end - mode_start
     max_gap_bins = params.SPLICE_MAX_GAP_M / bin_m
     chains_d: list[float] = []
@@ -337,13 +354,13 @@ def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
     """Median over observations of |arclength span on the path| / chord: 1 along, 0 across."""
     order = np.argsort(obs_id, kind="stable")
     ids, start = np.unique(obs_id[order], return_index=True)
-    end = np.r_[start[1:], len(order)] - 1
+    end = np.append(start[1:], len(order)) - 1
     first, last = order[start], order[end]
     chord = np.linalg.norm(points[last] - points[first], axis=1)
     ok = chord > 2.0
     if not ok.any():
         return 1.0
-    return float(np.median(np.abs(s[last] - s[first])[ok] / chord[ok]))
+    return _median(np.abs(s[last] - s[first])[ok] / chord[ok])
 
 
 def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
@@ -353,8 +370,8 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
     bin_m = params.SPLICE_BIN_M
     pts = points_w[sel]
     ids = obs_id[sel]
-    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
-    ends = np.r_[starts[1:], len(ids)] - 1
+    starts = np.flatnonzero(np.concatenate([np.ones(1, dtype=bool), ids[1:] != ids[:-1]]))
+    ends = np.append(starts[1:], len(ids)) - 1
     short = float(np.ptp(pts, axis=0).max()) < params.SPLICE_STRAIGHT_BELOW_M
     grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]))
     if len(grown) >= 2 and _arclength(grown)[-1] > 2 * bin_m:
@@ -405,7 +422,7 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     win = params.NOISE_END_WINDOW_M
     ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
     ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
-    along_res = np.r_[s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi]
+    along_res = np.concatenate([s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi])
     obs = np.unique(obs_id[sel[inl]])
     return [SplicedLine(line, lat, along_res, obs)]
 
@@ -419,8 +436,8 @@ def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tu
     np.minimum.at(lo, obs_id, s)
     np.maximum.at(hi, obs_id, s)
     lo, hi = lo[np.isfinite(lo)], hi[np.isfinite(hi)]
-    s_lo = float(np.median(lo[lo <= lo.min() + window_m]))
-    s_hi = float(np.median(hi[hi >= hi.max() - window_m]))
+    s_lo = _median(lo[lo <= lo.min() + window_m])
+    s_hi = _median(hi[hi >= hi.max() - window_m])
     return s_lo, max(s_hi, s_lo)
 
 

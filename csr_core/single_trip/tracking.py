@@ -315,3 +315,28 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         tracks.append(Track(type=types[int(pc.type_code[members[0]])], pieces=members,
                             frames=np.unique(pc.frame[members])))
     return pc, tracks
+
+
+def regroup_observations(points_w: np.ndarray, frame: np.ndarray, gate_m: float, max_angle_rad: float,
+                         max_skip_frames: int, max_extrapolation_m: float) -> np.ndarray:
+    """Labels (m,) splitting a track's observations ``points_w (m, k, 2)`` (tracked frame
+    ``frame (m,)``) into elements by a stricter, symmetric test than the tracker's: two
+    observations at most ``max_skip_frames`` apart are one element when each one's mean distance
+    to the other (end segments extended along the chord) is within ``gate_m`` and their chords
+    are nearly parallel. Used on a track whose splice mixes elements (connectors crossing or
+    branching in a junction, chained by the one-sided tracking cost)."""
+    m = len(points_w)
+    a, b = np.triu_indices(m, 1)
+    near = np.abs(frame[a] - frame[b]) <= max_skip_frames
+    a, b = a[near], b[near]
+    if len(a) == 0:
+        return np.arange(m)
+    d_ab = pair_distance(points_w[b], points_w[a], max_extrapolation_m, 3.0 * gate_m).mean(1)
+    d_ba = pair_distance(points_w[a], points_w[b], max_extrapolation_m, 3.0 * gate_m).mean(1)
+    chord = points_w[:, -1] - points_w[:, 0]
+    length = np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-9)
+    u = chord / length[:, None]
+    parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(max_angle_rad)) | (np.minimum(length[a], length[b]) < 2.0)
+    ok = (np.maximum(d_ab, d_ba) <= gate_m) & parallel
+    graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(m, m))
+    return connected_components(graph, directed=False)[1]

@@ -155,3 +155,48 @@ def test_instances_are_cut_to_the_lateral_reach_of_the_path():
     square = np.array([[0.0, 14.0], [4.0, 14.0], [4.0, 18.0], [0.0, 18.0]])
     assert _within_reach(square, path, 15.0, is_polygon=True) == []
     assert len(_within_reach(square - (0.0, 2.0), path, 15.0, is_polygon=True)) == 1
+
+
+def test_dashed_line_crossed_in_a_junction_is_one_instance():
+    # a dashed divider (3 m dashes, 6 m gaps) running across the vehicle path at a right angle,
+    # each dash one observation in each of 6 frames: its gaps lie along its own shape, not along
+    # the path, so it is spliced as one line across the junction (not as 3 m dashes)
+    from csr_core.single_trip.params import DEFAULT
+    from csr_core.single_trip.splicing import splice_line
+
+    rng = np.random.default_rng(3)
+    guide = np.column_stack([np.linspace(-40.0, 40.0, 161), np.zeros(161)])
+    dashes = [(y0, y0 + 3.0) for y0 in np.arange(-14.0, 14.0, 9.0)]
+    obs = [np.column_stack([5.0 + rng.normal(0.0, 0.03, 4), np.linspace(a, b, 4)])
+           for _ in range(6) for a, b in dashes]
+    counts = np.array([len(o) for o in obs])
+    offsets = np.r_[0, np.cumsum(counts)]
+    points = np.concatenate(obs)
+    obs_id = np.repeat(np.arange(len(obs)), counts)
+    obs_ends = np.column_stack([offsets[:-1], offsets[1:] - 1])
+    out = splice_line(points, obs_id, obs_ends, np.ones((len(obs), 2), bool), guide, DEFAULT)
+    assert len(out) == 1
+    line = out[0].points_xy_world
+    assert np.ptp(line[:, 1]) == pytest.approx(dashes[-1][1] - dashes[0][0], abs=0.5)
+    assert np.abs(line[:, 0] - 5.0).max() < 0.1
+
+
+def test_crossing_connectors_mixed_in_one_track_are_regrouped():
+    # two connectors crossing in a junction at 30 degrees, observed in alternate frames (as a
+    # tracker chaining them would mix them): the symmetric test separates them
+    from csr_core.single_trip.tracking import regroup_observations
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(-8.0, 8.0, 6)
+    obs, frame, which = [], [], []
+    for f in range(10):
+        for k, angle in enumerate((0.0, np.radians(30.0))):
+            u = np.array([np.cos(angle), np.sin(angle)])
+            obs.append((t + 1.5 * f)[:, None] * u + rng.normal(0.0, 0.03, (6, 2)))
+            frame.append(f)
+            which.append(k)
+    labels = regroup_observations(np.stack(obs), np.array(frame), 0.6, np.radians(20.0), 2, 12.0)
+    which = np.array(which)
+    assert len(np.unique(labels[which == 0])) == 1
+    assert len(np.unique(labels[which == 1])) == 1
+    assert labels[which == 0][0] != labels[which == 1][0]
