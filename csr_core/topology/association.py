@@ -156,12 +156,20 @@ def associate_lines(members: Sequence[Member], element_type: ElementType,
     return _components(n, i, j)
 
 
+def _outline_polygon(points_xy: np.ndarray) -> shapely.Geometry:
+    points_xy = np.asarray(points_xy, float)
+    if len(points_xy) >= 3:
+        return shapely.Polygon(points_xy)
+    return shapely.MultiPoint(points_xy).convex_hull
+
+
 def associate_polygons(members: Sequence[Member], params: TopologyParams) -> list[list[int]]:
     """Groups of polygon instances (crosswalks, road markings) that are the same element."""
     n = len(members)
     if n == 0:
         return []
-    polys = shapely.make_valid(shapely.polygons([np.asarray(m.instance.points_xy_world, float) for m in members]))
+    # outlines differ in vertex count: one Polygon each (a degenerate one as its points' hull)
+    polys = shapely.make_valid(np.array([_outline_polygon(m.instance.points_xy_world) for m in members], dtype=object))
     tree = shapely.STRtree(polys)
     i, j = tree.query(polys, predicate="intersects")
     keep = i < j

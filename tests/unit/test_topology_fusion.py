@@ -183,3 +183,23 @@ def test_a_zigzag_trip_instance_is_left_out() -> None:
     res = generate_topology(trips, _noise(trips))
     assert len(res.features) == 1 and res.features[0].properties["support_trips"] == 3
     assert [m.trip_key for m in res.rejected_members] == ["veh-1__t03"]
+
+
+def test_crosswalk_outlines_with_different_vertex_counts_still_associate() -> None:
+    """Trips splice outlines with 4, 5 or 6 vertices: association must not need equal counts."""
+    rng = np.random.default_rng(6)
+    rect = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 10.0], [0.0, 10.0]])
+    polys = []
+    for k in range(6):
+        p = rect + rng.normal(0.0, 0.05, rect.shape)
+        rows = [p[0], (p[0] + p[1]) / 2, p[1], p[2], (p[2] + p[3]) / 2, p[3]]  # midpoints: same shape
+        drop = {0: [1, 4], 1: [4], 2: []}[k % 3]
+        polys.append([np.array([r for i, r in enumerate(rows) if i not in drop])])
+    trips = _trips(polys, ElementType.CROSSWALK, styles=[None] * 6)
+    res = generate_topology(trips, _noise(trips))
+    assert len(res.features) == 1
+    import shapely
+
+    outline = shapely.Polygon(rect).exterior
+    out = shapely.points(res.features[0].points_xy_world)
+    assert np.max(shapely.distance(out, outline)) < 0.15
