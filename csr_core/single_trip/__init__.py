@@ -77,6 +77,11 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     cand = np.flatnonzero(((pos >= lo) & (pos <= hi)).all(1))
     if len(cand) == 0:
         return 1.0
+    # frames farther than the box's corner from every sample cannot have it in range
+    corner = float(np.hypot(max(abs(box[0]), abs(box[1])), max(abs(box[2]), abs(box[3]))))
+    cand = cand[cKDTree(samples).query(pos[cand], distance_upper_bound=corner + 1e-9)[0] <= corner]
+    if len(cand) == 0:
+        return 1.0
     was_seen = np.isin(cand, seen_frames)
     n_seen = int(was_seen.sum())
     if n_seen >= enough * len(cand):
