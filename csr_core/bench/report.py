@@ -95,7 +95,7 @@ def render_section(
         "reconstruction call alone. Uploaded = the trip bodies as sent (gzip). Output = what the pipeline "
         "produces (poses CSVs + map.geojson). Stored = uploaded + output (what the service keeps per km). "
         "Peak memory is the `csr reconstruct` process's max RSS (`wait4` rusage). The machine (2 cores) was shared "
-        "with other jobs while measuring: identical work (CSR pipeline and GNSS-only run the same code today) "
+        "with other jobs while measuring: identical runs "
         "took up to 4x different wall times, so read the time columns as orders of magnitude.",
         "",
         "### Ablation (Table I), pipeline RPE after the global alignment [m]",
