@@ -9,8 +9,12 @@ the losers re-read the winner's row. Nothing is written before the upload is ful
 
 from __future__ import annotations
 
+import gc
 import gzip
 import hashlib
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from sqlalchemy.exc import IntegrityError
@@ -27,6 +31,36 @@ from services.settings import Settings
 RAW_GZIP_LEVEL = (
     1  # plain-JSON uploads are kept gzip-compressed; level 1 is ~4x faster than 6 for ~10% more bytes
 )
+
+
+_gc_lock = threading.Lock()
+_gc_pausers = 0
+_gc_was_enabled = True
+
+
+@contextmanager
+def cyclic_gc_paused() -> Iterator[None]:
+    """Pause Python's cyclic garbage collector while an upload document is built.
+
+    A 1 km trip is ~200k small lists and floats; with the collector on, its generational passes
+    re-scan the half-built tree over and over and dominate the cost (measured: validation of a
+    1.46 MB trip 130 ms with the collector, 58 ms without; ``orjson.loads`` 134 ms vs 22 ms). The
+    document is a tree (no reference cycles): reference counting frees it either way. Concurrent
+    uploads share one pause; the collector resumes (if it was on) when the last one leaves.
+    """
+    global _gc_pausers, _gc_was_enabled
+    with _gc_lock:
+        if _gc_pausers == 0:
+            _gc_was_enabled = gc.isenabled()
+            gc.disable()
+        _gc_pausers += 1
+    try:
+        yield
+    finally:
+        with _gc_lock:
+            _gc_pausers -= 1
+            if _gc_pausers == 0 and _gc_was_enabled:
+                gc.enable()
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +103,8 @@ def accept_upload(
         raise too_large("after decompression", settings.max_decompressed_bytes)
     else:
         json_body = body
-    doc = validate_upload_json(json_body)
+    with cyclic_gc_paused():
+        doc = validate_upload_json(json_body)
     vehicle_id, trip_id = doc["vehicle_id"], doc["trip_id"]
     if caller.role == "vehicle" and vehicle_id != caller.vehicle_id:
         raise ApiError(
