@@ -13,6 +13,7 @@ neighbouring lane a vehicle may change into, same direction).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import networkx as nx
@@ -144,6 +145,19 @@ class WorldBuilder:
         ]
         return ends, starts
 
+    def _nearest_start(self, p_end: np.ndarray, starts: list[int], max_gap_m: float,
+                       accept: Callable[[np.ndarray, float, np.ndarray], bool]) -> tuple[int | None, float]:
+        """The lane start nearest to ``p_end`` (closer than ``max_gap_m``) that ``accept(gap_xy,
+        distance_m, start_tangent)`` admits, and its distance; ``(None, max_gap_m)`` if none."""
+        best, best_d = None, max_gap_m
+        for s in starts:
+            cs = self.graph.nodes[s]["centerline_xy"]
+            gap = cs[0] - p_end
+            d = float(np.linalg.norm(gap))
+            if d < best_d and accept(gap, d, geo.tangents(cs)[0]):
+                best, best_d = s, d
+        return best, best_d
+
     def add_hidden_links(self, max_gap_m: float, min_alignment: float = 0.8, speed_mps: float = 13.9) -> int:
         """Join dead ends to lane starts further along the same direction (an unmapped stretch of
         road between mapped patches) with hidden connectors; returns how many were added."""
@@ -153,19 +167,14 @@ class WorldBuilder:
         for e in ends:
             c = g.nodes[e]["centerline_xy"]
             p_end, t_end = c[-1], geo.tangents(c)[-1]
-            best, best_d = None, max_gap_m
-            for s in starts:
-                cs = g.nodes[s]["centerline_xy"]
-                gap = cs[0] - p_end
-                d = float(np.linalg.norm(gap))
-                if d < 5.0 or d >= best_d:
-                    continue
+
+            def ahead(gap: np.ndarray, d: float, t_start: np.ndarray, t_end: np.ndarray = t_end) -> bool:
+                if d < 5.0:
+                    return False
                 u = gap / d
-                if (
-                    float(np.dot(u, t_end)) > min_alignment
-                    and float(np.dot(u, geo.tangents(cs)[0])) > min_alignment
-                ):
-                    best, best_d = s, d
+                return float(np.dot(u, t_end)) > min_alignment and float(np.dot(u, t_start)) > min_alignment
+
+            best, best_d = self._nearest_start(p_end, starts, max_gap_m, ahead)
             if best is None:
                 continue
             cs = g.nodes[best]["centerline_xy"]
@@ -184,12 +193,9 @@ class WorldBuilder:
         for e in ends:
             c = g.nodes[e]["centerline_xy"]
             p_end, t_end = c[-1], geo.tangents(c)[-1]
-            best, best_d = None, max_gap_m
-            for s in starts:
-                cs = g.nodes[s]["centerline_xy"]
-                d = float(np.linalg.norm(cs[0] - p_end))
-                if d < best_d and float(np.dot(geo.tangents(cs)[0], t_end)) < -0.5:
-                    best, best_d = s, d
+            best, best_d = self._nearest_start(
+                p_end, starts, max_gap_m, lambda _gap, _d, t_start, t_end=t_end: float(np.dot(t_start, t_end)) < -0.5
+            )
             if best is None:
                 continue
             cs = g.nodes[best]["centerline_xy"]
