@@ -12,7 +12,20 @@ from fastapi import FastAPI
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
 from services.api.metrics import Metrics
-from services.api.routes import corrections, export, jobs, keys, map_read, ops, tiles, trips, versions, web
+from services.api.routes import (
+    corrections,
+    export,
+    jobs,
+    keys,
+    map_read,
+    ops,
+    ops_jobs,
+    tiles,
+    trip_geometry,
+    trips,
+    versions,
+    web,
+)
 from services.db import repo
 from services.db.engine import make_engine, make_session_factory, migrate
 from services.settings import Settings
@@ -65,6 +78,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan)
     install_error_handlers(app)
-    for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web):
+    for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web, ops_jobs,
+                   trip_geometry):
         app.include_router(module.router)
     return app
