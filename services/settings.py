@@ -38,6 +38,14 @@ class Settings(BaseSettings):
         256 * MIB, gt=0, description="limit on the body after gzip decompression"
     )
     tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
+    tile_halo_m: float = Field(
+        75.0, gt=0, description="a tile job also aligns the trips' frames this close to the tile (seams)"
+    )
+    publish_min_quality: float = Field(
+        0.8, ge=0, le=1,
+        description="a merged tile version is a candidate for review, not live, when the share of its elements "
+        "whose trips contradict each other exceeds 1 minus this",
+    )
     quiet_period_s: float = Field(
         300.0, ge=0, description="a dirty tile is processed this long after its last new trip"
     )

@@ -43,7 +43,11 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "task_default_queue": "ingest",
         "task_default_exchange": "ingest",
         "task_default_routing_key": "ingest",
-        "task_routes": {"csr.ingest_trip": {"queue": "ingest"}, "csr.align_tile": {"queue": "align"}},
+        "task_routes": {
+            "csr.ingest_trip": {"queue": "ingest"},
+            "csr.align_tile": {"queue": "align"},
+            "csr.merge_tile": {"queue": "merge"},
+        },
         "task_acks_late": True,
         "task_reject_on_worker_lost": True,
         "worker_prefetch_multiplier": 1,

@@ -6,13 +6,12 @@ or duplicated message never counts twice. A bad input fails the job (recorded on
 database outage (``OperationalError``) propagates so that the runner retries the job.
 
 - ``ingest_trip``: decode the stored upload (csr_core), compute the GNSS track, its length and
-  the tiles it touches, run single-trip reconstruction (``csr_core.single_trip``) in the trip's
+  the tiles owning its frames (by smoothed position), run single-trip reconstruction (``csr_core.single_trip``) in the trip's
   region frame, store its result (``trip_reconstructions``, upserted per algorithm version) and
   mark the tiles dirty. A trip that cannot be reconstructed fails with the reason. The same job
   recomputes a trip from its kept upload (``csr reprocess``).
-- ``align_tile``: PLACEHOLDER until the alignment issue lands. It takes the tile's unprocessed
-  trips, records that this job processed them and clears the dirty flag. It does not align
-  anything: trips stay ``processing`` and ``GET /v1/trips/{id}/poses`` answers 409.
+- ``align_tile`` / ``merge_tile``: the per-tile alignment and merge (``workers.tile_jobs``). A merge
+  that finds the tile written by another job meanwhile (``RetryJob``) is queued again.
 """
 
 from __future__ import annotations
@@ -31,13 +30,15 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from csr_core.errors import ReconstructionError
-from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for, tiles_touched
+from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for
 from csr_core.single_trip import reconstruct_trip
+from csr_core.tiling import owned_tiles
 from csr_core.upload import decode_trip
 from services.db import repo
-from services.db.models import DirtyTile, Trip, TripTile, ewkt_linestring, utcnow
+from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
 from services.reconstructions import row_values
 from services.settings import Settings
+from workers import tile_jobs
 
 log = logging.getLogger(__name__)
 
@@ -75,14 +76,34 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
                 time.sleep(settings.test_ingest_delay_s)
             return _finish(session_factory, job_id, started, lambda s: _persist_ingest(s, subject, result))
         if kind == "align_tile":
-            z, x, y = (int(v) for v in subject.split("/"))
-            return _finish(session_factory, job_id, started, lambda s: _persist_tile(s, job_id, z, x, y))
+            z, x, y = tile_jobs.parse_tile(subject)
+            aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y)
+            return _finish(session_factory, job_id, started,
+                           lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
+        if kind == "merge_tile":
+            z, x, y = tile_jobs.parse_tile(subject)
+            merged = tile_jobs.compute_merge_tile(session_factory, settings, z, x, y)
+            return _finish(session_factory, job_id, started,
+                           lambda s: tile_jobs.persist_merge_tile(s, job_id, z, x, y, merged))
         raise JobFailed(f"unknown job kind {kind!r}")
     except OperationalError:  # the database is unreachable: transient, the runner retries the job
         raise
+    except tile_jobs.RetryJob as exc:  # another job wrote the tile first: run again on its result
+        log.info("job %s (%s %s) is queued again: %s", job_id, kind, subject, exc)
+        return requeue_job(session_factory, job_id, exc)
     except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
         log.exception("job %s (%s %s) failed", job_id, kind, subject)
         return mark_job_failed(session_factory, job_id, exc, started=started)
+
+
+def requeue_job(session_factory: sessionmaker[Session], job_id: str, exc: BaseException) -> str:
+    """Queue a running job again (the outbox hands it to a runner anew)."""
+    with session_factory.begin() as session:
+        job = repo.get_job(session, job_id=job_id, for_update=True)
+        if job is None or job.state != "running":
+            return job.state if job else "missing"
+        job.state, job.dispatched_at, job.error = "queued", None, f"retrying: {exc}"
+    return "queued"
 
 
 def mark_job_failed(
@@ -146,7 +167,7 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
     return IngestResult(
         length_km=length_m / 1000.0,
         track_ewkt=ewkt_linestring(lonlat_deg),
-        tiles=tiles_touched(lonlat_deg, zoom=zoom),
+        tiles=owned_tiles(reconstruction.poses_xyyaw_world, region, zoom),
         reconstruction=row_values(reconstruction, region),
     )
 
@@ -156,21 +177,12 @@ def _persist_ingest(session: Session, trip_pk: str, result: IngestResult) -> Non
     if trip is None:
         raise JobFailed(f"trip {trip_pk} does not exist")
     trip.length_km, trip.track, trip.updated_at = result.length_km, result.track_ewkt, utcnow()
-    if trip.status in ("received", "failed"):  # failed: reprocessed after a fix
+    if trip.status in ("received", "failed", "aligned"):  # failed / aligned: reprocessed
         trip.status, trip.error = "processing", None
+    kept = [(z, x, y) for z, x, y in result.tiles]
+    for old in session.scalars(select(TripTileAlignment).where(TripTileAlignment.trip_pk == trip_pk)):
+        if (old.z, old.x, old.y) not in kept:  # a tile the trip no longer crosses
+            session.delete(old)
     repo.upsert_reconstruction(session, trip_pk=trip_pk, values=result.reconstruction)
     repo.set_trip_tiles(session, trip_pk=trip_pk, tiles=result.tiles)
     repo.mark_tiles_dirty(session, tiles=result.tiles)
-
-
-def _persist_tile(session: Session, job_id: str, z: int, x: int, y: int) -> None:
-    dirty = session.scalars(
-        select(DirtyTile).where(DirtyTile.z == z, DirtyTile.x == x, DirtyTile.y == y).with_for_update()
-    ).one_or_none()
-    session.execute(
-        update(TripTile)
-        .where(TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))
-        .values(processed_job_id=job_id)
-    )
-    if dirty is not None and dirty.job_id == job_id:
-        session.delete(dirty)

@@ -33,3 +33,9 @@ def ingest_trip(job_id: str) -> str:
 def align_tile(job_id: str) -> str:
     rt = runtime()
     return run_job(rt.session_factory, rt.settings, job_id)
+
+
+@app.task(name="csr.merge_tile", base=JobTask)
+def merge_tile(job_id: str) -> str:
+    rt = runtime()
+    return run_job(rt.session_factory, rt.settings, job_id)

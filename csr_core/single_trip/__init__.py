@@ -11,6 +11,7 @@ the residuals (``noise``). Everything is recomputed from the raw upload alone.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections import Counter
@@ -59,22 +60,23 @@ def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin
 
 def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
                       box: tuple[float, float, float, float], margin: float,
-                      same_type_w: np.ndarray, same_type_frame: np.ndarray, corroborate_m: float,
+                      same_type_tree: cKDTree | None, same_type_frame: np.ndarray, corroborate_m: float,
                       enough: float = 1.0) -> float:
     """Tracked frames that saw the element / tracked frames that had it inside the BEV range
     (shrunk by ``margin``), over the frames whose vehicle is within reach of it.
 
-    A frame whose own detections of the element's type (``same_type_w (P, 2)`` resampled
-    points, ``same_type_frame (P,)`` their tracked-frame index) pass within ``corroborate_m``
-    of it also saw it, even when they went to another track: a road driven twice (out and
-    back, a loop) or an element whose track broke in two is then not taken for a ghost.
+    A frame whose own detections of the element's type (``same_type_tree`` a KD-tree of their
+    resampled points, ``same_type_frame (P,)`` their tracked-frame index) pass within
+    ``corroborate_m`` of it also saw it, even when they went to another track: a road driven
+    twice (out and back, a loop) or an element whose track broke in two is then not taken for a
+    ghost.
 
     Returns early with a lower bound (seen / all frames near it) once that reaches ``enough``."""
     samples = resample_polyline(points_w, 2.0) if len(points_w) > 1 else points_w
     reach = max(abs(box[0]), abs(box[1]), abs(box[2]), abs(box[3]))
     lo, hi = samples.min(0) - reach, samples.max(0) + reach
     pos = poses[frames, :2]
-    cand = np.flatnonzero(((pos >= lo) & (pos <= hi)).all(1))
+    cand = np.flatnonzero((pos[:, 0] >= lo[0]) & (pos[:, 0] <= hi[0]) & (pos[:, 1] >= lo[1]) & (pos[:, 1] <= hi[1]))
     if len(cand) == 0:
         return 1.0
     # frames farther than the box's corner from every sample cannot have it in range
@@ -82,7 +84,9 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     cand = cand[cKDTree(samples).query(pos[cand], distance_upper_bound=corner + 1e-9)[0] <= corner]
     if len(cand) == 0:
         return 1.0
-    was_seen = np.isin(cand, seen_frames)
+    seen_mask = np.zeros(len(frames), dtype=bool)
+    seen_mask[seen_frames] = True
+    was_seen = seen_mask[cand]
     n_seen = int(was_seen.sum())
     if n_seen >= enough * len(cand):
         return n_seen / len(cand)
@@ -97,12 +101,14 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     visible = ((xv >= x0 + margin) & (xv <= x1 - margin) & (yv >= y0 + margin) & (yv <= y1 - margin)).any(1)
     rest = rest[visible]
     n_corroborated = 0
-    if len(rest) and len(same_type_w):
-        near = ((same_type_w >= samples.min(0) - corroborate_m) & (same_type_w <= samples.max(0) + corroborate_m)).all(1)
-        if near.any():
-            dense = resample_polyline(points_w, corroborate_m / 2) if len(points_w) > 1 else points_w
-            d, _ = cKDTree(dense).query(same_type_w[near], distance_upper_bound=corroborate_m)
-            n_corroborated = int(np.isin(rest, same_type_frame[near][np.isfinite(d)]).sum())
+    if len(rest) and same_type_tree is not None:
+        dense = resample_polyline(points_w, corroborate_m / 2) if len(points_w) > 1 else points_w
+        near = cKDTree(dense).query_ball_tree(same_type_tree, corroborate_m)
+        hit = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64)
+        if len(hit):
+            corroborating = np.zeros(len(frames), dtype=bool)
+            corroborating[same_type_frame[hit]] = True
+            n_corroborated = int(corroborating[rest].sum())
     return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
@@ -193,9 +199,11 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     lateral_reach = max(abs(box[2]), abs(box[3]))
     path_tree = cKDTree(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2])
     k_pts = pieces.points_w.shape[1]
-    type_points = {t: (pieces.points_w[pieces.type_code == code].reshape(-1, 2),
-                       np.repeat(pieces.frame[pieces.type_code == code], k_pts))
-                   for t, code in TYPE_CODES.items()}
+    type_points = {}  # per type: KD-tree of all its detections' resampled points, their tracked frame
+    for t, code in TYPE_CODES.items():
+        of_type = pieces.type_code == code
+        pts = pieces.points_w[of_type].reshape(-1, 2)
+        type_points[t] = (cKDTree(pts) if len(pts) else None, np.repeat(pieces.frame[of_type], k_pts))
     for track in tracks:
         if len(track.frames) < params.TRACK_MIN_FRAMES:
             n_dropped += 1

@@ -17,6 +17,7 @@ import sys  # noqa: E402
 
 # module name -> owns these subcommands
 _COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest", "reprocess")
+_COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
 
 
 def build_parser() -> argparse.ArgumentParser:

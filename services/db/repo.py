@@ -29,7 +29,7 @@ from services.db.models import (
 
 ROLES = ("vehicle", "reader", "admin")
 BOOTSTRAP_ADMIN_ID = "admin-bootstrap"
-QUEUE_OF_KIND = {"ingest_trip": "ingest", "align_tile": "align"}
+QUEUE_OF_KIND = {"ingest_trip": "ingest", "align_tile": "align", "merge_tile": "merge"}
 QUEUES = ("ingest", "align", "merge")
 JOB_STATES = ("queued", "running", "done", "failed")
 

@@ -1,7 +1,46 @@
-"""(being built)"""
+"""``GET /v1/map?bbox=minlon,minlat,maxlon,maxlat[&version=N]`` (contract section 3): a GeoJSON
+FeatureCollection of the road structure, live or at map version N."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
 
-router = APIRouter()
+from fastapi import APIRouter, Query
+from fastapi.responses import Response
+
+from services.api.deps import Reader, SessionDep
+from services.db import versions as vs
+from services.tiles.http import (
+    CORS_HEADERS,
+    LIVE_CACHE_CONTROL,
+    PINNED_CACHE_CONTROL,
+    check_map_version,
+    parse_bbox,
+)
+from services.tiles.render import feature_collection, feature_json
+
+router = APIRouter(prefix="/v1", tags=["map"])
+
+
+@router.get("/map", response_class=Response, responses={200: {"content": {"application/geo+json": {}}}})
+def get_map(
+    _: Reader,
+    session: SessionDep,
+    bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
+    version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
+) -> Response:
+    """LineString for line types, Polygon for ``crosswalk`` and ``road_marking``; ``properties.type``
+    is the element type, ``id`` the stable feature id; ``map_version`` names what was read."""
+    box = parse_bbox(bbox)
+    with session.begin():
+        pinned = check_map_version(session, version, location="version")
+        map_version = pinned if pinned is not None else vs.current_map_version(session)
+        versions = vs.contributing_versions(session, bbox_lonlat=box, map_version=pinned)
+        features = vs.map_features(session, bbox_lonlat=box, versions=versions)
+    body = feature_collection([feature_json(f) for f in features], map_version=map_version, bbox=list(box))
+    headers = {
+        **CORS_HEADERS,
+        "Cache-Control": PINNED_CACHE_CONTROL if pinned is not None else LIVE_CACHE_CONTROL,
+    }
+    headers["X-Map-Version"] = str(map_version)
+    return Response(body, media_type="application/geo+json", headers=headers)

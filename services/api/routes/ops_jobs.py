@@ -1,7 +1,191 @@
-"""(being built)"""
+"""Ops: ``GET /v1/jobs`` (with errors), ``GET /v1/jobs/{id}``, ``GET /v1/tiles/dirty`` and
+``POST /v1/jobs/{id}/retry``.
+
+A retry does not touch the failed job: it adds a NEW job of the same kind and subject, an outbox
+row like any other (``dispatched_at`` NULL), committed in one transaction with what points at it
+(the tile's dirty row, the trip's status), and wakes the runner. Why a new row: the failed row stays
+as the record of what went wrong (its error, attempts and duration); ``run_job`` deliberately
+refuses a job already ``failed`` so that a stale or duplicated message never runs it twice; and the
+Celery task id is the job id, so a fresh id is a fresh message on both runners. The failed job is
+linked forward by ``retried_by`` in the listings (the newer job of the same kind and subject).
+"""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from datetime import UTC, datetime
+from typing import Annotated, Any
 
-router = APIRouter()
+from fastapi import APIRouter, Query
+from fastapi.responses import JSONResponse
+from sqlalchemy import func, select, update
+
+from services.api.deps import Admin, Ctx, Reader, SessionDep
+from services.api.errors import ApiError
+from services.db import repo
+from services.db.models import DirtyTile, Job, Trip, TripTile, utcnow
+
+router = APIRouter(prefix="/v1", tags=["ops"])
+
+MAX_LIMIT = 500
+
+
+def _iso(moment: datetime | None) -> str | None:
+    if moment is None:
+        return None
+    return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).isoformat()
+
+
+def job_json(job: Job, *, retried_by: str | None = None) -> dict[str, Any]:
+    return {
+        "id": job.id,
+        "kind": job.kind,
+        "queue": job.queue,
+        "subject": job.subject,
+        "state": job.state,
+        "attempts": job.attempts,
+        "error": job.error,
+        "created_at": _iso(job.created_at),
+        "dispatched_at": _iso(job.dispatched_at),
+        "started_at": _iso(job.started_at),
+        "finished_at": _iso(job.finished_at),
+        "duration_s": job.duration_s,
+        "retried_by": retried_by,
+    }
+
+
+def _retried_by(session: SessionDep, jobs: list[Job]) -> dict[str, str]:
+    """For each failed job: the id of the newest later job of the same kind and subject."""
+    failed = [j for j in jobs if j.state == "failed"]
+    if not failed:
+        return {}
+    later = session.scalars(
+        select(Job)
+        .where(Job.subject.in_({j.subject for j in failed}), Job.kind.in_({j.kind for j in failed}))
+        .order_by(Job.created_at)
+    ).all()
+    out: dict[str, str] = {}
+    for job in failed:
+        newer = [
+            j
+            for j in later
+            if j.kind == job.kind and j.subject == job.subject and j.created_at > job.created_at
+        ]
+        if newer:
+            out[job.id] = newer[-1].id
+    return out
+
+
+@router.get("/jobs")
+def list_jobs(
+    _: Reader,
+    session: SessionDep,
+    state: Annotated[str | None, Query(description="queued | running | done | failed")] = None,
+    kind: Annotated[str | None, Query(description="ingest_trip | align_tile | ...")] = None,
+    subject: Annotated[str | None, Query(description="a trip id or z/x/y")] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 100,
+) -> dict[str, Any]:
+    """Jobs, newest first, with their errors."""
+    if state is not None and state not in repo.JOB_STATES:
+        raise ApiError(422, "query", f"state must be one of {', '.join(repo.JOB_STATES)}", location="state")
+    if kind is not None and kind not in repo.QUEUE_OF_KIND:
+        raise ApiError(422, "query", f"kind must be one of {', '.join(repo.QUEUE_OF_KIND)}", location="kind")
+    stmt = select(Job).order_by(Job.created_at.desc(), Job.id).limit(limit)
+    if state is not None:
+        stmt = stmt.where(Job.state == state)
+    if kind is not None:
+        stmt = stmt.where(Job.kind == kind)
+    if subject is not None:
+        stmt = stmt.where(Job.subject == subject)
+    jobs = list(session.scalars(stmt))
+    retried = _retried_by(session, jobs)
+    return {"jobs": [job_json(j, retried_by=retried.get(j.id)) for j in jobs]}
+
+
+def _load_job(session: SessionDep, job_id: str) -> Job:
+    job = repo.get_job(session, job_id=job_id)
+    if job is None:
+        raise ApiError(404, "not_found", f"no job {job_id!r}", location="id")
+    return job
+
+
+@router.get("/jobs/{job_id}")
+def get_job(job_id: str, _: Reader, session: SessionDep) -> dict[str, Any]:
+    job = _load_job(session, job_id)
+    return job_json(job, retried_by=_retried_by(session, [job]).get(job.id))
+
+
+@router.get("/tiles/dirty")
+def dirty_tiles(
+    _: Reader, session: SessionDep, limit: Annotated[int, Query(ge=1, le=10 * MAX_LIMIT)] = 1000
+) -> dict[str, Any]:
+    """Tiles with trips not yet processed, oldest mark first: the job scheduled for each (if any)
+    and how many of its trips wait."""
+    pending = (
+        select(TripTile.z, TripTile.x, TripTile.y, func.count().label("n"))
+        .where(TripTile.processed_job_id.is_(None))
+        .group_by(TripTile.z, TripTile.x, TripTile.y)
+        .subquery()
+    )
+    rows = session.execute(
+        select(DirtyTile, Job.state, pending.c.n)
+        .outerjoin(Job, Job.id == DirtyTile.job_id)
+        .outerjoin(
+            pending,
+            (pending.c.z == DirtyTile.z) & (pending.c.x == DirtyTile.x) & (pending.c.y == DirtyTile.y),
+        )
+        .order_by(DirtyTile.first_marked_at, DirtyTile.z, DirtyTile.x, DirtyTile.y)
+        .limit(limit)
+    ).all()
+    return {
+        "tiles": [
+            {
+                "tile": f"{t.z}/{t.x}/{t.y}",
+                "z": t.z,
+                "x": t.x,
+                "y": t.y,
+                "first_marked_at": _iso(t.first_marked_at),
+                "last_marked_at": _iso(t.last_marked_at),
+                "job_id": t.job_id,
+                "job_state": job_state,
+                "pending_trips": int(n or 0),
+            }
+            for t, job_state, n in rows
+        ]
+    }
+
+
+@router.post("/jobs/{job_id}/retry", status_code=202)
+def retry_job(job_id: str, _: Admin, ctx: Ctx, session: SessionDep) -> JSONResponse:
+    """Queue a failed job again, as a new job of the same kind and subject (see the module doc).
+    409 when the job did not fail, or when a newer job for the same subject exists already."""
+    with session.begin():
+        failed = repo.get_job(session, job_id=job_id, for_update=True)
+        if failed is None:
+            raise ApiError(404, "not_found", f"no job {job_id!r}", location="id")
+        if failed.state != "failed":
+            raise ApiError(409, "not_failed", f"job {job_id} is {failed.state}: only a failed job is retried")
+        newer = session.scalars(
+            select(Job.id)
+            .where(Job.kind == failed.kind, Job.subject == failed.subject, Job.created_at > failed.created_at)
+            .order_by(Job.created_at.desc())
+            .limit(1)
+        ).first()
+        if newer is not None:
+            raise ApiError(
+                409,
+                "superseded",
+                f"job {job_id} already has a newer {failed.kind} job for {failed.subject}: {newer}",
+            )
+        job = repo.add_job(session, kind=failed.kind, subject=failed.subject)
+        session.flush()
+        # what pointed at the failed job points at the new one
+        session.execute(update(DirtyTile).where(DirtyTile.job_id == failed.id).values(job_id=job.id))
+        if failed.kind == "ingest_trip":
+            session.execute(
+                update(Trip)
+                .where(Trip.id == failed.subject, Trip.status == "failed")
+                .values(status="received", error=None, updated_at=utcnow())
+            )
+        body = {**job_json(job), "retry_of": failed.id}
+    ctx.runner.wake()
+    return JSONResponse(body, status_code=202, headers={"Location": f"/v1/jobs/{body['id']}"})

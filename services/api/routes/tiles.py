@@ -1,7 +1,122 @@
-"""(being built)"""
+"""Tiles (contract section 3): ``GET /v1/tiles/{z}/{x}/{y}.mvt`` and ``.geojson``, ``GET
+/v1/tiles.json`` (TileJSON 3.0.0). Live tiles: short ``Cache-Control`` and a strong ETag from the
+contributing tile versions (304 on ``If-None-Match``); ``?v=<map version>`` pins a tile to a map
+version and is cached for a year (immutable). 204 for an empty tile. See docs/tiles.md."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
 
-router = APIRouter()
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from services.api.deps import Ctx, Reader, SessionDep
+from services.tiles import render
+from services.tiles.http import (
+    CORS_HEADERS,
+    LIVE_CACHE_CONTROL,
+    PREFLIGHT_HEADERS,
+    caches,
+    check_map_version,
+    check_tile,
+    tile_response,
+)
+
+router = APIRouter(prefix="/v1", tags=["tiles"])
+
+PinnedVersion = Annotated[
+    int | None,
+    Query(alias="v", description="map version: the tile as it was then (immutable, cached forever)"),
+]
+IfNoneMatch = Annotated[str | None, Header()]
+
+
+def _tile(
+    kind: str,
+    request: Request,
+    session: SessionDep,
+    z: int,
+    x: int,
+    y: int,
+    v: int | None,
+    if_none_match: str | None,
+) -> Response:
+    check_tile(z, x, y)
+    cache, pinned_etags = caches(request)
+    with session.begin():
+        map_version = check_map_version(session, v, location="v")
+        tile, not_modified = render.render(
+            session,
+            cache,
+            kind=kind,
+            z=z,
+            x=x,
+            y=y,
+            map_version=map_version,
+            if_none_match=if_none_match,
+            pinned_etags=pinned_etags,
+        )
+    return tile_response(
+        tile.body,
+        etag=tile.etag,
+        media_type=tile.media_type,
+        pinned=map_version is not None,
+        not_modified=not_modified,
+        map_version=map_version,
+    )
+
+
+@router.get(
+    "/tiles/{z}/{x}/{y}.mvt",
+    response_class=Response,
+    responses={200: {"content": {"application/vnd.mapbox-vector-tile": {}}}, 204: {}, 304: {}},
+)
+def tile_mvt(
+    _: Reader,
+    request: Request,
+    session: SessionDep,
+    z: int,
+    x: int,
+    y: int,
+    v: PinnedVersion = None,
+    if_none_match: IfNoneMatch = None,
+) -> Response:
+    """A Mapbox Vector Tile (web-mercator XYZ, extent 4096, buffer 256) of the road structure: one
+    layer ``road``, properties ``id``, ``type``, ``style`` and the elements' scalar properties."""
+    return _tile("mvt", request, session, z, x, y, v, if_none_match)
+
+
+@router.get(
+    "/tiles/{z}/{x}/{y}.geojson",
+    response_class=Response,
+    responses={200: {"content": {"application/geo+json": {}}}, 204: {}, 304: {}},
+)
+def tile_geojson(
+    _: Reader,
+    request: Request,
+    session: SessionDep,
+    z: int,
+    x: int,
+    y: int,
+    v: PinnedVersion = None,
+    if_none_match: IfNoneMatch = None,
+) -> Response:
+    """The same features as the ``.mvt`` tile as a GeoJSON FeatureCollection (lon/lat, unclipped)."""
+    return _tile("geojson", request, session, z, x, y, v, if_none_match)
+
+
+@router.get("/tiles.json")
+def tile_json(_: Reader, request: Request, ctx: Ctx, session: SessionDep) -> JSONResponse:
+    """TileJSON 3.0.0: the tile URL pinned to the current map version, zooms, data bounds, vector_layers."""
+    base = str(request.base_url).rstrip("/")
+    with session.begin():
+        doc = render.tilejson(session, base_url=base, tile_zoom=ctx.settings.tile_zoom)
+    return JSONResponse(doc, headers={**CORS_HEADERS, "Cache-Control": LIVE_CACHE_CONTROL})
+
+
+@router.options("/tiles/{rest:path}", include_in_schema=False)
+@router.options("/tiles.json", include_in_schema=False)
+@router.options("/map", include_in_schema=False)
+def preflight(rest: str = "") -> Response:
+    """CORS preflight (browsers send it without the key before a GET with ``Authorization``)."""
+    return Response(status_code=204, headers=PREFLIGHT_HEADERS)

@@ -16,8 +16,8 @@ from services.api.deps import AnyRole, Ctx, Reader, SessionDep, Uploader
 from services.api.errors import ApiError, as_api_error
 from services.auth import may_read_trip
 from services.db import repo
-from services.db.models import Trip
-from services.reconstructions import ALGORITHM_VERSION
+from services.db.models import Trip, TripPoses
+from services.reconstructions import ALGORITHM_VERSION, decode_arrays
 from services.uploads import accept_upload
 
 router = APIRouter(prefix="/v1/trips", tags=["trips"])
@@ -136,5 +136,11 @@ def get_trip(trip_pk: str, caller: AnyRole, session: SessionDep) -> dict[str, An
 @router.get("/{trip_pk}/poses")
 def get_poses(trip_pk: str, caller: Reader, session: SessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
-    # Alignment arrives with a later issue; until then no trip has final poses (contract: 409).
-    raise ApiError(409, "not_aligned", f"trip {trip.id} is {trip.status}: it has no aligned poses yet")
+    poses = session.get(TripPoses, trip.id) if trip.status == "aligned" else None
+    if poses is None:  # contract section 3: 409 before it is aligned
+        detail = f": {trip.error}" if trip.status == "failed" and trip.error else ""
+        raise ApiError(409, "not_aligned", f"trip {trip.id} is {trip.status}: it has no aligned poses{detail}")
+    arrays = decode_arrays(poses.arrays)
+    rows = zip(arrays["t"].tolist(), arrays["lat"].tolist(), arrays["lon"].tolist(), arrays["heading_deg"].tolist(),
+               strict=True)
+    return {"id": trip.id, "frames": [{"t": t, "lat": lat, "lon": lon, "heading_deg": h} for t, lat, lon, h in rows]}

@@ -1,0 +1,651 @@
+"""Lanelet2 export: lanelets from the lane graph, bounded by the map's dividers and boundaries.
+
+``build_lanelet2_map`` reads like its recipe:
+
+1. lanes: the lane graph of the centrelines (``csr_core.topology.lane_graph``), each lane
+   sampled every ``SAMPLE_STEP_M`` along its direction of travel;
+2. bound candidates: every lane divider and road boundary, sampled densely;
+3. sides: per lane sample, the nearest candidate beside it on each side (parallel within
+   ``BOUND_MAX_ANGLE_RAD``, ``BOUND_MIN_OFFSET_M``..``BOUND_MAX_OFFSET_M`` away);
+4. runs: a lane is cut where its (left, right) pair changes (runs shorter than ``MIN_RUN_M``
+   fold into a neighbour); each run becomes one lanelet with one way per bound;
+5. nodes: the point where a run ends on a candidate is a *station* of that candidate, shared
+   by every run ending there (within ``STATION_SNAP_M``), so neighbouring lanes bounded by one
+   divider get the very same way; the run ends of lanes joined in the lane graph are merged
+   (union-find, refused beyond ``JOIN_M``), so a successor's bounds start at the nodes where
+   its predecessor's end and routing sees the link;
+6. gaps: a side without paint gets a ``type=virtual`` bound between its merged end points
+   (as Lanelet2 maps draw junction interiors); a run with no paint on either side and no
+   painted neighbour at any end, an implausible width or a bound on the wrong side is skipped
+   and counted by reason in the report.
+
+Stop lines become ``stop_line`` ways, crosswalks ``subtype=crosswalk`` lanelets bounded by
+the long sides of their minimum rotated rectangle, road markings closed ``area=yes`` ways.
+No regulatory elements: the map knows where a stop line is, not whether a sign or a light
+governs it. Coordinates: the world plane of ``frame`` (metres) in, lon/lat out.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from scipy.spatial import cKDTree
+
+from csr_core.errors import CsrError
+from csr_core.geo import LocalFrame
+from csr_core.single_trip.splicing import resample_polyline
+from csr_core.topology.fusion import arclength
+from csr_core.topology.lane_graph import build_lane_graph
+from csr_core.topology.params import TopologyParams
+from csr_core.types import DividerStyle, ElementType, MapFeature
+
+log = logging.getLogger(__name__)
+
+LEFT, RIGHT = 0, 1
+NO_BOUND = -1
+PRIO_PAINT, PRIO_ESTIMATED, PRIO_DEFAULT = 0, 1, 2  # how a point's position is known, best first
+TWO_WAY = "two-way"  # a run written as the other direction of a one_way=no lanelet
+
+# lane_divider style -> Lanelet2 line_thin subtype (unknown: solid, the conservative reading)
+DIVIDER_SUBTYPE = {
+    DividerStyle.SOLID: "solid",
+    DividerStyle.DASHED: "dashed",
+    DividerStyle.DOUBLE: "solid_solid",
+    DividerStyle.UNKNOWN: "solid",
+}
+
+
+class ExportError(CsrError):
+    """The export cannot be produced (no features, a degenerate input)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Lanelet2Params:
+    location: str = "urban"  # Lanelet2 ``location`` of road lanelets (urban / nonurban)
+    SAMPLE_STEP_M: float = 1.0  # lane samples
+    CANDIDATE_STEP_M: float = 0.5  # bound candidate samples
+    BOUND_MIN_OFFSET_M: float = 0.5  # a bound lies at least this far beside the centreline
+    BOUND_MAX_OFFSET_M: float = 4.0  # ... and at most this (half a wide lane plus a shoulder)
+    BOUND_MAX_ANGLE_RAD: float = math.radians(30.0)  # bound tangent vs lane tangent
+    MIN_RUN_M: float = 3.0  # shorter stretches of one (left, right) pair fold into a neighbour
+    STATION_SNAP_M: float = 0.75  # run ends on one candidate closer than this share a node
+    JOIN_M: float = 1.0  # painted end points of linked lanes farther apart across the lane are not
+    # merged (along it: up to the lane graph's CONNECT_M)
+    ESTIMATE_REACH_M: float = 15.0  # a measured offset this close along the lane estimates a gap
+    DEFAULT_HALF_WIDTH_M: float = 1.75  # half lane width where nothing was measured
+    MIN_WIDTH_M: float = 1.5  # plausible lanelet width at its ends
+    MAX_WIDTH_M: float = 8.0
+    VIRTUAL_STEP_M: float = 2.0  # vertex spacing of virtual bounds
+    # lane graph: short centrelines are lanes here (junction pieces of a real map), not fragments
+    topology: TopologyParams = field(default_factory=lambda: TopologyParams(LANE_MIN_LENGTH_M=1.5))
+
+
+DEFAULT = Lanelet2Params()
+
+
+@dataclass(frozen=True, slots=True)
+class OsmWay:
+    way_id: int
+    node_ids: tuple[int, ...]
+    tags: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class OsmRelation:
+    relation_id: int
+    members: tuple[tuple[str, int, str], ...]  # (member type, ref, role)
+    tags: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class ExportReport:
+    """What was written and what was left out, with reasons (counts)."""
+
+    lanes: int  # lane graph nodes
+    lanelets: int  # road lanelets written
+    lanelets_with_virtual_bound: int
+    two_way_lanelets: int  # one_way=no: two lanes of opposite direction with the same bounds
+    lanes_skipped: int  # lanes none of whose runs could be written
+    runs_skipped: dict[str, int]  # reason -> runs (would-be lanelets) not written
+    successor_links: int  # lane graph successor edges between written lanelets
+    successor_links_joined: int  # ... whose bounds share the end/start nodes
+    centerlines_not_lanes: int  # centreline features too short to be lanes
+    crosswalks: int
+    stop_lines: int
+    road_markings: int
+    lines_unused: int  # dividers/boundaries bounding no lanelet, written as plain ways
+    nodes: int
+    ways: int
+
+    def as_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__slots__}  # type: ignore[attr-defined]
+
+
+@dataclass(frozen=True, slots=True)
+class Lanelet2Map:
+    """Nodes (``lonlat_deg (N, 2)``, ``xy_world (N, 2)`` in ``frame``; node ``k`` has id
+    ``node_ids[k]``), ways and relations with ids unique across all three."""
+
+    frame: LocalFrame
+    node_ids: np.ndarray  # (N,) int
+    lonlat_deg: np.ndarray  # (N, 2)
+    xy_world: np.ndarray  # (N, 2)
+    ways: tuple[OsmWay, ...]
+    relations: tuple[OsmRelation, ...]
+    report: ExportReport
+
+
+# --- points with union-find ------------------------------------------------------------------
+
+
+class _Points:
+    """Candidate nodes. Union merges points that must be one node; a set's position is the
+    mean of its best-known members (paint before estimated before default)."""
+
+    def __init__(self) -> None:
+        self.xy: list[np.ndarray] = []
+        self.prio: list[int] = []
+        self.parent: list[int] = []
+        self.anchor: list[np.ndarray | None] = []  # per root: a painted member's position
+
+    def add(self, xy: np.ndarray, prio: int) -> int:
+        self.xy.append(np.asarray(xy, float))
+        self.prio.append(prio)
+        self.parent.append(len(self.parent))
+        self.anchor.append(self.xy[-1] if prio == PRIO_PAINT else None)
+        return len(self.parent) - 1
+
+    def find(self, i: int) -> int:
+        root = i
+        while self.parent[root] != root:
+            root = self.parent[root]
+        while self.parent[i] != root:
+            self.parent[i], i = root, self.parent[i]
+        return root
+
+    def union(self, a: int, b: int, join_m: float, along_m: float, dir_xy: np.ndarray) -> bool:
+        """Merge the sets of ``a`` and ``b``, unless both hold paint whose positions differ by
+        more than ``join_m`` across ``dir_xy`` (the lane direction) or ``along_m`` along it:
+        lanes linked over a short longitudinal gap join, lanes side by side do not."""
+        ra, rb = self.find(a), self.find(b)
+        if ra == rb:
+            return True
+        pa, pb = self.anchor[ra], self.anchor[rb]
+        if pa is not None and pb is not None:
+            d = pb - pa
+            if (abs(float(dir_xy[0] * d[1] - dir_xy[1] * d[0])) > join_m
+                    or abs(float(dir_xy @ d)) > along_m):
+                return False
+        self.parent[rb] = ra
+        if pa is None:
+            self.anchor[ra] = pb
+        return True
+
+    def resolve(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per point: its root, and per root the resolved position ``(P, 2)`` and best priority."""
+        roots = np.array([self.find(i) for i in range(len(self.parent))], int)
+        xy = np.array(self.xy).reshape(-1, 2)
+        prio = np.array(self.prio, int)
+        best = np.full(len(roots), 99)
+        np.minimum.at(best, roots, prio)
+        keep = prio == best[roots]
+        pos = np.zeros_like(xy)
+        count = np.zeros(len(roots))
+        np.add.at(pos, roots[keep], xy[keep])
+        np.add.at(count, roots[keep], 1.0)
+        pos[count > 0] /= count[count > 0, None]
+        self.best_prio = best
+        return roots, pos
+
+
+# --- bound candidates ------------------------------------------------------------------------
+
+
+@dataclass
+class _Candidate:
+    feature: MapFeature
+    xy: np.ndarray  # (M, 2) vertices
+    s_vertex: np.ndarray  # (M,)
+    line: shapely.LineString
+    stations: list[tuple[float, int]] = field(default_factory=list)  # (s, point index)
+    vertex_points: dict[int, int] = field(default_factory=dict)  # vertex index -> point index
+    used: bool = False
+
+    @property
+    def tags(self) -> tuple[tuple[str, str], ...]:
+        f = self.feature
+        if f.type == ElementType.ROAD_BOUNDARY:
+            tags = [("type", "road_border")]
+        else:
+            style = f.style or DividerStyle.UNKNOWN
+            tags = [("type", "line_thin"), ("subtype", DIVIDER_SUBTYPE[style])]
+            if style == DividerStyle.UNKNOWN:
+                tags.append(("csr:style", "unknown"))
+        if f.feature_id:
+            tags.append(("csr:feature_id", f.feature_id))
+        return tuple(tags)
+
+    def station(self, points: _Points, xy: np.ndarray, snap_m: float) -> tuple[int, float]:
+        """The node where ``xy`` projects onto this line (an existing one within ``snap_m``)."""
+        s = float(self.line.project(shapely.Point(float(xy[0]), float(xy[1]))))
+        for s_known, idx in self.stations:
+            if abs(s_known - s) <= snap_m:
+                return idx, s_known
+        foot = self.line.interpolate(s)
+        idx = points.add(np.array([foot.x, foot.y]), PRIO_PAINT)
+        self.stations.append((s, idx))
+        return idx, s
+
+    def vertex_point(self, points: _Points, k: int) -> int:
+        if k not in self.vertex_points:
+            self.vertex_points[k] = points.add(self.xy[k], PRIO_PAINT)
+        return self.vertex_points[k]
+
+    def between(self, points: _Points, s_a: float, s_b: float, margin_m: float = 0.3) -> list[int]:
+        """Vertex points strictly between arclengths ``s_a`` and ``s_b``, in that order."""
+        lo, hi = min(s_a, s_b) + margin_m, max(s_a, s_b) - margin_m
+        ks = [k for k in np.flatnonzero((self.s_vertex > lo) & (self.s_vertex < hi)).tolist()]
+        if s_b < s_a:
+            ks.reverse()
+        return [self.vertex_point(points, k) for k in ks]
+
+
+def _candidates(features: Sequence[MapFeature]) -> list[_Candidate]:
+    out = []
+    for f in features:
+        if f.type not in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY):
+            continue
+        xy = np.asarray(f.points_xy_world, float)
+        if len(xy) >= 2:
+            xy = xy[np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-3]]
+        if len(xy) < 2 or arclength(xy)[-1] < 0.5:
+            continue
+        out.append(_Candidate(f, xy, arclength(xy), shapely.LineString(xy)))
+    return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass(frozen=True)
+class _CandidateIndex:
+    """All candidates sampled every ``CANDIDATE_STEP_M``: points, owner, unit tangents, KD-tree."""
+
+    xy: np.ndarray  # (D, 2)
+    owner: np.ndarray  # (D,)
+    tan: np.ndarray  # (D, 2)
+    tree: cKDTree | None
+
+    @classmethod
+    def of(cls, cands: list[_Candidate], step_m: float) -> _CandidateIndex:
+        if not cands:
+            return cls(np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 2)), None)
+        dense = [resample_polyline(c.xy, step_m) for c in cands]
+        xy = np.concatenate(dense)
+        owner = np.repeat(np.arange(len(cands)), [len(d) for d in dense])
+        tan = _unit(np.concatenate([np.gradient(d, axis=0) for d in dense]))
+        return cls(xy, owner, tan, cKDTree(xy))
+
+
+def _side_labels(
+    p_xy: np.ndarray, t_xy: np.ndarray, index: _CandidateIndex, params: Lanelet2Params
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per lane sample and side (K, 2): the nearest candidate beside it (or NO_BOUND) and its
+    signed lateral offset (left positive; NaN where none)."""
+    k_n = len(p_xy)
+    label = np.full((k_n, 2), NO_BOUND)
+    offset = np.full((k_n, 2), np.nan)
+    if index.tree is None:
+        return label, offset
+    hits = index.tree.query_ball_point(p_xy, params.BOUND_MAX_OFFSET_M + params.CANDIDATE_STEP_M)
+    k = np.repeat(np.arange(k_n), [len(h) for h in hits])
+    if not len(k):
+        return label, offset
+    h = np.concatenate([np.asarray(x, int) for x in hits])
+    n_xy = np.column_stack([-t_xy[:, 1], t_xy[:, 0]])
+    rel = index.xy[h] - p_xy[k]
+    lat = (n_xy[k] * rel).sum(1)
+    along = (t_xy[k] * rel).sum(1)
+    ok = ((np.abs(along) <= params.CANDIDATE_STEP_M) & (np.abs(lat) >= params.BOUND_MIN_OFFSET_M)
+          & (np.abs(lat) <= params.BOUND_MAX_OFFSET_M)
+          & (np.abs((t_xy[k] * index.tan[h]).sum(1)) >= math.cos(params.BOUND_MAX_ANGLE_RAD)))
+    k, h, lat = k[ok], h[ok], lat[ok]
+    for side, sel in ((LEFT, lat > 0), (RIGHT, lat < 0)):
+        ks, hs, ls = k[sel], h[sel], lat[sel]
+        order = np.lexsort((np.abs(ls), ks))
+        ks, hs, ls = ks[order], hs[order], ls[order]
+        first = np.r_[True, ks[1:] != ks[:-1]] if len(ks) else np.zeros(0, bool)
+        label[ks[first], side] = index.owner[hs[first]]
+        offset[ks[first], side] = ls[first]
+    return label, offset
+
+
+def _fold_short_runs(codes: np.ndarray, s: np.ndarray, min_len_m: float) -> np.ndarray:
+    """Relabel runs of equal codes shorter than ``min_len_m`` (arclength ``s``) with the code
+    of their longer neighbouring run, shortest first, until none is left."""
+    codes = codes.copy()
+    while True:
+        change = np.flatnonzero(codes[1:] != codes[:-1]) + 1
+        if not len(change):
+            return codes
+        starts, ends = np.r_[0, change], np.r_[change, len(codes)]
+        length = s[np.minimum(ends, len(s) - 1)] - s[starts]
+        i = int(np.argmin(length))
+        if length[i] >= min_len_m:
+            return codes
+        before = length[i - 1] if i > 0 else -1.0
+        after = length[i + 1] if i + 1 < len(starts) else -1.0
+        j = i - 1 if before >= after else i + 1
+        codes[starts[i]:ends[i]] = codes[starts[j]]
+
+
+# --- the export ------------------------------------------------------------------------------
+
+
+@dataclass
+class _Run:
+    lane: str
+    i0: int
+    i1: int  # sample indices, inclusive; consecutive runs share the cut sample
+    bound: tuple[int, int]  # candidate index per side or NO_BOUND
+    ends: list[list[int]] = field(default_factory=lambda: [[-1, -1], [-1, -1]])  # [side][start, end]
+    s_ends: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0], [0.0, 0.0]])
+    lead: list[int] = field(default_factory=lambda: [-1, -1])  # per side: own start point after a forced one
+    skip: str = ""
+
+    def force_start(self, side: int, point: int) -> None:
+        """Start this side's bound at ``point`` (the predecessor's end), then go to its own start."""
+        self.lead[side] = self.ends[side][0]
+        self.ends[side][0] = point
+
+
+def _estimate_offset(side: int, i: int, s: np.ndarray, offset: np.ndarray,
+                     params: Lanelet2Params) -> tuple[float, int]:
+    """Offset of ``side`` at sample ``i`` where no bound was found there: the nearest measured
+    one within reach on that side, else the other side's mirrored, else the default."""
+    sign = 1.0 if side == LEFT else -1.0
+    for sd, mirror in ((side, 1.0), (1 - side, -1.0)):
+        known = np.flatnonzero(np.isfinite(offset[:, sd]))
+        if len(known):
+            j = known[np.argmin(np.abs(s[known] - s[i]))]
+            if abs(s[j] - s[i]) <= params.ESTIMATE_REACH_M:
+                return mirror * float(offset[j, sd]), PRIO_ESTIMATED
+    return sign * params.DEFAULT_HALF_WIDTH_M, PRIO_DEFAULT
+
+
+def build_lanelet2_map(
+    features: Sequence[MapFeature], frame: LocalFrame, params: Lanelet2Params = DEFAULT
+) -> Lanelet2Map:
+    """Lanelets of the map ``features`` (world plane of ``frame``, metres), see the module doc."""
+    lane_graph = build_lane_graph(features, params.topology)
+    g = lane_graph.graph
+    cands = _candidates(features)
+    index = _CandidateIndex.of(cands, params.CANDIDATE_STEP_M)
+    points = _Points()
+    n_centerlines = sum(1 for f in features if f.type == ElementType.CENTERLINE)
+    fids = {a["feature_id"] for _, a in g.nodes(data=True)}
+
+    # 1-4. lane samples, sides, runs
+    samples: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    runs: dict[str, list[_Run]] = {}
+    for lane in g.nodes:
+        p = resample_polyline(np.asarray(g.nodes[lane]["points_xy_world"], float), params.SAMPLE_STEP_M)
+        if len(p) < 2:
+            continue
+        t = _unit(np.gradient(p, axis=0))
+        s = arclength(p)
+        label, offset = _side_labels(p, t, index, params)
+        for side in (LEFT, RIGHT):
+            label[:, side] = _fold_short_runs(label[:, side], s, params.MIN_RUN_M)
+        pair = _fold_short_runs((label[:, LEFT] + 1) * (len(cands) + 1) + label[:, RIGHT] + 1, s, params.MIN_RUN_M)
+        label = np.column_stack([pair // (len(cands) + 1) - 1, pair % (len(cands) + 1) - 1])
+        cut = np.flatnonzero(pair[1:] != pair[:-1]) + 1
+        bounds = np.r_[0, cut, len(p) - 1]
+        lane_runs = [_Run(lane, int(a), int(b), (int(label[a, LEFT]), int(label[a, RIGHT])))
+                     for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+        samples[lane] = (p, t, s)
+        # 5. end points: stations on painted sides, estimates elsewhere; runs of a lane joined
+        n_xy = np.column_stack([-t[:, 1], t[:, 0]])
+        for r in lane_runs:
+            for side in (LEFT, RIGHT):
+                for e, i in enumerate((r.i0, r.i1)):
+                    c = r.bound[side]
+                    if c != NO_BOUND:
+                        idx, s_c = cands[c].station(points, p[i], params.STATION_SNAP_M)
+                        r.s_ends[side][e] = s_c
+                    else:
+                        o, prio = _estimate_offset(side, i, s, offset, params)
+                        idx = points.add(p[i] + o * n_xy[i], prio)
+                    r.ends[side][e] = idx
+        for a, b in zip(lane_runs[:-1], lane_runs[1:], strict=False):
+            for side in (LEFT, RIGHT):
+                if not points.union(a.ends[side][1], b.ends[side][0], params.JOIN_M, params.JOIN_M, t[a.i1]):
+                    b.force_start(side, a.ends[side][1])  # the bound steps sideways (paint changes)
+        runs[lane] = lane_runs
+
+    # 5. lanes joined in the lane graph share their end / start points
+    succ_edges = [(u, v) for u, v, kind in g.edges(data="kind") if kind == "successor" and u in runs and v in runs]
+    for u, v in succ_edges:
+        for side in (LEFT, RIGHT):
+            a, b = runs[u][-1].ends[side][1], runs[v][0].ends[side][0]
+            if points.union(a, b, params.JOIN_M, params.topology.CONNECT_M, samples[u][1][-1]):
+                continue
+            if len(lane_graph.predecessors(v)) == 1 and runs[v][0].lead[side] < 0:
+                runs[v][0].force_start(side, a)
+            else:
+                log.debug("lanes %s -> %s: %s end points %s and %s too far apart to join", u, v,
+                          ("left", "right")[side], np.round(points.xy[a], 2), np.round(points.xy[b], 2))
+    roots, pos = points.resolve()
+
+    # 6. skip what cannot be a lanelet
+    for lane, lane_runs in runs.items():
+        p, t, _ = samples[lane]
+        n_xy = np.column_stack([-t[:, 1], t[:, 0]])
+        for r in lane_runs:
+            end_prio = [points.best_prio[roots[r.ends[sd][e]]] for sd in (LEFT, RIGHT) for e in (0, 1)]
+            if r.bound == (NO_BOUND, NO_BOUND) and min(end_prio) == PRIO_DEFAULT:
+                r.skip = "no bounds found"
+                continue
+            for e, i in enumerate((r.i0, r.i1)):
+                left, right = pos[roots[r.ends[LEFT][e]]], pos[roots[r.ends[RIGHT][e]]]
+                width = float(np.linalg.norm(left - right))
+                if not params.MIN_WIDTH_M <= width <= params.MAX_WIDTH_M:
+                    r.skip = "implausible width"
+                elif float(n_xy[i] @ (left - p[i])) <= 0.0 or float(n_xy[i] @ (right - p[i])) >= 0.0:
+                    r.skip = "bound on the wrong side"
+            if r.skip:
+                continue
+            for side in (LEFT, RIGHT):
+                c = r.bound[side]
+                if c != NO_BOUND and abs(r.s_ends[side][1] - r.s_ends[side][0]) < 0.5:
+                    r.bound = (NO_BOUND, r.bound[1]) if side == LEFT else (r.bound[0], NO_BOUND)
+
+    # 7. ways and lanelets
+    builder = _OsmBuilder(points, roots, pos)
+    n_virtual = n_two_way = 0
+    for lane, lane_runs in runs.items():
+        p, t, s = samples[lane]
+        n_xy = np.column_stack([-t[:, 1], t[:, 0]])
+        for r in lane_runs:
+            if r.skip:
+                continue
+            ways = []
+            has_virtual = False
+            for side in (LEFT, RIGHT):
+                a, b = r.ends[side]
+                c = r.bound[side]
+                if c != NO_BOUND:
+                    cand = cands[c]
+                    cand.used = True
+                    lead = [r.lead[side]] if r.lead[side] >= 0 else []
+                    chain = [a, *lead, *cand.between(points, r.s_ends[side][0], r.s_ends[side][1]), b]
+                    ways.append(builder.way(chain, cand.tags))
+                else:
+                    o_a = float(n_xy[r.i0] @ (pos[roots[a]] - p[r.i0]))
+                    o_b = float(n_xy[r.i1] @ (pos[roots[b]] - p[r.i1]))
+                    step = max(int(round(params.VIRTUAL_STEP_M / params.SAMPLE_STEP_M)), 1)
+                    inner = list(range(r.i0 + step, r.i1 - step // 2, step))
+                    w = (s[inner] - s[r.i0]) / max(s[r.i1] - s[r.i0], 1e-9)
+                    mid = [points.add(p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i], PRIO_ESTIMATED)
+                           for i, wi in zip(inner, w, strict=True)]
+                    ways.append(builder.way([a, *mid, b], (("type", "virtual"),)))
+                    has_virtual = True
+            if ways[LEFT] is None or ways[RIGHT] is None:
+                r.skip = "degenerate bound"
+                continue
+            if not builder.simple_outline(ways[LEFT], ways[RIGHT]):
+                r.skip = "bounds cross"
+                continue
+            if builder.lanelet(ways[LEFT], ways[RIGHT], (
+                ("type", "lanelet"), ("subtype", "road"), ("location", params.location),
+                ("one_way", "yes"), ("csr:lane", lane), ("csr:centerline_id", g.nodes[lane]["feature_id"]),
+            )):
+                n_virtual += has_virtual
+            else:
+                r.skip = TWO_WAY
+                n_two_way += 1
+
+    # crosswalks, stop lines, road markings, unused lines
+    n_cross = n_stop = n_mark = 0
+    for f in features:
+        tags_id = (("csr:feature_id", f.feature_id),) if f.feature_id else ()
+        xy = np.asarray(f.points_xy_world, float)
+        if f.type == ElementType.CROSSWALK and len(xy) >= 3:
+            sides = _crosswalk_sides(xy)
+            if sides is None:
+                continue
+            ways = [builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
+                    for side in sides]
+            if ways[0] is not None and ways[1] is not None:
+                builder.lanelet(ways[0], ways[1], (("type", "lanelet"), ("subtype", "crosswalk"),
+                                                   ("one_way", "no"), ("participant:pedestrian", "yes"), *tags_id))
+                n_cross += 1
+        elif f.type == ElementType.STOP_LINE and len(xy) >= 2:
+            if builder.way([points.add(q, PRIO_PAINT) for q in xy], (("type", "stop_line"), *tags_id)) is not None:
+                n_stop += 1
+        elif f.type == ElementType.ROAD_MARKING and len(xy) >= 3:
+            ids = [points.add(q, PRIO_PAINT) for q in xy]
+            if builder.way([*ids, ids[0]], (("type", "road_marking"), ("area", "yes"), *tags_id)) is not None:
+                n_mark += 1
+    n_unused = 0
+    for cand in cands:
+        if not cand.used:
+            builder.way([cand.vertex_point(points, k) for k in range(len(cand.xy))], cand.tags)
+            n_unused += 1
+
+    # report
+    written = {r.lane: r for lane_runs in runs.values() for r in lane_runs if r.skip in ("", TWO_WAY)}
+    skipped = Counter(r.skip for lane_runs in runs.values() for r in lane_runs if r.skip not in ("", TWO_WAY))
+    lanes_skipped = sum(1 for lane in g.nodes if lane not in written)
+    joined = n_links = 0
+    for u, v in succ_edges:
+        a, b = runs[u][-1], runs[v][0]
+        if a.skip not in ("", TWO_WAY) or b.skip not in ("", TWO_WAY):
+            continue
+        n_links += 1
+        joined += all(roots[a.ends[sd][1]] == roots[b.ends[sd][0]] for sd in (LEFT, RIGHT))
+    node_ids, xy_world, ways, relations = builder.finish(len(points.parent))
+    report = ExportReport(
+        lanes=g.number_of_nodes(),
+        lanelets=sum(1 for lane_runs in runs.values() for r in lane_runs if not r.skip),
+        lanelets_with_virtual_bound=int(n_virtual),
+        two_way_lanelets=n_two_way,
+        lanes_skipped=lanes_skipped,
+        runs_skipped=dict(sorted(skipped.items())),
+        successor_links=n_links,
+        successor_links_joined=int(joined),
+        centerlines_not_lanes=n_centerlines - len(fids),
+        crosswalks=n_cross,
+        stop_lines=n_stop,
+        road_markings=n_mark,
+        lines_unused=n_unused,
+        nodes=len(node_ids),
+        ways=len(ways),
+    )
+    log.info("lanelet2 export: %s", report.as_dict())
+    return Lanelet2Map(frame, node_ids, frame.to_lonlat(xy_world) if len(xy_world) else np.zeros((0, 2)),
+                       xy_world, ways, relations, report)
+
+
+def _crosswalk_sides(outline_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The two long sides (2, 2) of the minimum rotated rectangle of a polygon, same direction:
+    a pedestrian walks between them."""
+    rect = shapely.Polygon(outline_xy).minimum_rotated_rectangle
+    if rect.geom_type != "Polygon" or rect.area < 0.5:
+        return None
+    c = np.asarray(rect.exterior.coords)[:4]
+    if np.linalg.norm(c[1] - c[0]) >= np.linalg.norm(c[2] - c[1]):
+        return c[[0, 1]], c[[3, 2]]
+    return c[[1, 2]], c[[0, 3]]
+
+
+class _OsmBuilder:
+    """Ways (deduplicated: one way per node sequence, either direction) and relations over the
+    resolved points; ids are assigned in ``finish``."""
+
+    def __init__(self, points: _Points, roots: np.ndarray, pos: np.ndarray) -> None:
+        self.points, self.roots, self.pos = points, roots, pos
+        self.ways: list[tuple[tuple[int, ...], tuple[tuple[str, str], ...]]] = []
+        self.by_nodes: dict[tuple[int, ...], int] = {}
+        self.relations: list[tuple[tuple[tuple[str, int, str], ...], tuple[tuple[str, str], ...]]] = []
+        self.by_bounds: dict[tuple[int, int], int] = {}
+
+    def _root(self, i: int) -> int:
+        if i >= len(self.roots):  # added after resolve: its own root and position
+            return i
+        return int(self.roots[i])
+
+    def way(self, chain: Sequence[int], tags: tuple[tuple[str, str], ...]) -> int | None:
+        nodes: list[int] = []
+        for i in chain:
+            r = self._root(i)
+            if not nodes or nodes[-1] != r:
+                nodes.append(r)
+        if len(set(nodes)) < 2:
+            return None
+        key = tuple(nodes)
+        for k in (key, key[::-1]):
+            if k in self.by_nodes:
+                return self.by_nodes[k]
+        self.ways.append((key, tags))
+        self.by_nodes[key] = len(self.ways) - 1
+        return len(self.ways) - 1
+
+    def xy_of(self, way: int) -> np.ndarray:
+        return np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in self.ways[way][0]])
+
+    def simple_outline(self, left: int, right: int) -> bool:
+        """Left and right bound (both built along the lane) enclose a simple polygon."""
+        return bool(shapely.Polygon(np.vstack([self.xy_of(left), self.xy_of(right)[::-1]])).is_valid)
+
+    def lanelet(self, left: int, right: int, tags: tuple[tuple[str, str], ...]) -> bool:
+        """Add a lanelet; False if it is the other direction of one already added (same ways,
+        sides swapped: a two-way lane), which then becomes ``one_way=no``."""
+        other = self.by_bounds.get((right, left))
+        if other is not None:
+            members, old = self.relations[other]
+            self.relations[other] = (members, tuple((k, "no" if k == "one_way" else v) for k, v in old))
+            return False
+        self.by_bounds[(left, right)] = len(self.relations)
+        self.relations.append(((("way", left, "left"), ("way", right, "right")), tags))
+        return True
+
+    def finish(self, n_points: int) -> tuple[np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...]]:
+        used = sorted({n for nodes, _ in self.ways for n in nodes})
+        xy = np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in used]).reshape(-1, 2)
+        node_id = {n: k + 1 for k, n in enumerate(used)}
+        way_base = len(used) + 1
+        ways = tuple(OsmWay(way_base + w, tuple(node_id[n] for n in nodes), tags)
+                     for w, (nodes, tags) in enumerate(self.ways))
+        rel_base = way_base + len(ways)
+        relations = tuple(
+            OsmRelation(rel_base + k, tuple((t, way_base + ref, role) for t, ref, role in members), tags)
+            for k, (members, tags) in enumerate(self.relations))
+        return np.arange(1, len(used) + 1), xy, ways, relations

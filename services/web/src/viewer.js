@@ -1,0 +1,462 @@
+// The map viewer: the service's vector tiles on a plain background, a tile's version history with
+// the diff to the previous version, trip trajectories (raw GNSS vs aligned), element details, and
+// the human-correction actions (admin). All data comes from the CSR API; nothing from the internet.
+import * as maplibregl from 'maplibre-gl';
+import 'maplibre-gl/dist/maplibre-gl.css';
+import './style.css';
+import { api, apiKey, el, fmt, setupKeyForm } from './api.js';
+
+maplibregl.setWorkerUrl(new URL(__WORKER_FILE__, import.meta.url).href);
+
+// --- element styles ------------------------------------------------------------------------------
+
+const STYLE = {
+  lane_divider: { color: '#f1f3f5', width: 1.6, label: 'lane divider (dashed where dashed)' },
+  road_boundary: { color: '#ff922b', width: 2.6, label: 'road boundary' },
+  centerline: { color: '#4dabf7', width: 1, label: 'centerline' },
+  stop_line: { color: '#ff6b6b', width: 4, label: 'stop line' },
+  crosswalk: { color: '#e9ecef', fill: 0.35, label: 'crosswalk' },
+  road_marking: { color: '#ffd43b', fill: 0.6, label: 'road marking' },
+};
+const FLAG_COLOR = '#f06595';
+const TRACK_COLORS = { raw: '#da77f2', aligned: '#69db7c' };
+const DIFF_COLORS = { added: '#40c057', modified: '#fab005', removed: '#fa5252' };
+
+const byType = (type, sourceLayer) => (sourceLayer === type ? null : ['==', ['get', 'type'], type]);
+const all = (...filters) => {
+  const parts = filters.filter(Boolean);
+  return parts.length ? ['all', ...parts] : undefined;
+};
+// validator flags: a list in GeoJSON; a vector tile carries scalars only (a string, a count or a boolean)
+const FLAGGED = ['any',
+  ['all', ['has', 'flags'], ['!', ['in', ['to-string', ['get', 'flags']], ['literal', ['', '[]']]]]],
+  ['>', ['to-number', ['get', 'n_flags'], 0], 0],
+  ['==', ['get', 'flagged'], true]];
+
+/** The style layers of the road structure in one source (a vector layer, or GeoJSON). */
+function elementLayers(prefix, source, sourceLayer) {
+  const base = (id, type, filter, paint, layout) => {
+    const layer = { id: `${prefix}-${id}`, type, source, paint, layout: layout || {} };
+    if (sourceLayer) layer['source-layer'] = sourceLayer;
+    if (filter) layer.filter = filter;
+    return layer;
+  };
+  const line = (type, extra, paint) =>
+    base(`${type}${extra ? '-' + extra.name : ''}`, 'line', all(byType(type, sourceLayer), extra?.filter), {
+      'line-color': STYLE[type].color,
+      'line-width': STYLE[type].width,
+      ...paint,
+    }, { 'line-cap': 'butt', 'line-join': 'round' });
+  const dashed = ['==', ['get', 'style'], 'dashed'];
+  return [
+    base('flags', 'line', FLAGGED, { 'line-color': FLAG_COLOR, 'line-width': 9, 'line-opacity': 0.55, 'line-blur': 2 }),
+    ...['crosswalk', 'road_marking'].flatMap((type) => [
+      base(`${type}-fill`, 'fill', byType(type, sourceLayer), { 'fill-color': STYLE[type].color, 'fill-opacity': STYLE[type].fill }),
+      base(`${type}-outline`, 'line', byType(type, sourceLayer), { 'line-color': STYLE[type].color, 'line-width': 1 }),
+    ]),
+    line('road_boundary'),
+    line('centerline', null, { 'line-opacity': 0.8 }),
+    line('lane_divider', { name: 'solid', filter: ['!', dashed] }),
+    line('lane_divider', { name: 'dashed', filter: dashed }, { 'line-dasharray': [3, 3] }),
+    line('stop_line'),
+  ];
+}
+
+// --- state and map -------------------------------------------------------------------------------
+
+const state = {
+  tileZoom: 16,
+  liveLayers: [], // ids of the live (vector tile) element layers
+  tile: null, // {z, x, y}
+  versions: [], // of the selected tile, oldest first
+  shownVersion: null,
+  tracks: new Map(), // trip id -> its FeatureCollection
+};
+
+const empty = { type: 'FeatureCollection', features: [] };
+const map = new maplibregl.Map({
+  container: 'map',
+  hash: true,
+  center: [11.579, 48.1366],
+  zoom: 16,
+  attributionControl: false,
+  style: {
+    version: 8,
+    sources: {
+      version: { type: 'geojson', data: empty },
+      diff: { type: 'geojson', data: empty },
+      tracks: { type: 'geojson', data: empty },
+      selection: { type: 'geojson', data: empty },
+    },
+    layers: [{ id: 'background', type: 'background', paint: { 'background-color': '#15191e' } }],
+  },
+  // the key goes with every request to this origin (tiles included), never elsewhere
+  transformRequest: (url) =>
+    url.startsWith(location.origin) ? { url, headers: { Authorization: `Bearer ${apiKey()}` } } : { url },
+});
+map.addControl(new maplibregl.NavigationControl({ showCompass: false }), 'top-right');
+map.addControl(new maplibregl.ScaleControl({ unit: 'metric' }), 'bottom-right');
+window.csrViewer = { map, state }; // for the browser tests and the console
+
+function addStaticLayers() {
+  for (const [kind, color] of Object.entries(DIFF_COLORS)) {
+    map.addLayer({
+      id: `diff-${kind}`, type: 'line', source: 'diff', filter: ['==', ['get', 'change'], kind],
+      paint: { 'line-color': color, 'line-width': 8, 'line-opacity': 0.5, ...(kind === 'removed' ? { 'line-dasharray': [1, 1] } : {}) },
+    });
+  }
+  for (const layer of elementLayers('version', 'version')) map.addLayer(layer);
+  for (const [kind, color] of Object.entries(TRACK_COLORS)) {
+    map.addLayer({
+      id: `track-${kind}`, type: 'line', source: 'tracks', filter: ['==', ['get', 'kind'], kind],
+      paint: { 'line-color': color, 'line-width': kind === 'raw' ? 1.5 : 2.5, ...(kind === 'raw' ? { 'line-dasharray': [2, 2] } : {}) },
+    });
+  }
+  map.addLayer({ id: 'selection', type: 'line', source: 'selection', paint: { 'line-color': '#ffffff', 'line-width': 1, 'line-dasharray': [4, 4] } });
+}
+
+// a tile URL template as the TileJSON gives it (new URL() would escape its {z}/{x}/{y})
+const absolute = (t) => (t.startsWith('/') ? location.origin + t : t);
+
+/** The live map: the TileJSON's vector tiles, one set of element layers per vector layer. */
+async function addLiveTiles() {
+  let tilejson;
+  try {
+    tilejson = await api('/v1/tiles.json');
+  } catch (err) {
+    setMessage(`no TileJSON (${err.message}): live tiles off`, true);
+    return;
+  }
+  state.tileZoom = tilejson.pipeline_zoom ?? state.tileZoom;
+  document.getElementById('map-version').textContent =
+    tilejson.map_version !== undefined ? `map version ${tilejson.map_version}` : '';
+  map.addSource('live', {
+    type: 'vector',
+    tiles: tilejson.tiles.map(absolute),
+    minzoom: tilejson.minzoom ?? 0,
+    maxzoom: tilejson.maxzoom ?? 16,
+    ...(tilejson.bounds ? { bounds: tilejson.bounds } : {}),
+  });
+  const before = 'diff-added';
+  for (const vl of tilejson.vector_layers || []) {
+    for (const layer of elementLayers(`live-${vl.id}`, 'live', vl.id)) {
+      map.addLayer(layer, before);
+      state.liveLayers.push(layer.id);
+    }
+  }
+  if (!location.hash && tilejson.center) map.jumpTo({ center: tilejson.center.slice(0, 2), zoom: tilejson.center[2] ?? 16 });
+}
+
+/** After a new version: the TileJSON names the new map version, the live source follows it. */
+async function refreshLive() {
+  const tilejson = await api('/v1/tiles.json').catch(() => null);
+  const source = map.getSource('live');
+  if (!tilejson || !source) return;
+  document.getElementById('map-version').textContent = `map version ${tilejson.map_version}`;
+  source.setTiles(tilejson.tiles.map(absolute));
+}
+
+function setLiveOpacity(opacity) {
+  for (const id of state.liveLayers) {
+    const type = map.getLayer(id)?.type;
+    if (type) map.setPaintProperty(id, `${type}-opacity`, id.endsWith('-flags') ? 0.55 * opacity : opacity);
+  }
+}
+
+function legend() {
+  const ul = document.querySelector('#legend ul');
+  const item = (color, label, { fill, dash } = {}) =>
+    el('li', {}, el('span', { class: `swatch${fill ? ' fill' : ''}`, style: `border-color:${color};${fill ? `background:${color}` : ''}${dash ? ';border-top-style:dashed' : ''}` }), label);
+  for (const s of Object.values(STYLE)) ul.append(item(s.color, s.label, { fill: Boolean(s.fill) }));
+  ul.append(item(FLAG_COLOR, 'validator flag'), item(TRACK_COLORS.raw, 'trip: raw GNSS', { dash: true }), item(TRACK_COLORS.aligned, 'trip: aligned'));
+}
+
+const setMessage = (text, isError = false) => {
+  const p = document.getElementById('tile-message');
+  p.textContent = text;
+  p.className = isError ? 'error' : 'muted';
+};
+
+// --- tiles and versions --------------------------------------------------------------------------
+
+function tileAt(lngLat, z) {
+  const n = 2 ** z;
+  const lat = (Math.max(-85.0511, Math.min(85.0511, lngLat.lat)) * Math.PI) / 180;
+  const x = Math.floor(((lngLat.lng + 180) / 360) * n);
+  const y = Math.floor(((1 - Math.log(Math.tan(lat) + 1 / Math.cos(lat)) / Math.PI) / 2) * n);
+  return { z, x: Math.min(Math.max(x, 0), n - 1), y: Math.min(Math.max(y, 0), n - 1) };
+}
+
+function tilePolygon({ z, x, y }) {
+  const lon = (xx) => (xx / 2 ** z) * 360 - 180;
+  const lat = (yy) => (Math.atan(Math.sinh(Math.PI * (1 - (2 * yy) / 2 ** z))) * 180) / Math.PI;
+  const ring = [[lon(x), lat(y)], [lon(x + 1), lat(y)], [lon(x + 1), lat(y + 1)], [lon(x), lat(y + 1)], [lon(x), lat(y)]];
+  return { type: 'Feature', properties: {}, geometry: { type: 'Polygon', coordinates: [ring] } };
+}
+
+const tilePath = (t) => `/v1/tiles/${t.z}/${t.x}/${t.y}`;
+
+async function selectTile(tile) {
+  state.tile = tile;
+  document.getElementById('tile-name').textContent = `${tile.z}/${tile.x}/${tile.y}`;
+  map.getSource('selection').setData({ type: 'FeatureCollection', features: [tilePolygon(tile)] });
+  setMessage('');
+  await Promise.all([loadVersions(), loadCorrections()]);
+}
+
+async function loadVersions({ showNewest = false } = {}) {
+  const box = document.getElementById('versions');
+  try {
+    const data = await api(`${tilePath(state.tile)}/versions`);
+    state.versions = (Array.isArray(data) ? data : data.versions || []).slice().sort((a, b) => a.version - b.version);
+  } catch (err) {
+    state.versions = [];
+    setMessage(err.status === 404 ? 'no versions for this tile' : `versions: ${err.message}`, err.status !== 404);
+  }
+  box.hidden = state.versions.length === 0;
+  const slider = document.getElementById('version-slider');
+  slider.max = String(Math.max(0, state.versions.length - 1));
+  if (state.versions.length && (showNewest || state.shownVersion === null)) {
+    slider.value = slider.max;
+  }
+  if (state.versions.length) await showVersion(Number(slider.value));
+  else showLive();
+}
+
+/** Draw version ``index`` of the selected tile and its diff to the previous version. */
+async function showVersion(index) {
+  const entry = state.versions[index];
+  const prev = state.versions[index - 1];
+  const path = tilePath(state.tile);
+  const fc = await api(`${path}/versions/${entry.version}`);
+  let diff;
+  try {
+    diff = prev ? diffFeatures(await api(`${path}/diff?from=${prev.version}&to=${entry.version}`)) : changedIn(fc, 'added');
+  } catch {
+    diff = prev ? diffFeatures(clientDiff(await api(`${path}/versions/${prev.version}`), fc)) : changedIn(fc, 'added');
+  }
+  map.getSource('version').setData(fc);
+  map.getSource('diff').setData(diff);
+  state.shownVersion = entry.version;
+  setLiveOpacity(0.15);
+  const counts = Object.fromEntries(Object.keys(DIFF_COLORS).map((k) => [k, diff.features.filter((f) => f.properties.change === k).length]));
+  document.getElementById('version-label').textContent =
+    `v${entry.version} of ${state.versions.length} · ${entry.status ?? ''} · ${entry.reason ?? ''} · ${fc.features.length} elements · ` +
+    `+${counts.added} ~${counts.modified} −${counts.removed}` + (entry.created_at ? ` · ${entry.created_at.slice(0, 19)}` : '');
+}
+
+function showLive() {
+  map.getSource('version').setData(empty);
+  map.getSource('diff').setData(empty);
+  state.shownVersion = null;
+  setLiveOpacity(1);
+}
+
+const CHANGE_NAMES = { added: 'added', removed: 'removed', modified: 'modified', changed: 'modified' };
+
+/** A diff entry as a GeoJSON Feature: a Feature, a brief ``{id, type, style, geometry}``, or a
+ * modification ``{id, before, after}`` (drawn where it is now). */
+function asFeature(item) {
+  if (item?.after) item = item.after;
+  if (item?.type === 'Feature') return item;
+  if (!item?.geometry) return null;
+  return { type: 'Feature', id: item.id, geometry: item.geometry, properties: { id: item.id, type: item.type, style: item.style } };
+}
+
+/** The diff answer as one FeatureCollection with ``properties.change``: ``{added, removed, modified}``
+ * (each a list or a FeatureCollection), or a FeatureCollection whose features carry ``change``. */
+function diffFeatures(data) {
+  const features = [];
+  const push = (item, change) => {
+    const f = asFeature(item);
+    if (f && CHANGE_NAMES[change]) features.push({ ...f, properties: { ...f.properties, change: CHANGE_NAMES[change] } });
+  };
+  if (data?.type === 'FeatureCollection') data.features.forEach((f) => push(f, f.properties?.change));
+  else for (const [change, group] of Object.entries(data || {})) {
+    const list = Array.isArray(group) ? group : group?.features;
+    if (Array.isArray(list)) list.forEach((f) => push(f, change));
+  }
+  return { type: 'FeatureCollection', features };
+}
+
+const featureId = (f) => f.properties?.id ?? f.properties?.feature_id ?? f.id;
+const changedIn = (fc, change) => ({ type: 'FeatureCollection', features: fc.features.map((f) => ({ ...f, properties: { ...f.properties, change } })) });
+
+/** Fallback when the server has no diff: compare stable feature ids and geometries. */
+function clientDiff(before, after) {
+  const old = new Map(before.features.map((f) => [featureId(f), f]));
+  const now = new Map(after.features.map((f) => [featureId(f), f]));
+  const out = { added: [], removed: [], modified: [] };
+  for (const [id, f] of now) {
+    if (!old.has(id)) out.added.push(f);
+    else if (JSON.stringify(old.get(id).geometry) !== JSON.stringify(f.geometry)) out.modified.push(f);
+  }
+  for (const [id, f] of old) if (!now.has(id)) out.removed.push(f);
+  return out;
+}
+
+// --- element details -----------------------------------------------------------------------------
+
+async function showElement(feature) {
+  const panel = document.getElementById('element-panel');
+  const box = document.getElementById('element');
+  panel.hidden = false;
+  const id = featureId(feature);
+  let detail = { id, properties: feature.properties, history: [] };
+  try {
+    detail = await api(`/v1/features/${encodeURIComponent(id)}`);
+  } catch (err) {
+    box.dataset.error = err.message;
+  }
+  const p = { ...feature.properties, ...(detail.properties || {}) };
+  const flags = Array.isArray(p.flags) ? p.flags.join(', ') : p.flags;
+  const rows = [
+    ['id', detail.id ?? id], ['type', p.type], ['style', p.style],
+    ['support', `${fmt(p.support_trips, 0)} trips, ${fmt(p.support_observations, 0)} observations`],
+    ['uncertainty', p.uncertainty_m !== undefined ? `${fmt(p.uncertainty_m, 3)} m` : undefined],
+    ['first seen', p.first_seen], ['last confirmed', p.last_confirmed], ['flags', flags && flags !== '[]' ? flags : 'none'],
+  ];
+  const history = (detail.history || []).map((h) =>
+    el('li', {}, `v${h.version ?? h.tile_version ?? '?'} ${h.change ?? ''} ${h.created_at ? h.created_at.slice(0, 19) : ''}`));
+  box.replaceChildren(
+    el('dl', {}, ...rows.filter(([, v]) => v !== undefined && v !== null).flatMap(([k, v]) => [el('dt', {}, k), el('dd', {}, v)])),
+    el('h3', {}, 'history'),
+    history.length ? el('ol', {}, ...history) : el('p', { class: 'muted' }, 'no history'),
+  );
+}
+
+// --- corrections (admin) -------------------------------------------------------------------------
+
+async function loadCorrections() {
+  const box = document.getElementById('corrections');
+  const path = tilePath(state.tile);
+  let pairs;
+  try {
+    pairs = await api(`${path}/match-pairs`);
+  } catch (err) {
+    box.hidden = true;
+    if (err.status === 403) setMessage('corrections need an admin key');
+    return;
+  }
+  box.hidden = false;
+  pairs = Array.isArray(pairs) ? pairs : pairs.pairs || pairs.match_pairs || [];
+  const short = (id) => (id ? String(id).slice(0, 8) : 'map');
+  document.getElementById('pairs').replaceChildren(
+    pairs.length
+      ? el('table', {}, el('tr', {}, ...['trips', 'conf.', 'rms m', 'status', ''].map((h) => el('th', {}, h))),
+        ...pairs.map((pair) => el('tr', { 'data-pair': pair.id, class: pair.status === 'active' ? '' : 'muted' },
+          el('td', { class: 'mono', title: `${pair.trip_i} ↔ ${pair.trip_j}` }, `${short(pair.trip_i)}↔${short(pair.trip_j)}`),
+          el('td', {}, fmt(pair.confidence)), el('td', {}, fmt(pair.residual_rms_m, 3)), el('td', {}, pair.status),
+          el('td', {},
+            pair.centre ? el('button', { type: 'button', onclick: () => map.flyTo({ center: pair.centre, zoom: Math.max(map.getZoom(), 18) }) }, 'show') : null,
+            pair.status === 'active' || pair.status === 'added'
+              ? el('button', { type: 'button', class: 'danger', onclick: () => correct({ kind: 'reject_pair', pair_id: pair.id }) }, 'reject')
+              : null))))
+      : el('p', { class: 'muted' }, 'no match pairs'),
+  );
+  let corrections = [];
+  try {
+    const data = await api(`/v1/corrections?z=${state.tile.z}&x=${state.tile.x}&y=${state.tile.y}`);
+    corrections = Array.isArray(data) ? data : data.corrections || [];
+  } catch (err) {
+    corrections = [];
+  }
+  document.getElementById('correction-list').replaceChildren(
+    corrections.length
+      ? el('table', {}, ...corrections.map((c) => el('tr', { 'data-correction': c.id },
+        el('td', {}, c.kind), el('td', { class: 'mono' }, short(c.payload?.pair_id ?? c.pair_id ?? c.id)),
+        el('td', {}, c.result_version ? `→ v${c.result_version}` : c.job_id ? 'pending' : ''),
+        el('td', {}, c.undone_at ? 'undone' : el('button', { type: 'button', onclick: () => undo(c.id) }, 'undo')))))
+      : el('p', { class: 'muted' }, 'none'),
+  );
+}
+
+async function waitForJob(jobId, timeoutMs = 120000) {
+  const deadline = Date.now() + timeoutMs;
+  while (Date.now() < deadline) {
+    const job = await api(`/v1/jobs/${jobId}`).catch(() => null);
+    if (job && (job.state === 'done' || job.state === 'failed')) return job;
+    await new Promise((r) => setTimeout(r, 700));
+  }
+  return null;
+}
+
+async function afterCorrection(answer, what) {
+  setMessage(`${what}: job ${answer?.job_id ?? '?'} queued…`);
+  const job = answer?.job_id ? await waitForJob(answer.job_id) : null;
+  setMessage(job ? `${what}: job ${job.state}${job.error ? ` (${job.error})` : ''}` : `${what}: submitted`, job?.state === 'failed');
+  await Promise.all([loadVersions({ showNewest: true }), loadCorrections(), refreshLive()]);
+}
+
+async function correct(body) {
+  try {
+    await afterCorrection(await api(`${tilePath(state.tile)}/corrections`, { method: 'POST', body }), body.kind);
+  } catch (err) {
+    setMessage(`${body.kind}: ${err.message}`, true);
+  }
+}
+
+async function undo(correctionId) {
+  try {
+    await afterCorrection(await api(`/v1/corrections/${correctionId}/undo`, { method: 'POST' }), 'undo');
+  } catch (err) {
+    setMessage(`undo: ${err.message}`, true);
+  }
+}
+
+// --- trips ---------------------------------------------------------------------------------------
+
+async function loadTrips() {
+  const b = map.getBounds();
+  const list = document.getElementById('trips');
+  try {
+    const data = await api(`/v1/trips?bbox=${[b.getWest(), b.getSouth(), b.getEast(), b.getNorth()].map((v) => v.toFixed(6)).join(',')}&limit=100`);
+    list.replaceChildren(...data.trips.map((trip) => el('li', {},
+      el('input', { type: 'checkbox', 'data-trip': trip.id, checked: state.tracks.has(trip.id), onchange: (e) => toggleTrack(trip.id, e.target.checked) }),
+      el('span', { class: 'mono', title: trip.id }, `${trip.vehicle_id}/${trip.trip_id}`),
+      el('span', { class: 'muted' }, `${trip.status} ${fmt(trip.length_km)} km`))));
+    if (!data.trips.length) list.replaceChildren(el('li', { class: 'muted' }, 'no trips in view'));
+  } catch (err) {
+    list.replaceChildren(el('li', { class: 'error' }, err.message));
+  }
+}
+
+async function toggleTrack(tripId, on) {
+  if (on) state.tracks.set(tripId, await api(`/v1/trips/${tripId}/track.geojson`));
+  else state.tracks.delete(tripId);
+  map.getSource('tracks').setData({ type: 'FeatureCollection', features: [...state.tracks.values()].flatMap((fc) => fc.features) });
+}
+
+// --- wiring --------------------------------------------------------------------------------------
+
+const ELEMENT_LAYER = /^(live-.*|version)-(?!flags)/;
+
+map.on('click', async (event) => {
+  const { x, y } = event.point;
+  const layers = map.getStyle().layers.map((l) => l.id).filter((id) => ELEMENT_LAYER.test(id));
+  const hit = map.queryRenderedFeatures([[x - 4, y - 4], [x + 4, y + 4]], { layers })[0];
+  if (hit) showElement(hit);
+  const tile = tileAt(event.lngLat, state.tileZoom);
+  if (!state.tile || ['z', 'x', 'y'].some((k) => tile[k] !== state.tile[k])) {
+    state.shownVersion = null;
+    await selectTile(tile);
+  }
+});
+map.on('mousemove', (event) => {
+  const layers = map.getStyle().layers.map((l) => l.id).filter((id) => ELEMENT_LAYER.test(id));
+  const { x, y } = event.point;
+  map.getCanvas().style.cursor = map.queryRenderedFeatures([[x - 4, y - 4], [x + 4, y + 4]], { layers }).length ? 'pointer' : '';
+});
+document.getElementById('version-slider').addEventListener('input', (e) => showVersion(Number(e.target.value)).catch((err) => setMessage(err.message, true)));
+document.getElementById('live-button').addEventListener('click', showLive);
+document.getElementById('trips-refresh').addEventListener('click', loadTrips);
+
+legend();
+const ready = new Promise((resolve) => map.on('load', resolve));
+async function start() {
+  await ready;
+  if (!map.getLayer('selection')) addStaticLayers();
+  if (!map.getSource('live')) await addLiveTiles();
+  document.body.dataset.ready = 'true';
+}
+if (setupKeyForm(start)) start();

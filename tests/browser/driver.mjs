@@ -1,0 +1,223 @@
+// Drives Debian's headless Chromium with playwright-core (from services/web/node_modules) through
+// the viewer or the ops page of a running CSR service, and prints one JSON line of what it saw.
+// pytest (tests/browser/test_*.py) starts the service, seeds data, runs this and asserts.
+//
+//   node tests/browser/driver.mjs viewer|ops '{"base": "http://127.0.0.1:PORT", "key": "...", "out": "test-artifacts/browser", ...}'
+import { createRequire } from 'node:module';
+import { mkdirSync } from 'node:fs';
+import { join } from 'node:path';
+import { fileURLToPath } from 'node:url';
+
+const webDir = fileURLToPath(new URL('../../services/web/', import.meta.url));
+const { chromium } = createRequire(join(webDir, 'package.json'))('playwright-core');
+
+// The machine's closed network: no background connections; WebGL on the CPU (SwiftShader).
+const CHROMIUM_ARGS = [
+  '--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
+  '--disable-background-networking', '--disable-component-update', '--disable-sync',
+  '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
+];
+
+const [scenario, configJson] = process.argv.slice(2);
+const config = JSON.parse(configJson);
+mkdirSync(config.out, { recursive: true });
+const result = { scenario, checks: {}, screenshots: [], console: [], errors: [] };
+const check = (name, value) => {
+  result.checks[name] = value;
+};
+
+async function shot(page, name) {
+  const path = join(config.out, `${name}.png`);
+  await page.screenshot({ path });
+  result.screenshots.push(path);
+}
+
+/** Share of the map canvas's pixels that differ from the background colour (the map drew something). */
+async function drawnShare(page) {
+  const png = (await page.locator('#map').screenshot()).toString('base64');
+  return page.evaluate(async (data) => {
+    const img = new Image();
+    img.src = `data:image/png;base64,${data}`;
+    await img.decode();
+    const canvas = Object.assign(document.createElement('canvas'), { width: img.width, height: img.height });
+    const ctx = canvas.getContext('2d');
+    ctx.drawImage(img, 0, 0);
+    const px = ctx.getImageData(0, 0, img.width, img.height).data;
+    let drawn = 0;
+    for (let i = 0; i < px.length; i += 4) {
+      if (Math.abs(px[i] - 0x15) + Math.abs(px[i + 1] - 0x19) + Math.abs(px[i + 2] - 0x1e) > 30) drawn++;
+    }
+    return drawn / (px.length / 4);
+  }, png);
+}
+
+async function enterKey(page, key) {
+  await page.locator('#key-form input').fill(key);
+  await page.locator('#key-form button[type=submit]').click();
+}
+
+// --- viewer --------------------------------------------------------------------------------------
+
+const rendered = (page, prefix) =>
+  page.evaluate((p) => {
+    const { map } = window.csrViewer;
+    const layers = map.getStyle().layers.map((l) => l.id).filter((id) => id.startsWith(p));
+    const ids = map.queryRenderedFeatures({ layers }).map((f) => `${f.layer.id.slice(p.length)}:${f.properties.id ?? f.properties.trip}`);
+    return [...new Set(ids)].sort();
+  }, prefix);
+
+const idle = (page) =>
+  page.waitForFunction(() => {
+    const { map } = window.csrViewer;
+    return map.loaded() && map.areTilesLoaded() && !map.isMoving();
+  }, null, { timeout: 30000 });
+
+async function setSlider(page, index) {
+  await page.evaluate((i) => {
+    const slider = document.getElementById('version-slider');
+    slider.value = String(i);
+    slider.dispatchEvent(new Event('input'));
+  }, index);
+  await page.waitForFunction((i) => document.getElementById('version-label').textContent.startsWith(`v${i + 1} `), index);
+  await page.waitForTimeout(300);
+  await idle(page);
+}
+
+/** Screen point of a lon/lat on the map (for clicks). */
+const project = (page, lngLat) =>
+  page.evaluate((ll) => {
+    const { map } = window.csrViewer;
+    const rect = map.getCanvas().getBoundingClientRect();
+    const p = map.project(ll);
+    return { x: rect.left + p.x, y: rect.top + p.y };
+  }, lngLat);
+
+async function viewer(page) {
+  const { tile, centre } = config;
+  await page.goto(`${config.base}/viewer/#18/${centre[1]}/${centre[0]}`);
+  check('key_form_shown', await page.locator('#key-form').isVisible());
+  await enterKey(page, config.key);
+  await page.waitForSelector('body[data-ready=true]');
+  await page.waitForFunction(() => window.csrViewer.map.getSource('live') !== undefined);
+  await idle(page);
+  check('map_version_label', await page.locator('#map-version').textContent());
+  check('live_rendered', await rendered(page, 'live-road-'));
+  check('live_drawn_share', await drawnShare(page));
+  await shot(page, 'viewer-live');
+
+  // select the tile: a click on the map (away from elements)
+  const empty = await project(page, centre.map((v, i) => v + (i === 1 ? 0.0004 : 0.0004)));
+  await page.mouse.click(empty.x, empty.y);
+  await page.waitForSelector('#versions:not([hidden])');
+  check('tile_name', await page.locator('#tile-name').textContent());
+  await idle(page);
+  const versions = [];
+  const n = Number(await page.locator('#version-slider').getAttribute('max')) + 1;
+  for (let i = n - 1; i >= 0; i--) {
+    await setSlider(page, i);
+    versions.push({
+      index: i,
+      label: await page.locator('#version-label').textContent(),
+      drawn: await rendered(page, 'version-'),
+      diff: await rendered(page, 'diff-'),
+    });
+    await shot(page, `viewer-version-${i + 1}`);
+  }
+  check('versions', versions);
+
+  // at the newest version: the flagged road boundary; then click an element for its details
+  await setSlider(page, n - 1);
+  check('flagged', (await rendered(page, 'version-')).filter((id) => id.startsWith('flags:')));
+  const target = await project(page, config.click_lnglat);
+  await page.mouse.click(target.x, target.y);
+  await page.waitForSelector('#element-panel:not([hidden]) dl');
+  await page.waitForFunction(() => document.querySelector('#element ol, #element p.muted'));
+  check('element_text', await page.locator('#element').innerText());
+  await shot(page, 'viewer-element');
+
+  // trips in view: raw and aligned trajectories of the selected ones
+  await page.locator('#live-button').click();
+  await page.locator('#trips-refresh').click();
+  await page.waitForSelector('#trips input[type=checkbox]');
+  check('trips_listed', await page.locator('#trips input[type=checkbox]').count());
+  for (const box of await page.locator('#trips input[type=checkbox]').all()) await box.check();
+  await page.waitForFunction((n) => window.csrViewer.state.tracks.size === n, await page.locator('#trips input[type=checkbox]').count());
+  await page.waitForTimeout(300);
+  await idle(page);
+  check('tracks_rendered', await rendered(page, 'track-'));
+  await shot(page, 'viewer-trips');
+
+  // corrections (admin): list the tile's match pairs, reject one, see a new version (and undo it)
+  if (config.correct) await correction(page);
+}
+
+async function correction(page) {
+  await page.waitForSelector('#corrections:not([hidden])', { timeout: 10000 }).catch(() => null);
+  const visible = await page.locator('#corrections').isVisible();
+  check('corrections_visible', visible);
+  if (!visible) return;
+  check('pairs_listed', await page.locator('#pairs tr[data-pair]').count());
+  const versionsBefore = Number(await page.locator('#version-slider').getAttribute('max')) + 1;
+  await shot(page, 'viewer-corrections');
+  const reject = page.locator('#pairs tr[data-pair] button.danger').first();
+  if (!(await reject.count())) return;
+  check('rejected_pair', await page.locator('#pairs tr[data-pair]').first().getAttribute('data-pair'));
+  await reject.click();
+  await page.waitForFunction(() => / job (done|failed)|submitted|: /.test(document.getElementById('tile-message').textContent) && document.querySelector('#correction-list tr'), null, { timeout: 120000 });
+  check('correction_message', await page.locator('#tile-message').textContent());
+  check('corrections_listed', await page.locator('#correction-list tr[data-correction]').count());
+  check('versions_after_correction', Number(await page.locator('#version-slider').getAttribute('max')) + 1 - versionsBefore);
+  await shot(page, 'viewer-after-correction');
+}
+
+// --- ops -----------------------------------------------------------------------------------------
+
+async function ops(page) {
+  await page.goto(`${config.base}/ops/`);
+  await enterKey(page, config.key);
+  await page.waitForSelector('#jobs tbody tr');
+  await page.waitForSelector('#dirty tbody tr').catch(() => null);
+  const row = page.locator(`#jobs tr[data-job="${config.retry_job}"]`);
+  await row.waitFor();
+  check('summary_failed', await page.locator('.card.failed .n').textContent());
+  check('failed_row', await row.innerText());
+  check('dirty_rows', await page.locator('#dirty tbody tr').count());
+  await shot(page, 'ops-failed');
+  await row.locator('button', { hasText: 'retry' }).click();
+  await page.waitForFunction(() => /retrying/.test(document.getElementById('ops-message').textContent));
+  check('message', await page.locator('#ops-message').textContent());
+  // the new job appears and runs to its end (the page refreshes itself)
+  await page.waitForFunction((id) => {
+    const old = document.querySelector(`#jobs tr[data-job="${id}"]`);
+    const rows = [...document.querySelectorAll('#jobs tbody tr')];
+    const newest = rows.find((r) => r.children[2].textContent === old?.children[2].textContent && r !== old);
+    return old && /retried/.test(old.innerText) && newest && ['done', 'failed'].includes(newest.dataset.state);
+  }, config.retry_job, { timeout: 60000 });
+  check('rows_for_subject', await page.evaluate((id) => {
+    const subject = document.querySelector(`#jobs tr[data-job="${id}"]`).children[2].textContent;
+    return [...document.querySelectorAll('#jobs tbody tr')].filter((r) => r.children[2].textContent === subject)
+      .map((r) => ({ id: r.dataset.job, state: r.dataset.state, text: r.innerText }));
+  }, config.retry_job));
+  await shot(page, 'ops-retried');
+}
+
+// --- main ----------------------------------------------------------------------------------------
+
+const browser = await chromium.launch({ executablePath: config.chromium || '/usr/bin/chromium', args: CHROMIUM_ARGS, headless: true });
+try {
+  const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+  page.on('console', (m) => m.type() !== 'debug' && result.console.push(`${m.type()}: ${m.text()}`));
+  page.on('pageerror', (e) => result.errors.push(String(e)));
+  await { viewer, ops }[scenario](page);
+} catch (err) {
+  result.errors.push(String(err.stack || err));
+  try {
+    const pages = browser.contexts().flatMap((c) => c.pages());
+    if (pages.length) await shot(pages[0], `${scenario}-failure`);
+  } catch {
+    /* the failure screenshot is best effort */
+  }
+} finally {
+  await browser.close();
+}
+console.log(JSON.stringify(result));

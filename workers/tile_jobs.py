@@ -1,0 +1,518 @@
+"""The per-tile jobs: ``align_tile`` (coarse then fine alignment of the tile's trips, paper III-D)
+and ``merge_tile`` (topology generation and validation, then a new tile version, III-E).
+
+``align_tile z/x/y``
+    Takes the tile's trips (``trip_tiles``): all of them the first time, afterwards only those not
+    yet aligned here. Each trip's frames in the tile or its halo become pieces
+    (``csr_core.tiling``), aligned together against the pre-built map of the tile and its halo
+    (the live map, ``P_sub-pre``). Stores per trip and tile the aligned poses, residuals and the
+    trip's instances moved with its alignment (``trip_tile_alignments``, upserted: a re-run
+    overwrites), the accepted match pairs, marks the trips' tile rows processed, queues a
+    ``merge_tile`` for the tile, and finishes every trip whose tiles are now all aligned: its
+    final poses (``trip_poses``, blended across tile edges) and status ``aligned`` (or ``failed``
+    with the reason when a tile could not align it). All in one transaction with the job's end.
+
+``merge_tile z/x/y``
+    Fuses the tile's aligned, not yet merged trips into the tile's road structure: incrementally
+    (``update_topology``) from the state of the tile's latest version, or from scratch the first
+    time (or when a trip was re-aligned). Features are clipped to the tile and written as a new
+    version (``services.db.versions.write_tile_version``) with the expected version read at the
+    start: a concurrent merge of the same tile makes this one retry (:class:`RetryJob`). The
+    version is published unless the validator's tile quality is below
+    ``Settings.publish_min_quality``: then it is a candidate for review.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import logging
+import pickle
+import zlib
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import orjson
+import shapely
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from csr_core.alignment import AlignmentResult, PriorMap, align_trips
+from csr_core.errors import AlignmentFailed
+from csr_core.geo import LocalFrame, region_frame_for, tile_bounds_lonlat
+from csr_core.se2 import yaw_rad_to_heading_deg
+from csr_core.tiling import (
+    assemble_poses,
+    blend_weight,
+    crop_reconstruction,
+    piece_runs,
+    reframe_poses,
+    reframe_reconstruction,
+    signed_distance_m,
+    tile_polygon_xy,
+)
+from csr_core.topology import (
+    SUSPECT,
+    TopologyResult,
+    generate_topology,
+    reposition_instances,
+    update_topology,
+)
+from csr_core.types import DividerStyle, ElementType, MapFeature, TripReconstruction
+from csr_core.upload import decode_trip
+from services.db import repo, versions
+from services.db.models import (
+    DirtyTile,
+    MatchPair,
+    TileVersion,
+    Trip,
+    TripPoses,
+    TripReconstructionRecord,
+    TripTile,
+    TripTileAlignment,
+    utcnow,
+)
+from services.reconstructions import (
+    ALGORITHM_VERSION,
+    _plain_json,
+    decode_arrays,
+    instance_from_json,
+    instance_json,
+    noise_from_json,
+    noise_json,
+)
+from services.settings import Settings
+
+log = logging.getLogger(__name__)
+
+NO_OVERLAP = "no_overlap"  # nothing else in the tile to align with: the trip keeps its own poses
+TOPOLOGY_STATE_VERSION = "topology-1"  # bump when TopologyResult's pickled form changes
+
+
+# flags that hold a merge back for review (``SUSPECT`` but low support and gaps: see tile_quality)
+GATE_FLAGS = SUSPECT - {"low_support", "gap"}
+
+
+class RetryJob(Exception):
+    """A transient conflict (another job wrote the tile first): the job is queued again."""
+
+
+def tile_frame(z: int, x: int, y: int) -> LocalFrame:
+    """The world frame a tile is processed in: its region's (shared with the trips around it)."""
+    west, south, east, north = tile_bounds_lonlat(z, x, y)
+    return region_frame_for(((west + east) / 2, (south + north) / 2))
+
+
+def parse_tile(subject: str) -> tuple[int, int, int]:
+    z, x, y = (int(v) for v in subject.split("/"))
+    return z, x, y
+
+
+# --- align_tile -----------------------------------------------------------------------------------
+
+
+@dataclass
+class TripAlignment:
+    """What one align job made of one trip in its tile (tile frame)."""
+
+    trip_pk: str
+    frame_indices: np.ndarray
+    poses_xyyaw: np.ndarray
+    weights: np.ndarray
+    residuals_m: np.ndarray
+    instances: list[dict]
+    noise: dict
+    failed_reason: str | None
+
+
+@dataclass
+class AlignTileResult:
+    frame: LocalFrame
+    trips: list[TripAlignment] = field(default_factory=list)
+    match_pairs: list[dict] = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+
+
+def compute_align_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int,
+                       ) -> AlignTileResult:
+    frame = tile_frame(z, x, y)
+    with session_factory() as session:
+        has_version = versions.latest_version(session, z=z, x=x, y=y) is not None
+        rows = session.execute(
+            select(TripTile.trip_pk, TripTile.processed_job_id)
+            .join(Trip, Trip.id == TripTile.trip_pk)
+            .where(TripTile.z == z, TripTile.x == x, TripTile.y == y, Trip.status != "failed")
+            .order_by(Trip.received_at, Trip.id)
+        ).all()
+        trip_pks = [pk for pk, done in rows if not (has_version and done)]
+        recons = {pk: _load_reconstruction(session, pk, frame) for pk in trip_pks}
+        prior = _prior_map(session, z, x, y, frame, settings.tile_halo_m)
+    recons = {pk: r for pk, r in recons.items() if r is not None}
+    result = AlignTileResult(frame)
+    if not recons:
+        return result
+    polygon = tile_polygon_xy(z, x, y, frame)
+    pieces: list[TripReconstruction] = []
+    piece_of: dict[str, tuple[str, int, np.ndarray]] = {}  # piece key -> trip pk, start, signed distances
+    for pk, recon in recons.items():
+        signed = signed_distance_m(recon.poses_xyyaw_world[:, :2], polygon)
+        for start, stop in piece_runs(signed, settings.tile_halo_m):
+            piece = crop_reconstruction(recon, start, stop, suffix=f"@{start}")
+            pieces.append(piece)
+            piece_of[piece.trip.key] = (pk, start, signed[start:stop])
+    alignment = _align(pieces, prior)
+    per_trip: dict[str, list] = {pk: [] for pk in recons}
+    for piece in pieces:
+        pk, start, signed = piece_of[piece.trip.key]
+        reason = alignment.failed.get(piece.trip.key)
+        if reason is not None and not reason.startswith(NO_OVERLAP):
+            poses = alignment.diagnostics.get("unaligned_poses", {}).get(piece.trip.key, piece.poses_xyyaw_world)
+        elif reason is not None:
+            poses = piece.poses_xyyaw_world
+        else:
+            poses = alignment.poses_xyyaw_world[piece.trip.key]
+        residuals = alignment.frame_residuals_m.get(piece.trip.key, np.full(len(poses), np.nan))
+        moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
+        per_trip[pk].append((start, poses, blend_weight(signed, settings.tile_halo_m), residuals, moved,
+                             reason if reason is not None and not reason.startswith(NO_OVERLAP) else None))
+    for pk, parts in per_trip.items():
+        if not parts:
+            continue  # only a short run here: its frames follow the neighbouring tiles' alignment
+        n = [len(p[1]) for p in parts]
+        reasons = [p[5] for p in parts if p[5]]
+        result.trips.append(TripAlignment(
+            trip_pk=pk,
+            frame_indices=np.concatenate([np.arange(p[0], p[0] + k) for p, k in zip(parts, n, strict=True)]),
+            poses_xyyaw=np.concatenate([p[1] for p in parts]),
+            weights=np.concatenate([p[2] for p in parts]),
+            residuals_m=np.concatenate([np.asarray(p[3], float) for p in parts]),
+            instances=[instance_json(i) for p in parts for i in p[4]],
+            noise=_plain_json(noise_json(recons[pk].noise)),
+            failed_reason="; ".join(reasons) if reasons else None,
+        ))
+    for rec in alignment.match_pairs:
+        if not rec.pose_graph_inlier:
+            continue
+        record = _plain_json(asdict(rec))
+        trip_i = piece_of.get(rec.trip_key_i, (None,))[0]
+        trip_j = piece_of.get(rec.trip_key_j, (None,))[0]
+        result.match_pairs.append({"trip_pk_i": trip_i, "trip_pk_j": trip_j, "confidence": float(rec.confidence),
+                                   "residual_rms_m": float(rec.residual_rms_m), "record": record})
+    result.diagnostics = {"pieces": len(pieces), "prior_features": len(prior.features) if prior else 0,
+                          "timings": alignment.diagnostics.get("timings", {})}
+    return result
+
+
+def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None) -> AlignmentResult:
+    if not pieces:
+        return AlignmentResult({}, {}, (), {})
+    try:
+        return align_trips(pieces, prior_map=prior)
+    except AlignmentFailed as exc:  # nothing to align with (one piece, no map): each keeps its own poses
+        return AlignmentResult({}, {p.trip.key: f"{NO_OVERLAP}: {exc}" for p in pieces}, (), {})
+
+
+def _load_reconstruction(session: Session, trip_pk: str, frame: LocalFrame) -> TripReconstruction | None:
+    row = session.get(TripReconstructionRecord, (trip_pk, ALGORITHM_VERSION))
+    upload = repo.raw_upload(session, trip_pk=trip_pk)
+    if row is None or upload is None:
+        return None
+    trip = decode_trip(orjson.loads(gzip.decompress(upload.body)))
+    recon = reconstruction_from_row(row, trip)
+    return reframe_reconstruction(recon, LocalFrame(row.origin_lat, row.origin_lon), frame)
+
+
+def reconstruction_from_row(row: TripReconstructionRecord, trip) -> TripReconstruction:
+    arrays = decode_arrays(row.arrays)
+    return TripReconstruction(
+        trip=trip,
+        poses_xyyaw_world=arrays["poses_xyyaw_world"],
+        pose_sigma_xy_m=arrays["pose_sigma_xy_m"].astype(float),
+        keyframe_indices=arrays["keyframe_indices"].astype(np.int64),
+        instances=tuple(instance_from_json(i) for i in row.instances),
+        noise=noise_from_json(row.noise),
+        gnss_inlier=arrays["gnss_inlier"],
+        diagnostics=dict(row.diagnostics or {}),
+    )
+
+
+def _prior_map(session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float) -> PriorMap | None:
+    """The live map of the tile and its halo (neighbouring tiles' features near the edge)."""
+    west, south, east, north = tile_bounds_lonlat(z, x, y)
+    lat = np.radians((south + north) / 2)
+    dlat = halo_m / 111_320.0
+    dlon = halo_m / (111_320.0 * max(np.cos(lat), 1e-6))
+    features = versions.features_in_bbox(session, bbox_lonlat=(west - dlon, south - dlat, east + dlon, north + dlat))
+    mapped = [f for f in (_to_map_feature(v, frame) for v in features) if f is not None]
+    return PriorMap(tuple(mapped)) if mapped else None
+
+
+def _to_map_feature(v: versions.VersionFeature, frame: LocalFrame) -> MapFeature | None:
+    etype = ElementType(v.type)
+    geom = v.geometry
+    coords = np.asarray(geom.exterior.coords if etype.is_polygon else geom.coords, float)[:, :2]
+    if etype.is_polygon:
+        coords = coords[:-1]
+    if len(coords) < 2:
+        return None
+    return MapFeature(etype, frame.to_local(coords), DividerStyle(v.style) if v.style else None, v.feature_id,
+                      dict(v.properties))
+
+
+def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int, x: int, y: int,
+                       result: AlignTileResult) -> None:
+    now = utcnow()
+    for ta in result.trips:
+        values = {
+            "job_id": job_id, "origin_lat": result.frame.origin_lat, "origin_lon": result.frame.origin_lon,
+            "arrays": _npz(frame_indices=ta.frame_indices.astype(np.int32), poses_xyyaw=ta.poses_xyyaw,
+                           weights=ta.weights.astype(np.float32), residuals_m=ta.residuals_m.astype(np.float32)),
+            "instances": ta.instances, "noise": ta.noise, "failed_reason": ta.failed_reason,
+            "merged_version_id": None, "created_at": now,
+        }
+        row = session.get(TripTileAlignment, (ta.trip_pk, z, x, y))
+        if row is None:
+            session.add(TripTileAlignment(trip_pk=ta.trip_pk, z=z, x=x, y=y, **values))
+        else:
+            for k, v in values.items():
+                setattr(row, k, v)
+    for mp in result.match_pairs:
+        session.add(MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status="active", created_at=now, **mp))
+    aligned_pks = sorted({ta.trip_pk for ta in result.trips})
+    session.execute(
+        update(TripTile)
+        .where(TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))
+        .values(processed_job_id=job_id)
+    )
+    dirty = session.scalars(
+        select(DirtyTile).where(DirtyTile.z == z, DirtyTile.x == x, DirtyTile.y == y).with_for_update()
+    ).one_or_none()
+    if dirty is not None and dirty.job_id == job_id:
+        session.delete(dirty)
+    if result.trips:
+        repo.add_job(session, kind="merge_tile", subject=f"{z}/{x}/{y}")
+    tile_pks = session.scalars(
+        select(TripTile.trip_pk).where(TripTile.z == z, TripTile.x == x, TripTile.y == y)
+    ).all()
+    for pk in sorted(set(tile_pks) | set(aligned_pks)):
+        finish_trip_if_complete(session, pk, job_id)
+
+
+def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool:
+    """Once every tile of a trip has aligned it: its final poses and status. The trip row is locked
+    first, so of two tile jobs finishing at once the later one sees both tiles done."""
+    trip = session.scalars(select(Trip).where(Trip.id == trip_pk).with_for_update()).one_or_none()
+    if trip is None or trip.status not in ("processing", "aligned"):
+        return False
+    pending = session.scalar(
+        select(TripTile.trip_pk).where(TripTile.trip_pk == trip_pk, TripTile.processed_job_id.is_(None)).limit(1)
+    )
+    if pending is not None:
+        return False
+    row = session.get(TripReconstructionRecord, (trip_pk, ALGORITHM_VERSION))
+    if row is None:
+        return False
+    own = LocalFrame(row.origin_lat, row.origin_lon)
+    smoothed = decode_arrays(row.arrays)["poses_xyyaw_world"]
+    contributions, reasons = [], []
+    for a in session.scalars(select(TripTileAlignment).where(TripTileAlignment.trip_pk == trip_pk)):
+        arrays = decode_arrays(a.arrays)
+        poses = reframe_poses(arrays["poses_xyyaw"], LocalFrame(a.origin_lat, a.origin_lon), own)
+        contributions.append((arrays["frame_indices"].astype(np.int64), poses, arrays["weights"]))
+        if a.failed_reason:
+            reasons.append(f"tile {a.z}/{a.x}/{a.y}: {a.failed_reason}")
+    poses, _ = assemble_poses(smoothed, contributions)
+    upload = repo.raw_upload(session, trip_pk=trip_pk)
+    t = decode_trip(orjson.loads(gzip.decompress(upload.body))).timestamps_s if upload is not None else None
+    if t is None or len(t) != len(poses):
+        return False
+    lonlat = own.to_lonlat(poses[:, :2])
+    blob = _npz(t=t, lat=lonlat[:, 1], lon=lonlat[:, 0], heading_deg=yaw_rad_to_heading_deg(poses[:, 2]))
+    existing = session.get(TripPoses, trip_pk)
+    if existing is None:
+        session.add(TripPoses(trip_pk=trip_pk, job_id=job_id, arrays=blob, created_at=utcnow()))
+    else:
+        existing.job_id, existing.arrays, existing.created_at = job_id, blob, utcnow()
+    if reasons:
+        trip.status, trip.error = "failed", "alignment failed: " + "; ".join(reasons)
+    else:
+        trip.status, trip.error = "aligned", None
+    trip.updated_at = utcnow()
+    return True
+
+
+# --- merge_tile -----------------------------------------------------------------------------------
+
+
+@dataclass
+class MergeTileResult:
+    expected_latest: int | None
+    features: list[versions.VersionFeature]
+    trips: list[str]
+    merged_alignments: list[str]  # trip pks whose alignment rows this merge took in
+    quality: dict
+    state: bytes | None
+    frame: LocalFrame
+    publish: bool
+    nothing_to_do: bool = False
+
+
+def compute_merge_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int
+                       ) -> MergeTileResult:
+    frame = tile_frame(z, x, y)
+    with session_factory() as session:
+        latest = versions.latest_version(session, z=z, x=x, y=y)
+        expected = latest.version if latest is not None else None
+        rows = session.scalars(
+            select(TripTileAlignment).where(TripTileAlignment.z == z, TripTileAlignment.x == x,
+                                            TripTileAlignment.y == y).order_by(TripTileAlignment.created_at)
+        ).all()
+        started = dict(session.execute(select(Trip.id, Trip.started_at).where(
+            Trip.id.in_([r.trip_pk for r in rows]))).all()) if rows else {}
+        new = [r for r in rows if r.merged_version_id is None and not r.failed_reason]
+        everything = [r for r in rows if not r.failed_reason]
+        state = _load_state(latest)
+        inputs_new = {r.trip_pk: _alignment_inputs(r, frame) for r in new}
+        inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything} if state is None else {}
+        pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
+                                                        MatchPair.status.in_(("active", "added")))).all()
+        match_pairs = [p.record for p in pairs]
+    if not new:
+        return MergeTileResult(expected, [], [], [], {}, None, frame, False, nothing_to_do=True)
+    instances = {pk: v[0] for pk, v in inputs_new.items()}
+    noise = {pk: v[1] for pk, v in inputs_new.items()}
+    paths = {pk: v[2] for pk, v in inputs_new.items()}
+    times = {pk: started.get(pk, "") for pk in inputs_new}
+    records = [_PairView(r) for r in match_pairs]
+    known = set() if state is None else ({m.trip_key for mem in state.members.values() for m in mem}
+                                         | set(state.trip_points))
+    if state is not None and not (set(instances) & known):
+        topology = update_topology(state, instances, noise, trip_times=times, match_pairs=records,
+                                   paths_xy_per_trip=paths)
+    else:  # the first version, or trips re-aligned: rebuild from every aligned trip, ids continue
+        if state is not None:
+            with session_factory() as session:
+                everything = session.scalars(select(TripTileAlignment).where(
+                    TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
+                    TripTileAlignment.failed_reason.is_(None))).all()
+                inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything}
+        topology = generate_topology({pk: v[0] for pk, v in inputs_all.items()},
+                                     {pk: v[1] for pk, v in inputs_all.items()}, previous=state,
+                                     trip_times={pk: started.get(pk, "") for pk in inputs_all},
+                                     match_pairs=records, paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()})
+    features = clip_to_tile(topology.features, frame, z, x, y)
+    quality = tile_quality(features)
+    return MergeTileResult(
+        expected_latest=expected,
+        features=features,
+        trips=sorted(inputs_new),
+        merged_alignments=sorted(inputs_new),
+        quality=quality,
+        state=zlib.compress(pickle.dumps((TOPOLOGY_STATE_VERSION, frame, topology), protocol=5)),
+        frame=frame,
+        publish=quality["score"] >= settings.publish_min_quality,
+    )
+
+
+class _PairView:
+    """A stored match-pair record read like ``MatchPairRecord`` (what validation reads)."""
+
+    def __init__(self, record: dict[str, Any]) -> None:
+        self.__dict__.update(record)
+
+
+def _alignment_inputs(row: TripTileAlignment, frame: LocalFrame):
+    arrays = decode_arrays(row.arrays)
+    src = LocalFrame(row.origin_lat, row.origin_lon)
+    instances = [instance_from_json(i) for i in row.instances]
+    if src != frame:
+        from csr_core.tiling import reframe_points
+
+        instances = [type(i)(i.type, reframe_points(i.points_xy_world, src, frame), i.style, i.n_observations,
+                             i.first_frame, i.last_frame) for i in instances]
+    poses = reframe_poses(arrays["poses_xyyaw"], src, frame)
+    return instances, noise_from_json(row.noise), poses[:, :2]
+
+
+def _load_state(latest: TileVersion | None) -> TopologyResult | None:
+    if latest is None or latest.state is None:
+        return None
+    try:
+        tag, _frame, topology = pickle.loads(zlib.decompress(latest.state))
+    except Exception:  # an unreadable or older state: rebuild
+        log.warning("tile version %s: topology state unreadable; rebuilding", latest.id, exc_info=True)
+        return None
+    return topology if tag == TOPOLOGY_STATE_VERSION else None
+
+
+def clip_to_tile(features: Sequence[MapFeature], frame: LocalFrame, z: int, x: int, y: int
+                 ) -> list[versions.VersionFeature]:
+    """The tile's part of each feature, in lon/lat; ids ``<z>-<x>-<y>-<topology id>``. A polygon
+    belongs to the tile holding its centroid (never cut); a line is cut at the tile's edges."""
+    west, south, east, north = tile_bounds_lonlat(z, x, y)
+    box = shapely.box(west, south, east, north)
+    out: list[versions.VersionFeature] = []
+    for f in features:
+        lonlat = frame.to_lonlat(f.points_xy_world)
+        props = {k: v for k, v in _plain_json(f.properties).items() if k != "trips"}
+        fid = f"{z}-{x}-{y}-{f.feature_id}"
+        style = f.style.value if f.style is not None else None
+        if f.type.is_polygon:
+            if len(lonlat) < 3:
+                continue
+            poly = shapely.Polygon(lonlat)
+            if box.contains(poly.centroid):
+                out.append(versions.VersionFeature(fid, f.type.value, style, props, poly))
+            continue
+        if len(lonlat) < 2:
+            continue
+        clipped = shapely.clip_by_rect(shapely.LineString(lonlat), west, south, east, north)
+        parts = [g for g in getattr(clipped, "geoms", [clipped]) if not g.is_empty and g.length > 0]
+        for k, part in enumerate(sorted(parts, key=lambda g: -g.length)):
+            out.append(versions.VersionFeature(fid if k == 0 else f"{fid}.{k}", f.type.value, style, props, part))
+    return out
+
+
+def tile_quality(features: Sequence[versions.VersionFeature]) -> dict[str, Any]:
+    """The tile's quality for the publish gate: the share of its features without a flag saying the
+    evidence contradicts itself (:data:`GATE_FLAGS`: ``score``), and counts of all flags by kind.
+    Low support and gaps are flagged on the features but do not hold a version back: a road seen
+    by few trips yet is expected where the fleet has just started."""
+    counts: dict[str, int] = {}
+    flagged = 0
+    for f in features:
+        flags = f.properties.get("flags") or []
+        if set(flags) & GATE_FLAGS:
+            flagged += 1
+        for flag in flags:
+            kind = str(flag)
+            counts[kind] = counts.get(kind, 0) + 1
+    n = len(features)
+    return {"score": 1.0 - flagged / n if n else 1.0, "n_features": n, "n_flagged": flagged, "flags": counts}
+
+
+def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult) -> None:
+    if result.nothing_to_do:
+        return
+    try:
+        version = versions.write_tile_version(
+            session, z=z, x=x, y=y, features=result.features, reason="merge", job_id=job_id, trips=result.trips,
+            corrections=[], quality=result.quality, origin_lat=result.frame.origin_lat,
+            origin_lon=result.frame.origin_lon, state=result.state, publish=result.publish,
+            expected_latest=result.expected_latest)
+    except versions.VersionConflict as exc:
+        raise RetryJob(str(exc)) from exc
+    session.execute(
+        update(TripTileAlignment)
+        .where(TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
+               TripTileAlignment.trip_pk.in_(result.merged_alignments))
+        .values(merged_version_id=version.id)
+    )
+
+
+def _npz(**arrays: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in arrays.items()})
+    return buffer.getvalue()
