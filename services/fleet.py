@@ -50,15 +50,17 @@ def upload_scenario(client: httpx.Client, scenario_dir: str | Path, *, progress:
 
 def wait_until_processed(client: httpx.Client, trip_ids: dict[str, str], *, timeout_s: float = 1800.0,
                          progress: bool = True, poll_s: float = 1.0) -> dict[str, str]:
-    """Ask for processing now (``POST /v1/process``, repeated as tiles become dirty) and wait until
-    every trip is ``aligned`` or ``failed`` and no job is queued or running; ``{key: status}``."""
+    """Wait until every trip is ingested, then ask for processing now (``POST /v1/process``, so that
+    each tile takes all its trips in one batch; repeated while tiles are dirty) and wait until every
+    trip is ``aligned`` or ``failed`` and no job is queued or running; ``{key: status}``."""
     deadline = time.monotonic() + timeout_s
     bar = tqdm(total=len(trip_ids), desc="process", unit="trip", disable=not progress)
     statuses: dict[str, str] = {}
     try:
         while True:
-            _check(client.post("/v1/process"), 202)
             statuses = {k: _check(client.get(f"/v1/trips/{i}"), 200).json()["status"] for k, i in trip_ids.items()}
+            if "received" not in statuses.values():  # every upload ingested: its tiles are known
+                _check(client.post("/v1/process"), 202)
             done = sum(s in ("aligned", "failed") for s in statuses.values())
             bar.n = done
             bar.refresh()

@@ -63,6 +63,9 @@ class Settings(BaseSettings):
     )
     poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
     worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
+    test_merge_delay_s: float = Field(
+        0.0, ge=0, description="TEST ONLY: sleep in the first attempt of a merge job, before it writes"
+    )
     test_ingest_delay_s: float = Field(
         0.0, ge=0, description="TEST ONLY: sleep in the first attempt of an ingest job"
     )

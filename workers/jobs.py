@@ -83,6 +83,8 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
         if kind == "merge_tile":
             z, x, y = tile_jobs.parse_tile(subject)
             merged = tile_jobs.compute_merge_tile(session_factory, settings, z, x, y)
+            if settings.test_merge_delay_s and attempt == 1:
+                time.sleep(settings.test_merge_delay_s)
             return _finish(session_factory, job_id, started,
                            lambda s: tile_jobs.persist_merge_tile(s, job_id, z, x, y, merged))
         raise JobFailed(f"unknown job kind {kind!r}")

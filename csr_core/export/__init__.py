@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from csr_core.geo import LocalFrame
-
 from csr_core.export.inputs import LonLatFeature, lonlat_features_from_geojson, to_local
 from csr_core.export.lanelet2 import (
     DEFAULT,
@@ -22,6 +20,7 @@ from csr_core.export.lanelet2 import (
     build_lanelet2_map,
 )
 from csr_core.export.osm import ValidationResult, to_osm_xml, validate_lanelet2_osm
+from csr_core.geo import LocalFrame
 
 __all__ = [
     "DEFAULT", "ExportError", "ExportReport", "Lanelet2Map", "Lanelet2Params", "LonLatFeature",

@@ -424,10 +424,10 @@ def build_lanelet2_map(
                         o, prio = _estimate_offset(side, i, s, offset, params)
                         idx = points.add(p[i] + o * n_xy[i], prio)
                     r.ends[side][e] = idx
-        for a, b in zip(lane_runs[:-1], lane_runs[1:], strict=False):
+        for prev, nxt in zip(lane_runs[:-1], lane_runs[1:], strict=False):
             for side in (LEFT, RIGHT):
-                if not points.union(a.ends[side][1], b.ends[side][0], params.JOIN_M, params.JOIN_M, t[a.i1]):
-                    b.force_start(side, a.ends[side][1])  # the bound steps sideways (paint changes)
+                if not points.union(prev.ends[side][1], nxt.ends[side][0], params.JOIN_M, params.JOIN_M, t[prev.i1]):
+                    nxt.force_start(side, prev.ends[side][1])  # the bound steps sideways (paint changes)
         runs[lane] = lane_runs
 
     # 5. lanes joined in the lane graph share their end / start points
@@ -476,7 +476,7 @@ def build_lanelet2_map(
         for r in lane_runs:
             if r.skip:
                 continue
-            ways = []
+            bound_ways: list[int | None] = []
             has_virtual = False
             for side in (LEFT, RIGHT):
                 a, b = r.ends[side]
@@ -486,7 +486,7 @@ def build_lanelet2_map(
                     cand.used = True
                     lead = [r.lead[side]] if r.lead[side] >= 0 else []
                     chain = [a, *lead, *cand.between(points, r.s_ends[side][0], r.s_ends[side][1]), b]
-                    ways.append(builder.way(chain, cand.tags))
+                    bound_ways.append(builder.way(chain, cand.tags))
                 else:
                     o_a = float(n_xy[r.i0] @ (pos[roots[a]] - p[r.i0]))
                     o_b = float(n_xy[r.i1] @ (pos[roots[b]] - p[r.i1]))
@@ -495,15 +495,16 @@ def build_lanelet2_map(
                     w = (s[inner] - s[r.i0]) / max(s[r.i1] - s[r.i0], 1e-9)
                     mid = [points.add(p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i], PRIO_ESTIMATED)
                            for i, wi in zip(inner, w, strict=True)]
-                    ways.append(builder.way([a, *mid, b], (("type", "virtual"),)))
+                    bound_ways.append(builder.way([a, *mid, b], (("type", "virtual"),)))
                     has_virtual = True
-            if ways[LEFT] is None or ways[RIGHT] is None:
+            left_way, right_way = bound_ways
+            if left_way is None or right_way is None:
                 r.skip = "degenerate bound"
                 continue
-            if not builder.simple_outline(ways[LEFT], ways[RIGHT]):
+            if not builder.simple_outline(left_way, right_way):
                 r.skip = "bounds cross"
                 continue
-            if builder.lanelet(ways[LEFT], ways[RIGHT], (
+            if builder.lanelet(left_way, right_way, (
                 ("type", "lanelet"), ("subtype", "road"), ("location", params.location),
                 ("one_way", "yes"), ("csr:lane", lane), ("csr:centerline_id", g.nodes[lane]["feature_id"]),
             )):
@@ -521,10 +522,10 @@ def build_lanelet2_map(
             sides = _crosswalk_sides(xy)
             if sides is None:
                 continue
-            ways = [builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
-                    for side in sides]
-            if ways[0] is not None and ways[1] is not None:
-                builder.lanelet(ways[0], ways[1], (("type", "lanelet"), ("subtype", "crosswalk"),
+            cw = [builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
+                  for side in sides]
+            if cw[0] is not None and cw[1] is not None:
+                builder.lanelet(cw[0], cw[1], (("type", "lanelet"), ("subtype", "crosswalk"),
                                                    ("one_way", "no"), ("participant:pedestrian", "yes"), *tags_id))
                 n_cross += 1
         elif f.type == ElementType.STOP_LINE and len(xy) >= 2:
@@ -546,11 +547,11 @@ def build_lanelet2_map(
     lanes_skipped = sum(1 for lane in g.nodes if lane not in written)
     joined = n_links = 0
     for u, v in succ_edges:
-        a, b = runs[u][-1], runs[v][0]
-        if a.skip not in ("", TWO_WAY) or b.skip not in ("", TWO_WAY):
+        ru, rv = runs[u][-1], runs[v][0]
+        if ru.skip not in ("", TWO_WAY) or rv.skip not in ("", TWO_WAY):
             continue
         n_links += 1
-        joined += all(roots[a.ends[sd][1]] == roots[b.ends[sd][0]] for sd in (LEFT, RIGHT))
+        joined += all(roots[ru.ends[sd][1]] == roots[rv.ends[sd][0]] for sd in (LEFT, RIGHT))
     node_ids, xy_world, ways, relations = builder.finish(len(points.parent))
     report = ExportReport(
         lanes=g.number_of_nodes(),
@@ -622,8 +623,12 @@ class _OsmBuilder:
         return np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in self.ways[way][0]])
 
     def simple_outline(self, left: int, right: int) -> bool:
-        """Left and right bound (both built along the lane) enclose a simple polygon."""
-        return bool(shapely.Polygon(np.vstack([self.xy_of(left), self.xy_of(right)[::-1]])).is_valid)
+        """Left and right bound enclose a simple polygon (a stored way may run either way)."""
+        a, b = self.xy_of(left), self.xy_of(right)
+        if np.linalg.norm(a[0] - b[-1]) + np.linalg.norm(a[-1] - b[0]) < np.linalg.norm(a[0] - b[0]) + np.linalg.norm(
+                a[-1] - b[-1]):
+            b = b[::-1]
+        return bool(shapely.Polygon(np.vstack([a, b[::-1]])).is_valid)
 
     def lanelet(self, left: int, right: int, tags: tuple[tuple[str, str], ...]) -> bool:
         """Add a lanelet; False if it is the other direction of one already added (same ways,

@@ -22,7 +22,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import binary_dilation, gaussian_filter1d, label
+from scipy.ndimage import gaussian_filter1d, label
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
@@ -158,7 +158,8 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     that tangent line. Observations are oriented like the previous one first."""
     polys = [points_w[a:b + 1] for a, b in obs_ends]
     ref = None
-    bb: list[np.ndarray] = []
+    bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
+    bby: list[float] = []
     for p in polys:
         d = p[-1] - p[0]
         if ref is not None and float(d @ ref) < 0:
@@ -166,33 +167,35 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
             d = -d
         if float(np.hypot(d[0], d[1])) > 0.5:
             ref = d
-        if len(bb) < 2:
-            bb = list(p)
+        if len(bbx) < 2:
+            bbx, bby = p[:, 0].tolist(), p[:, 1].tolist()
             continue
+        px, py = p[:, 0], p[:, 1]
         for end in (1, 0):
-            b = bb[-1] if end else bb[0]
-            j, step = (len(bb) - 2, -1) if end else (1, 1)
-            bx, by = float(b[0]), float(b[1])
-            while 0 < j < len(bb) - 1 and math.hypot(bx - bb[j][0], by - bb[j][1]) < tangent_m:
+            n = len(bbx)
+            bx, by = (bbx[-1], bby[-1]) if end else (bbx[0], bby[0])
+            j, step = (n - 2, -1) if end else (1, 1)
+            while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < tangent_m:
                 j += step
-            t = b - bb[j]
-            tn = float(np.hypot(t[0], t[1]))
+            tx, ty = bx - bbx[j], by - bby[j]
+            tn = math.hypot(tx, ty)
             if tn < 1e-9:
                 continue
-            t = t / tn
-            if max(float((p[0] - b) @ t), float((p[-1] - b) @ t)) <= min_step_m:
+            tx, ty = tx / tn, ty / tn
+            proj = (px - bx) * tx + (py - by) * ty
+            if max(float(proj[0]), float(proj[-1])) <= min_step_m:
                 continue
-            rel = p - b
-            proj = rel @ t
-            lat = np.abs(rel[:, 0] * t[1] - rel[:, 1] * t[0])
-            beyond = (proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj)
-            if beyond.any():
-                ext = p[beyond][np.argsort(proj[beyond])]
+            lat = np.abs((px - bx) * ty - (py - by) * tx)
+            beyond = np.flatnonzero((proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj))
+            if len(beyond):
+                ext = beyond[np.argsort(proj[beyond])]
                 if end:
-                    bb.extend(ext)
+                    bbx.extend(px[ext].tolist())
+                    bby.extend(py[ext].tolist())
                 else:
-                    bb[:0] = list(ext[::-1])
-    return np.asarray(bb) if bb else points_w[:1]
+                    bbx[:0] = px[ext[::-1]].tolist()
+                    bby[:0] = py[ext[::-1]].tolist()
+    return np.column_stack([bbx, bby]) if bbx else points_w[:1]
 
 
 def smooth_polyline(points: np.ndarray, spacing_m: float, sigma_m: float) -> np.ndarray:
@@ -225,7 +228,12 @@ def _cluster_sd(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     grid = np.zeros((int(sb.max()) + 1, int(db.max()) + 1), dtype=bool)
     grid[sb, db] = True
     reach = max(int(params.SPLICE_MAX_GAP_M / params.SPLICE_BIN_M / 2), 1)
-    grown = binary_dilation(grid, structure=np.ones((2 * reach + 1, 1), dtype=bool))
+    # dilation by 2 reach + 1 cells along s (a running count: binary_dilation's cost is per call)
+    n_s = grid.shape[0]
+    csum = np.zeros((n_s + 1, grid.shape[1]), dtype=np.int32)
+    np.cumsum(grid, axis=0, out=csum[1:])
+    i = np.arange(n_s)
+    grown = (csum[np.minimum(i + reach + 1, n_s)] - csum[np.maximum(i - reach, 0)]) > 0
     labels, _ = label(grown, structure=np.ones((3, 3), dtype=bool))
     return labels[sb, db] - 1
 
@@ -376,8 +384,10 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
 
 def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
     """Median over observations of |arclength span on the path| / chord: 1 along, 0 across."""
-    order = np.argsort(obs_id, kind="stable")
-    ids, start = np.unique(obs_id[order], return_index=True)
+    order = (np.arange(len(obs_id)) if len(obs_id) < 2 or not bool((obs_id[1:] < obs_id[:-1]).any())
+             else np.argsort(obs_id, kind="stable"))
+    sorted_ids = obs_id[order]
+    start = np.flatnonzero(np.concatenate([np.ones(1, dtype=bool), sorted_ids[1:] != sorted_ids[:-1]]))
     end = np.append(start[1:], len(order)) - 1
     first, last = order[start], order[end]
     chord = np.linalg.norm(points[last] - points[first], axis=1)

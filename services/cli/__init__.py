@@ -18,6 +18,7 @@ import sys  # noqa: E402
 # module name -> owns these subcommands
 _COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest", "reprocess")
 _COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
+_COMMAND_MODULES += ("bench_tiles",)  # csr bench-tiles: tile serving vs nginx (services/cli/bench_tiles.py)
 
 
 def build_parser() -> argparse.ArgumentParser:

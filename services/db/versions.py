@@ -24,10 +24,11 @@ from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
+import orjson
 import shapely
 from shapely.geometry import box, mapping
 from shapely.geometry.base import BaseGeometry
-from sqlalchemy import func, insert, select, text
+from sqlalchemy import Text, func, insert, select, text, type_coerce
 from sqlalchemy.orm import Session
 
 from services.db.models import MapFeatureRow, TileHead, TileVersion, utcnow
@@ -465,26 +466,47 @@ def map_features(
     versions: Sequence[tuple[int, int, int, int, int]],
 ) -> list[MapFeature]:
     """The features of ``versions`` (see :func:`contributing_versions`) intersecting the bbox,
-    ordered by feature id (removed rows excluded)."""
+    ordered by feature id (removed rows excluded). PostgreSQL filters with the GiST index; on
+    SQLite the geometries are parsed and tested in one vectorized shapely call, and only the kept
+    rows' properties are decoded."""
     if not versions:
         return []
     by_id = {vid: (z, x, y, v) for z, x, y, v, vid in versions}
     west, south, east, north = bbox_lonlat
-    query = select(MapFeatureRow).where(
-        MapFeatureRow.tile_version_id.in_(list(by_id)), MapFeatureRow.change != "removed"
+    table = MapFeatureRow.__table__
+    raw_geom = type_coerce(table.c.geom, Text) if not _is_postgres(session) else table.c.geom
+    query = (
+        select(
+            table.c.tile_version_id,
+            table.c.feature_id,
+            table.c.type,
+            table.c.style,
+            type_coerce(table.c.properties, Text),
+            raw_geom,
+        )
+        .where(table.c.tile_version_id.in_(list(by_id)), table.c.change != "removed")
+        .order_by(table.c.feature_id, table.c.tile_version_id)
     )
-    postgres = _is_postgres(session)
-    if postgres:
+    if _is_postgres(session):
         envelope = func.ST_MakeEnvelope(west, south, east, north, 4326)
-        query = query.where(func.ST_Intersects(MapFeatureRow.geom, envelope))
-    rows = session.execute(query.order_by(MapFeatureRow.feature_id, MapFeatureRow.tile_version_id)).scalars()
-    area = box(west, south, east, north)
+        query = query.where(func.ST_Intersects(table.c.geom, envelope))
+    rows = session.execute(query).all()
+    if not rows:
+        return []
+    if _is_postgres(session):
+        geoms = [r[5] for r in rows]  # parsed by FeatureGeometry
+        keep = np.ones(len(rows), dtype=bool)
+    else:
+        geoms = shapely.from_wkt([r[5].split(";", 1)[1] for r in rows])
+        keep = shapely.intersects(geoms, box(west, south, east, north))
     out = []
-    for row in rows:
-        if not postgres and not area.intersects(row.geom):
+    for row, geom, kept in zip(rows, geoms, keep, strict=True):
+        if not kept:
             continue
-        z, x, y, v = by_id[row.tile_version_id]
-        out.append(MapFeature(as_feature(row), row.tile_version_id, z, x, y, v))
+        vid, fid, type_, style, props, _ = row
+        properties = orjson.loads(props) if isinstance(props, str | bytes) else dict(props or {})
+        z, x, y, v = by_id[vid]
+        out.append(MapFeature(VersionFeature(fid, type_, style, properties, geom), vid, z, x, y, v))
     return out
 
 

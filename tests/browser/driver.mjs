@@ -27,7 +27,7 @@ const check = (name, value) => {
 };
 
 async function shot(page, name) {
-  const path = join(config.out, `${name}.png`);
+  const path = join(config.out, `${config.out_prefix || ''}${name}.png`);
   await page.screenshot({ path });
   result.screenshots.push(path);
 }
@@ -92,6 +92,26 @@ const project = (page, lngLat) =>
     return { x: rect.left + p.x, y: rect.top + p.y };
   }, lngLat);
 
+/** A screen point on some drawn line of the shown version, nearest the map's centre (where to click). */
+const someElement = (page) =>
+  page.evaluate(() => {
+    const { map } = window.csrViewer;
+    const layers = map.getStyle().layers.map((l) => l.id).filter((id) => /^version-(?!flags)/.test(id) && map.getLayer(id).type === 'line');
+    const f = map.queryRenderedFeatures({ layers })[0];
+    const coords = f.geometry.type === 'LineString' ? f.geometry.coordinates : f.geometry.coordinates[0];
+    const centre = map.project(map.getCenter());
+    let best = null;
+    for (let i = 1; i < coords.length; i++) {
+      const [a, b] = [map.project(coords[i - 1]), map.project(coords[i])];
+      for (let k = 0; k <= 50; k++) {
+        const p = { x: a.x + ((b.x - a.x) * k) / 50, y: a.y + ((b.y - a.y) * k) / 50 };
+        const d = Math.hypot(p.x - centre.x, p.y - centre.y);
+        if (!best || d < best.d) best = { ...p, d };
+      }
+    }
+    return map.unproject([best.x, best.y]).toArray();
+  });
+
 async function viewer(page) {
   const { tile, centre } = config;
   await page.goto(`${config.base}/viewer/#18/${centre[1]}/${centre[0]}`);
@@ -106,7 +126,8 @@ async function viewer(page) {
   await shot(page, 'viewer-live');
 
   // select the tile: a click on the map (away from elements)
-  const empty = await project(page, centre.map((v, i) => v + (i === 1 ? 0.0004 : 0.0004)));
+  const offset = config.tile_offset || [0, -0.0005];
+  const empty = await project(page, centre.map((v, i) => v + offset[i]));
   await page.mouse.click(empty.x, empty.y);
   await page.waitForSelector('#versions:not([hidden])');
   check('tile_name', await page.locator('#tile-name').textContent());
@@ -128,7 +149,7 @@ async function viewer(page) {
   // at the newest version: the flagged road boundary; then click an element for its details
   await setSlider(page, n - 1);
   check('flagged', (await rendered(page, 'version-')).filter((id) => id.startsWith('flags:')));
-  const target = await project(page, config.click_lnglat);
+  const target = await project(page, config.click_lnglat || (await someElement(page)));
   await page.mouse.click(target.x, target.y);
   await page.waitForSelector('#element-panel:not([hidden]) dl');
   await page.waitForFunction(() => document.querySelector('#element ol, #element p.muted'));
@@ -148,14 +169,14 @@ async function viewer(page) {
   await shot(page, 'viewer-trips');
 
   // corrections (admin): list the tile's match pairs, reject one, see a new version (and undo it)
-  if (config.correct) await correction(page);
+  await correction(page, Boolean(config.correct));
 }
 
-async function correction(page) {
-  await page.waitForSelector('#corrections:not([hidden])', { timeout: 10000 }).catch(() => null);
+async function correction(page, act) {
+  // the tile panel loaded the pairs when the tile was selected: shown when the API lists them
   const visible = await page.locator('#corrections').isVisible();
   check('corrections_visible', visible);
-  if (!visible) return;
+  if (!visible || !act) return;
   check('pairs_listed', await page.locator('#pairs tr[data-pair]').count());
   const versionsBefore = Number(await page.locator('#version-slider').getAttribute('max')) + 1;
   await shot(page, 'viewer-corrections');
@@ -182,6 +203,7 @@ async function ops(page) {
   check('summary_failed', await page.locator('.card.failed .n').textContent());
   check('failed_row', await row.innerText());
   check('dirty_rows', await page.locator('#dirty tbody tr').count());
+  check('queue_ingest', await page.locator('#queues tr[data-queue=ingest]').innerText());
   await shot(page, 'ops-failed');
   await row.locator('button', { hasText: 'retry' }).click();
   await page.waitForFunction(() => /retrying/.test(document.getElementById('ops-message').textContent));

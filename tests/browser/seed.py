@@ -15,27 +15,33 @@ from services.db import versions as vs
 M_PER_DEG_LAT = 111_320.0
 
 
-def _road(west: float, south: float, east: float, north: float, *, shift_m: float = 0.0):
-    """A west-east road through the middle of the tile: lon/lat helpers in metres from its centre."""
-    lon0, lat0 = (west + east) / 2, (south + north) / 2
+def _road(lon0: float, lat0: float, half_m: float):
+    """A west-east road centred on ``(lon0, lat0)``: lon/lat helpers in metres from its centre."""
     m_per_deg_lon = M_PER_DEG_LAT * math.cos(math.radians(lat0))
-    half_m = (east - west) / 2 * m_per_deg_lon * 0.9
 
     def pt(x_m: float, y_m: float) -> tuple[float, float]:
-        return (lon0 + x_m / m_per_deg_lon, lat0 + (y_m + shift_m) / M_PER_DEG_LAT)
+        return (lon0 + x_m / m_per_deg_lon, lat0 + y_m / M_PER_DEG_LAT)
 
     def line(y_m: float, x0: float = -half_m, x1: float = half_m) -> LineString:
         return LineString([pt(x, y_m) for x in (x0, (x0 + x1) / 2, x1)])
 
-    return pt, line, half_m
+    return pt, line
 
 
-def version_features(z: int, x: int, y: int, step: int) -> list[vs.VersionFeature]:
-    """Version ``step`` (1, 2, 3) of the tile: 2 moves a divider and adds a stop line and a flag,
-    3 removes the road marking."""
-    pt, line, half = _road(*vs.tile_bounds_lonlat(z, x, y))
-    props = {"support_trips": 4, "support_observations": 120, "uncertainty_m": 0.05,
-             "first_seen": "2026-11-01T10:00:00+00:00", "last_confirmed": "2026-11-20T10:00:00+00:00", "flags": []}
+def version_features(
+    centre: tuple[float, float], step: int, half_m: float = 150.0
+) -> list[vs.VersionFeature]:
+    """Version ``step`` (1, 2, 3) of a road around ``centre`` (lon, lat): 2 moves the centre divider
+    and adds a stop line and a validator flag, 3 removes the road marking."""
+    pt, line = _road(*centre, half_m)
+    props = {
+        "support_trips": 4,
+        "support_observations": 120,
+        "uncertainty_m": 0.05,
+        "first_seen": "2026-11-01T10:00:00+00:00",
+        "last_confirmed": "2026-11-20T10:00:00+00:00",
+        "flags": [],
+    }
 
     def f(fid: str, type_: str, geom, style: str | None = None, **extra) -> vs.VersionFeature:
         return vs.VersionFeature(fid, type_, style, {**props, **extra}, geom)
@@ -52,23 +58,40 @@ def version_features(z: int, x: int, y: int, step: int) -> list[vs.VersionFeatur
         f("cw-1", "crosswalk", Polygon([pt(-20, -7), pt(-14, -7), pt(-14, 7), pt(-20, 7)])),
     ]
     if step < 3:
-        features.append(f("rm-arrow", "road_marking", Polygon([pt(30, -3), pt(36, -3), pt(36, -0.5), pt(30, -0.5)])))
+        features.append(
+            f("rm-arrow", "road_marking", Polygon([pt(30, -3), pt(36, -3), pt(36, -0.5), pt(30, -0.5)]))
+        )
     if step >= 2:
         features.append(f("sl-1", "stop_line", LineString([pt(-22, -7), pt(-22, 0)])))
         features[0] = f("rb-north", "road_boundary", line(7.0), flags=["trips_disagree"], support_trips=2)
     return features
 
 
-def seed_tile(db_url: str, z: int, x: int, y: int, *, n_versions: int = 3) -> None:
+def seed_tile(
+    db_url: str, z: int, x: int, y: int, centre: tuple[float, float], *, n_versions: int = 3
+) -> None:
+    """Versions 1..n of tile z/x/y (all published), the road centred on ``centre`` (lon, lat)."""
     engine = sa.create_engine(db_url)
-    lon0, lat0 = ((a + b) / 2 for a, b in zip(*[iter(vs.tile_bounds_lonlat(z, x, y))] * 2, strict=False))
+    lon0, lat0 = centre
     try:
         for step in range(1, n_versions + 1):
             with Session(engine) as session, session.begin():
                 vs.write_tile_version(
-                    session, z=z, x=x, y=y, features=version_features(z, x, y, step), reason="merge",
-                    job_id=None, trips=[], corrections=[], quality={}, origin_lat=lat0, origin_lon=lon0,
-                    state=None, publish=True, expected_latest=step - 1 if step > 1 else None,
+                    session,
+                    z=z,
+                    x=x,
+                    y=y,
+                    features=version_features(centre, step),
+                    reason="merge",
+                    job_id=None,
+                    trips=[],
+                    corrections=[],
+                    quality={},
+                    origin_lat=lat0,
+                    origin_lon=lon0,
+                    state=None,
+                    publish=True,
+                    expected_latest=step - 1 if step > 1 else None,
                 )
     finally:
         engine.dispose()

@@ -30,8 +30,11 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     )
     assert trip["length_km"] == pytest.approx(1.0, abs=0.005)
     lonlat = [(f["gnss"]["lon"], f["gnss"]["lat"]) for f in doc["frames"]]
-    expected_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(lonlat, zoom=16)]
-    assert trip["tiles"] == expected_tiles and len(expected_tiles) >= 2
+    gnss_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(lonlat, zoom=16)]
+    # tiles own frames by smoothed position: within a metre of the GNSS track, so the same tiles
+    # unless the track grazes a tile corner
+    expected_tiles = trip["tiles"]
+    assert len(expected_tiles) >= 2 and len(set(expected_tiles) ^ set(gnss_tiles)) <= 1, (expected_tiles, gnss_tiles)
     assert trip["tiles_pending"] == len(expected_tiles)
 
     if deployment.engine.dialect.name == "postgresql":
@@ -65,12 +68,13 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     assert done["failed"] == failed_before
     trip = _trip(deployment, trip_pk)
     assert trip["tiles_pending"] == 0
-    assert trip["status"] == "processing"  # the placeholder tile job does not align (later issues)
+    # alone on its road, the trip has nothing to be aligned with: it keeps its single-trip poses
+    assert trip["status"] == "aligned", trip
     with deployment.admin() as http:
-        poses = http.get(f"/v1/trips/{trip_pk}/poses")
-    assert poses.status_code == 409 and poses.json()["error"] == "not_aligned"
-    states = deployment.rows("SELECT kind, state, attempts FROM jobs WHERE subject = :p", p=trip_pk)
-    assert [tuple(r) for r in states] == [("ingest_trip", "done", 1)]
+        poses = http.get(f"/v1/trips/{trip_pk}/poses").raise_for_status().json()["frames"]
+    assert [p["t"] for p in poses] == [f["t"] for f in doc["frames"]]
+    kinds = deployment.rows("SELECT kind, state, attempts FROM jobs WHERE subject = :p", p=trip_pk)
+    assert [tuple(r) for r in kinds] == [("ingest_trip", "done", 1)]
 
 
 def test_process_with_nothing_dirty_schedules_nothing(deployment: Deployment):

@@ -53,8 +53,15 @@ class Tiled:
 
     def write(self, tile: mercantile.Tile, features: Sequence[vs.VersionFeature], **kw) -> vs.TileVersion:
         args = dict(
-            reason="merge", job_id="job-test", trips=["trip-a"], corrections=[], quality={"ok": True},
-            origin_lat=LAT, origin_lon=LON, state=b"state", publish=True,
+            reason="merge",
+            job_id="job-test",
+            trips=["trip-a"],
+            corrections=[],
+            quality={"ok": True},
+            origin_lat=LAT,
+            origin_lon=LON,
+            state=b"state",
+            publish=True,
         )
         args.update(kw)
         if "expected_latest" not in args:
@@ -88,7 +95,9 @@ def start_tiled(kind: str, tmp, pg: PgDatabases, redis_url: str) -> Iterator[Til
 @pytest.fixture(scope="module", params=["embedded", "distributed"])
 def tiled(request, tmp_path_factory, pg: PgDatabases, shared_redis_url: str) -> Iterator[Tiled]:
     """This module's own deployment of each kind (API only: no jobs run here)."""
-    yield from start_tiled(request.param, tmp_path_factory.mktemp(f"tiles-{request.param}"), pg, shared_redis_url)
+    yield from start_tiled(
+        request.param, tmp_path_factory.mktemp(f"tiles-{request.param}"), pg, shared_redis_url
+    )
 
 
 def frac(tile: mercantile.Tile, fx: float, fy: float) -> tuple[float, float]:
@@ -104,14 +113,31 @@ def road(tile: mercantile.Tile, *, shift: float = 0.0) -> list[vs.VersionFeature
         return LineString([frac(tile, fx, fy - shift) for fx, fy in pts])
 
     return [
-        vs.VersionFeature(f"t{tile.x}-b1", "road_boundary", None, {"support": 4, "sigma_m": 0.2},
-                          line((0.1, 0.40), (0.5, 0.41), (0.9, 0.40))),
-        vs.VersionFeature(f"t{tile.x}-d1", "lane_divider", "dashed", {"support": 3, "flags": {"seam": 1}},
-                          line((0.1, 0.50), (0.9, 0.50))),
-        vs.VersionFeature(f"t{tile.x}-c1", "centerline", None, {"support": 3}, line((0.1, 0.55), (0.9, 0.55))),
         vs.VersionFeature(
-            f"t{tile.x}-x1", "crosswalk", None, {"support": 5, "painted": True},
-            Polygon([frac(tile, fx, fy - shift) for fx, fy in ((0.3, 0.3), (0.4, 0.3), (0.4, 0.6), (0.3, 0.6))]),
+            f"t{tile.x}-b1",
+            "road_boundary",
+            None,
+            {"support": 4, "sigma_m": 0.2},
+            line((0.1, 0.40), (0.5, 0.41), (0.9, 0.40)),
+        ),
+        vs.VersionFeature(
+            f"t{tile.x}-d1",
+            "lane_divider",
+            "dashed",
+            {"support": 3, "flags": {"seam": 1}},
+            line((0.1, 0.50), (0.9, 0.50)),
+        ),
+        vs.VersionFeature(
+            f"t{tile.x}-c1", "centerline", None, {"support": 3}, line((0.1, 0.55), (0.9, 0.55))
+        ),
+        vs.VersionFeature(
+            f"t{tile.x}-x1",
+            "crosswalk",
+            None,
+            {"support": 5, "painted": True},
+            Polygon(
+                [frac(tile, fx, fy - shift) for fx, fy in ((0.3, 0.3), (0.4, 0.3), (0.4, 0.6), (0.3, 0.6))]
+            ),
         ),
     ]
 
@@ -203,8 +229,11 @@ def test_empty_tile_is_204_and_bad_coordinates_are_422(tiled: Tiled):
         assert empty.status_code == 204 and empty.content == b""
         assert empty.headers["etag"].startswith('"')
         assert http.get("/v1/tiles/16/0/0.geojson").status_code == 204
-        for path, location in (("/v1/tiles/23/0/0.mvt", "path.z"), ("/v1/tiles/3/8/0.mvt", "path.x"),
-                               ("/v1/tiles/3/0/-1.mvt", "path.y")):
+        for path, location in (
+            ("/v1/tiles/23/0/0.mvt", "path.z"),
+            ("/v1/tiles/3/8/0.mvt", "path.x"),
+            ("/v1/tiles/3/0/-1.mvt", "path.y"),
+        ):
             bad = http.get(path)
             assert bad.status_code == 422, path
             assert bad.json()["location"] == location
@@ -227,7 +256,9 @@ def test_etag_304_cors_and_a_new_version_changes_the_etag(tiled: Tiled):
         assert cached.status_code == 304 and cached.content == b""
         assert cached.headers["etag"] == etag and cached.headers["access-control-allow-origin"] == "*"
         assert http.get(url, headers={"If-None-Match": '"other", ' + etag}).status_code == 304
-        preflight = http.options(url, headers={"Origin": "https://viewer.example", "Access-Control-Request-Method": "GET"})
+        preflight = http.options(
+            url, headers={"Origin": "https://viewer.example", "Access-Control-Request-Method": "GET"}
+        )
         assert preflight.status_code == 204
         assert "Authorization" in preflight.headers["access-control-allow-headers"]
 
@@ -303,8 +334,12 @@ def test_map_bbox_and_version_pinning(tiled: Tiled):
     assert {f["id"] for f in old_doc["features"]} == {f.feature_id for f in v1}
     assert "immutable" in old.headers["cache-control"]
     types = {f["properties"]["type"]: f["geometry"]["type"] for f in old_doc["features"]}
-    assert types == {"road_boundary": "LineString", "lane_divider": "LineString", "centerline": "LineString",
-                     "crosswalk": "Polygon"}
+    assert types == {
+        "road_boundary": "LineString",
+        "lane_divider": "LineString",
+        "centerline": "LineString",
+        "crosswalk": "Polygon",
+    }
     for f in old_doc["features"]:
         assert f["properties"]["id"] == f["id"] and f["properties"]["support"] >= 3
         assert f["properties"]["tile"] == f"{tile.z}/{tile.x}/{tile.y}"
@@ -317,9 +352,15 @@ def test_map_bbox_and_version_pinning(tiled: Tiled):
 
 @pytest.mark.parametrize(
     "bbox,why",
-    [("8.4,49.0,8.41", "3 numbers"), ("8.4,49.0,8.41,x", "not a number"), ("8.4,49.0,nan,49.1", "non-finite"),
-     ("8.41,49.0,8.40,49.1", "minlon < maxlon"), ("8.4,49.1,8.41,49.0", "minlat < maxlat"),
-     ("7.0,48.0,9.0,50.0", "over the limit"), ("-181,0,1,1", "-180")],
+    [
+        ("8.4,49.0,8.41", "3 numbers"),
+        ("8.4,49.0,8.41,x", "not a number"),
+        ("8.4,49.0,nan,49.1", "non-finite"),
+        ("8.41,49.0,8.40,49.1", "minlon < maxlon"),
+        ("8.4,49.1,8.41,49.0", "minlat < maxlat"),
+        ("7.0,48.0,9.0,50.0", "over the limit"),
+        ("-181,0,1,1", "-180"),
+    ],
 )
 def test_map_rejects_bad_bboxes(tiled: Tiled, bbox: str, why: str):
     with tiled.http() as http:
@@ -332,7 +373,9 @@ def test_map_rejects_bad_bboxes(tiled: Tiled, bbox: str, why: str):
 
 def test_map_version_in_the_future_is_404(tiled: Tiled):
     with tiled.http() as http:
-        response = http.get("/v1/map", params={"bbox": "8.39,49.0,8.41,49.02", "version": tiled.map_version() + 5})
+        response = http.get(
+            "/v1/map", params={"bbox": "8.39,49.0,8.41,49.02", "version": tiled.map_version() + 5}
+        )
     assert response.status_code == 404 and response.json()["location"] == "query.version"
 
 
@@ -362,8 +405,15 @@ def test_tilejson(tiled: Tiled):
 # --- roles -----------------------------------------------------------------------------------------
 
 
-READS = ["/v1/tiles/16/0/0.mvt", "/v1/tiles/16/0/0.geojson", "/v1/tiles.json", "/v1/map?bbox=8.39,49.0,8.41,49.02",
-         f"/v1/tiles/16/{BASE.x}/{BASE.y}/versions", "/v1/changes?since=0", "/v1/features/none"]
+READS = [
+    "/v1/tiles/16/0/0.mvt",
+    "/v1/tiles/16/0/0.geojson",
+    "/v1/tiles.json",
+    "/v1/map?bbox=8.39,49.0,8.41,49.02",
+    f"/v1/tiles/16/{BASE.x}/{BASE.y}/versions",
+    "/v1/changes?since=0",
+    "/v1/features/none",
+]
 
 
 @pytest.mark.parametrize("path", READS)

@@ -13,8 +13,8 @@ import pytest
 from shapely.geometry import shape
 
 from services.db import versions as vs
-from services.db.repo import BOOTSTRAP_ADMIN_ID
 from services.db.models import MapFeatureRow, TileHead, TileVersion
+from services.db.repo import BOOTSTRAP_ADMIN_ID
 from tests.integration.conftest import PgDatabases
 from tests.integration.test_tiles import Tiled, decode, frac, road, start_tiled
 
@@ -23,14 +23,17 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture(scope="module", params=["embedded", "distributed"])
 def tiled(request, tmp_path_factory, pg: PgDatabases, shared_redis_url: str) -> Iterator[Tiled]:
-    yield from start_tiled(request.param, tmp_path_factory.mktemp(f"versions-{request.param}"), pg, shared_redis_url)
+    yield from start_tiled(
+        request.param, tmp_path_factory.mktemp(f"versions-{request.param}"), pg, shared_redis_url
+    )
 
 
 def _moved(f: vs.VersionFeature, north_m: float) -> vs.VersionFeature:
     from shapely import affinity
 
-    return vs.VersionFeature(f.feature_id, f.type, f.style, f.properties,
-                             affinity.translate(f.geometry, yoff=north_m / 111_320.0))
+    return vs.VersionFeature(
+        f.feature_id, f.type, f.style, f.properties, affinity.translate(f.geometry, yoff=north_m / 111_320.0)
+    )
 
 
 def _features(tiled: Tiled, tile_version_id: int, include_removed: bool = False) -> list[vs.VersionFeature]:
@@ -50,12 +53,19 @@ def test_change_types_history_and_version_geojson(tiled: Tiled):
     assert (first.version, first.status, first.parent_version) == (1, "published", None)
     assert first.changes == {"added": 4, "modified": 0, "unchanged": 0, "removed": 0}
     d1_solid = vs.VersionFeature(d1.feature_id, d1.type, "solid", d1.properties, d1.geometry)
-    new = vs.VersionFeature(f"t{tile.x}-s1", "stop_line", None, {"support": 2},
-                            shape({"type": "LineString", "coordinates": [frac(tile, 0.6, 0.6), frac(tile, 0.7, 0.6)]}))
+    new = vs.VersionFeature(
+        f"t{tile.x}-s1",
+        "stop_line",
+        None,
+        {"support": 2},
+        shape({"type": "LineString", "coordinates": [frac(tile, 0.6, 0.6), frac(tile, 0.7, 0.6)]}),
+    )
     second = tiled.write(
         tile,
         [_moved(b1, 0.0002), _moved(c1, 0.5), d1_solid, new],  # 0.2 mm: unchanged; 0.5 m: modified
-        reason="merge", job_id="job-2", trips=["trip-b"],
+        reason="merge",
+        job_id="job-2",
+        trips=["trip-b"],
     )
     assert second.version == 2 and second.parent_version == 1
     assert second.changes == {"added": 1, "modified": 2, "unchanged": 1, "removed": 1}
@@ -70,12 +80,23 @@ def test_change_types_history_and_version_geojson(tiled: Tiled):
         assert [v["version"] for v in history["versions"]] == [1, 2]
         v2 = history["versions"][1]
         assert v2["job_id"] == "job-2" and v2["trips"] == ["trip-b"] and v2["reason"] == "merge"
-        assert v2["changes"]["removed"] == 1 and v2["map_version"] == second.id and v2["created_at"].endswith("+00:00")
+        assert (
+            v2["changes"]["removed"] == 1
+            and v2["map_version"] == second.id
+            and v2["created_at"].endswith("+00:00")
+        )
         assert v2["quality"] == {"ok": True} and v2["status"] == "published"
-        gj = http.get(f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/versions/2", params={"include_removed": True}).json()
+        gj = http.get(
+            f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/versions/2", params={"include_removed": True}
+        ).json()
         changes = {f["id"]: f["properties"]["change"] for f in gj["features"]}
-        assert changes == {b1.feature_id: "unchanged", c1.feature_id: "modified", d1.feature_id: "modified",
-                           new.feature_id: "added", x1.feature_id: "removed"}
+        assert changes == {
+            b1.feature_id: "unchanged",
+            c1.feature_id: "modified",
+            d1.feature_id: "modified",
+            new.feature_id: "added",
+            x1.feature_id: "removed",
+        }
         assert len(http.get(f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/versions/1").json()["features"]) == 4
         assert http.get(f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/versions/9").status_code == 404
         assert http.get("/v1/tiles/16/1/1/versions").status_code == 404
@@ -87,9 +108,14 @@ def test_change_types_history_and_version_geojson(tiled: Tiled):
         assert sorted(m["id"] for m in diff["modified"]) == sorted([c1.feature_id, d1.feature_id])
         assert diff["unchanged"] == 1
         moved = next(m for m in diff["modified"] if m["id"] == c1.feature_id)
-        dy_deg = moved["after"]["geometry"]["coordinates"][0][1] - moved["before"]["geometry"]["coordinates"][0][1]
+        dy_deg = (
+            moved["after"]["geometry"]["coordinates"][0][1] - moved["before"]["geometry"]["coordinates"][0][1]
+        )
         assert dy_deg * 111_320 == pytest.approx(0.5, abs=0.01)
-        assert http.get(f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/diff", params={"from": 1, "to": 7}).status_code == 404
+        assert (
+            http.get(f"/v1/tiles/{tile.z}/{tile.x}/{tile.y}/diff", params={"from": 1, "to": 7}).status_code
+            == 404
+        )
 
         feature = http.get(f"/v1/features/{c1.feature_id}").raise_for_status().json()
         assert feature["properties"]["live"] is True and feature["properties"]["tile_version"] == 2
@@ -102,15 +128,21 @@ def test_change_types_history_and_version_geojson(tiled: Tiled):
 def test_changes_feed_pages_in_map_version_order(tiled: Tiled):
     start = tiled.map_version()
     tiles = [tiled.fresh_tile(), tiled.fresh_tile()]
-    made = [tiled.write(tiles[0], road(tiles[0])), tiled.write(tiles[1], road(tiles[1])),
-            tiled.write(tiles[0], road(tiles[0])[:2])]
+    made = [
+        tiled.write(tiles[0], road(tiles[0])),
+        tiled.write(tiles[1], road(tiles[1])),
+        tiled.write(tiles[0], road(tiles[0])[:2]),
+    ]
     with tiled.http() as http:
         feed = http.get("/v1/changes", params={"since": start}).raise_for_status().json()
         assert [c["map_version"] for c in feed["changes"]] == [v.id for v in made]
         assert feed["next"] == made[-1].id == feed["map_version"] and feed["more"] is False
         last = feed["changes"][-1]
         assert last["tile"] == f"16/{tiles[0].x}/{tiles[0].y}" and last["version"] == 2
-        assert sorted(f["change"] for f in last["features"]) == ["removed", "removed"]  # unchanged ones omitted
+        assert sorted(f["change"] for f in last["features"]) == [
+            "removed",
+            "removed",
+        ]  # unchanged ones omitted
         page, cursor, seen = None, start, []
         while page is None or page["more"]:
             page = http.get("/v1/changes", params={"since": cursor, "limit": 1}).json()
@@ -145,8 +177,9 @@ def test_rollback_publishes_the_old_version_again(tiled: Tiled):
         third = vs.get_version(session, z=tile.z, x=tile.x, y=tile.y, version=3)
         assert third.state == first.state == b"state" and third.trips == first.trips
     old, new = _features(tiled, first.id), _features(tiled, third.id)
-    assert [(f.feature_id, f.type, f.style, f.properties) for f in old] == \
-        [(f.feature_id, f.type, f.style, f.properties) for f in new]
+    assert [(f.feature_id, f.type, f.style, f.properties) for f in old] == [
+        (f.feature_id, f.type, f.style, f.properties) for f in new
+    ]
     assert all(a.geometry.equals_exact(b.geometry, 1e-9) for a, b in zip(old, new, strict=True))
 
 
@@ -169,7 +202,10 @@ def test_a_candidate_is_not_live_until_approved(tiled: Tiled):
         approved = admin.post(url + "/versions/2/approve")
         assert approved.status_code == 201, approved.text
         assert (approved.json()["version"], approved.json()["status"], approved.json()["reason"]) == (
-            3, "approved", "approve v2")
+            3,
+            "approved",
+            "approve v2",
+        )
         live = reader.get("/v1/map", params={"bbox": f"{w},{s},{e},{n}"}).json()
         boundary = next(f for f in live["features"] if f["id"].endswith("-b1"))
         assert shape(boundary["geometry"]).equals_exact(road(tile, shift=0.2)[0].geometry, 1e-7)
@@ -210,9 +246,21 @@ def test_two_concurrent_writers_one_wins_the_other_conflicts(tiled: Tiled):
         try:
             with tiled.sessions.begin() as session:
                 version = vs.write_tile_version(
-                    session, z=tile.z, x=tile.x, y=tile.y, features=features, reason="merge", job_id=name,
-                    trips=[name], corrections=[], quality={}, origin_lat=49.0, origin_lon=8.4, state=None,
-                    publish=True, expected_latest=1,
+                    session,
+                    z=tile.z,
+                    x=tile.x,
+                    y=tile.y,
+                    features=features,
+                    reason="merge",
+                    job_id=name,
+                    trips=[name],
+                    corrections=[],
+                    quality={},
+                    origin_lat=49.0,
+                    origin_lon=8.4,
+                    state=None,
+                    publish=True,
+                    expected_latest=1,
                 )
                 results[name] = version.version
                 if hold:

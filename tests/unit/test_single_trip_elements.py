@@ -123,6 +123,8 @@ def test_road_driven_twice_is_not_taken_for_a_ghost():
     # an element seen by one track on the way out: on the way back the same frames see it again
     # through another track (corroborated: visibility 1), whereas detections 3.5 m away (a
     # ghost's shift) do not corroborate it (20 of 40 in-range frames: 0.5)
+    from scipy.spatial import cKDTree
+
     from csr_core.single_trip import _visibility_ratio
 
     poses = _out_and_back()
@@ -132,10 +134,10 @@ def test_road_driven_twice_is_not_taken_for_a_ghost():
     back_pts = np.repeat(element[::8][None], 20, axis=0)  # (20, 6, 2): the return pass's detections
     back_frames = np.repeat(np.arange(20, 40), back_pts.shape[1])
     box = (-15.0, 30.0, -15.0, 15.0)
-    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, back_pts.reshape(-1, 2), back_frames, 0.9)
+    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, cKDTree(back_pts.reshape(-1, 2)), back_frames, 0.9)
     assert ratio == pytest.approx(1.0)
     shifted = back_pts.reshape(-1, 2) + (0.0, 3.5)
-    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, shifted, back_frames, 0.9)
+    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, cKDTree(shifted), back_frames, 0.9)
     assert ratio == pytest.approx(0.5)
 
 

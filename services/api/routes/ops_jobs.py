@@ -84,7 +84,7 @@ def list_jobs(
     subject: Annotated[str | None, Query(description="a trip id or z/x/y")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 100,
 ) -> dict[str, Any]:
-    """Jobs, newest first, with their errors."""
+    """Jobs, newest first, with their errors; ``queues``: job counts per queue and state (all jobs)."""
     if state is not None and state not in repo.JOB_STATES:
         raise ApiError(422, "query", f"state must be one of {', '.join(repo.JOB_STATES)}", location="state")
     if kind is not None and kind not in repo.QUEUE_OF_KIND:
@@ -98,7 +98,10 @@ def list_jobs(
         stmt = stmt.where(Job.subject == subject)
     jobs = list(session.scalars(stmt))
     retried = _retried_by(session, jobs)
-    return {"jobs": [job_json(j, retried_by=retried.get(j.id)) for j in jobs]}
+    queues: dict[str, dict[str, int]] = {q: dict.fromkeys(repo.JOB_STATES, 0) for q in repo.QUEUES}
+    for queue, job_state, count in repo.job_counts(session):
+        queues.setdefault(queue, dict.fromkeys(repo.JOB_STATES, 0))[job_state] = int(count)
+    return {"jobs": [job_json(j, retried_by=retried.get(j.id)) for j in jobs], "queues": queues}
 
 
 def _load_job(session: SessionDep, job_id: str) -> Job:

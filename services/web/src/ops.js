@@ -20,7 +20,13 @@ async function loadSummary() {
 
 async function loadJobs() {
   const state = document.getElementById('state-filter').value;
-  const { jobs } = await api(`/v1/jobs?limit=200${state ? `&state=${state}` : ''}`);
+  const { jobs, queues } = await api(`/v1/jobs?limit=200${state ? `&state=${state}` : ''}`);
+  const states = ['queued', 'running', 'failed', 'done'];
+  document.getElementById('queues').replaceChildren(
+    el('tr', {}, el('th', {}, 'queue'), ...states.map((s) => el('th', {}, s))),
+    ...Object.entries(queues || {}).map(([queue, counts]) =>
+      el('tr', { 'data-queue': queue }, el('td', {}, queue), ...states.map((s) => el('td', { class: counts[s] && s !== 'done' ? `state-${s}` : '' }, counts[s] ?? 0)))),
+  );
   document.querySelector('#jobs tbody').replaceChildren(
     ...jobs.map((job) => el('tr', { 'data-job': job.id, 'data-state': job.state },
       el('td', {}, time(job.created_at)), el('td', {}, job.kind), el('td', { class: 'mono' }, job.subject),

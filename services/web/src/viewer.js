@@ -49,7 +49,7 @@ function elementLayers(prefix, source, sourceLayer) {
     }, { 'line-cap': 'butt', 'line-join': 'round' });
   const dashed = ['==', ['get', 'style'], 'dashed'];
   return [
-    base('flags', 'line', FLAGGED, { 'line-color': FLAG_COLOR, 'line-width': 9, 'line-opacity': 0.55, 'line-blur': 2 }),
+    base('flags', 'line', FLAGGED, { 'line-color': FLAG_COLOR, 'line-width': 12, 'line-opacity': 0.7, 'line-blur': 3 }),
     ...['crosswalk', 'road_marking'].flatMap((type) => [
       base(`${type}-fill`, 'fill', byType(type, sourceLayer), { 'fill-color': STYLE[type].color, 'fill-opacity': STYLE[type].fill }),
       base(`${type}-outline`, 'line', byType(type, sourceLayer), { 'line-color': STYLE[type].color, 'line-width': 1 }),
@@ -102,7 +102,7 @@ function addStaticLayers() {
   for (const [kind, color] of Object.entries(DIFF_COLORS)) {
     map.addLayer({
       id: `diff-${kind}`, type: 'line', source: 'diff', filter: ['==', ['get', 'change'], kind],
-      paint: { 'line-color': color, 'line-width': 8, 'line-opacity': 0.5, ...(kind === 'removed' ? { 'line-dasharray': [1, 1] } : {}) },
+      paint: { 'line-color': color, 'line-width': 14, 'line-opacity': 0.55, 'line-blur': 3, ...(kind === 'removed' ? { 'line-dasharray': [1, 1] } : {}) },
     });
   }
   for (const layer of elementLayers('version', 'version')) map.addLayer(layer);
@@ -159,7 +159,7 @@ async function refreshLive() {
 function setLiveOpacity(opacity) {
   for (const id of state.liveLayers) {
     const type = map.getLayer(id)?.type;
-    if (type) map.setPaintProperty(id, `${type}-opacity`, id.endsWith('-flags') ? 0.55 * opacity : opacity);
+    if (type) map.setPaintProperty(id, `${type}-opacity`, id.endsWith('-flags') ? 0.7 * opacity : opacity);
   }
 }
 

@@ -1,0 +1,137 @@
+"""The map viewer in headless Chromium against the embedded deployment: the page loads, the live
+vector tiles render, the version slider changes what is drawn (with the diff), an element's details,
+raw vs aligned trajectories, and (once the correction endpoints exist) a correction round trip."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+from sqlalchemy.orm import Session
+
+from services.db.models import TripPoses
+from tests.browser.conftest import run_driver
+from tests.browser.seed import M_PER_DEG_LAT, seed_tile
+from tests.integration.conftest import moving_trip
+
+pytestmark = pytest.mark.integration
+
+TILE = (16, 34875, 22744)  # holds the test drives (westwards from 48.1366, 11.5790)
+CENTRE = (11.5772, 48.1366)  # of the seeded road, on the drives
+
+
+def _aligned_poses(dep, trip_pk: str, doc: dict) -> None:
+    """Final poses as the pipeline writes them: the raw fixes moved 1.5 m south."""
+    t = np.array([f["t"] for f in doc["frames"]])
+    lat = np.array([f["gnss"]["lat"] for f in doc["frames"]]) - 1.5 / M_PER_DEG_LAT
+    lon = np.array([f["gnss"]["lon"] for f in doc["frames"]])
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, t=t, lat=lat, lon=lon, heading_deg=np.full(len(t), 270.0))
+    with Session(dep.engine) as session, session.begin():
+        session.merge(TripPoses(trip_pk=trip_pk, job_id="browser-test", arrays=buffer.getvalue()))
+
+
+def test_viewer(browser_ready, make_isolated) -> None:
+    dep = make_isolated("embedded")
+    dep.start_server()
+    trips = []
+    for i in range(2):
+        doc = moving_trip(vehicle_id=f"veh-{i}", length_m=300.0)
+        trips.append((dep.upload(doc).json()["id"], doc))
+    dep.wait_idle()
+    _aligned_poses(dep, *trips[0])
+    seed_tile(dep.db_url, *TILE, CENTRE)
+
+    m_per_deg_lon = M_PER_DEG_LAT * math.cos(math.radians(CENTRE[1]))
+    stop_line = (CENTRE[0] - 22 / m_per_deg_lon, CENTRE[1] - 3.5 / M_PER_DEG_LAT)
+    result = run_driver(
+        "viewer",
+        base=dep.base_url,
+        key=dep.admin_key,
+        centre=CENTRE,
+        click_lnglat=stop_line,
+        tile_offset=[0.0, -0.0005],
+        correct=True,
+    )
+    checks = result["checks"]
+    assert not result["errors"], result
+    assert checks["key_form_shown"]
+    # the live map (version 3 of the tile) renders from the vector tiles, styled per element type
+    assert checks["map_version_label"] == "map version 3"
+    live = {entry.split(":")[0] for entry in checks["live_rendered"]}
+    assert {
+        "road_boundary",
+        "centerline",
+        "lane_divider-solid",
+        "lane_divider-dashed",
+        "stop_line",
+        "crosswalk-fill",
+    } <= live, checks["live_rendered"]
+    assert "road_marking-fill" not in live  # removed in version 3
+    assert checks["live_drawn_share"] > 0.005
+    # clicking selects the tile; the slider walks its versions, oldest drawn last
+    assert checks["tile_name"] == "/".join(map(str, TILE))
+    by_version = {v["index"] + 1: v for v in checks["versions"]}
+    assert set(by_version) == {1, 2, 3}
+    ids = {n: {d.split(":")[1] for d in v["drawn"]} for n, v in by_version.items()}
+    assert "rm-arrow" in ids[1] and "sl-1" not in ids[1]
+    assert {"rm-arrow", "sl-1"} <= ids[2]
+    assert "sl-1" in ids[3] and "rm-arrow" not in ids[3]
+    assert sorted(by_version[2]["diff"]) == ["added:sl-1", "modified:ld-centre"]
+    assert by_version[3]["diff"] == ["removed:rm-arrow"]
+    assert by_version[2]["label"].startswith("v2 of 3") and "+1 ~1 −0" in by_version[2]["label"]
+    # validator flags are highlighted; an element's details come from /v1/features/{id}
+    assert checks["flagged"] == ["flags:rb-north"]
+    text = checks["element_text"]
+    assert "sl-1" in text and "stop_line" in text and "4 trips, 120 observations" in text
+    assert "0.050 m" in text and "v2 added" in text and "v3 unchanged" in text
+    # trips in view, raw and aligned
+    assert checks["trips_listed"] == 2
+    tracks = {entry.split(":")[0] for entry in checks["tracks_rendered"]}
+    assert tracks == {"raw", "aligned"}, checks["tracks_rendered"]
+    # corrections: the panel shows when the tile's match pairs can be listed (see docs/viewer.md)
+    assert "corrections_visible" in checks
+
+
+def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
+    """A small fleet through the real pipeline (ingest, align_tile, merge_tile) in two batches: two
+    versions of the tile, real aligned poses, real match pairs; a correction round trip through the
+    page once the correction endpoints exist."""
+    dep = make_isolated("embedded")
+    dep.start_server()
+    with dep.admin() as http:
+        for batch in range(2):
+            for i in range(3):
+                assert dep.upload(moving_trip(vehicle_id=f"veh-{i}", length_m=300.0)).status_code == 202
+            dep.wait_idle()
+            assert http.post("/v1/process").json()["scheduled"] >= 1
+            dep.wait_idle()
+        assert dep.summary()["failed"] == 0
+        tile = "/".join(map(str, TILE))
+        versions = http.get(f"/v1/tiles/{tile}/versions").raise_for_status().json()["versions"]
+        assert len(versions) == 2
+        pairs = http.get(f"/v1/tiles/{tile}/match-pairs")
+    corrections_exist = pairs.status_code == 200
+
+    result = run_driver(
+        "viewer", base=dep.base_url, key=dep.admin_key, centre=(11.5775, 48.1366), correct=corrections_exist,
+        out_prefix="pipeline-",
+    )
+    checks = result["checks"]
+    assert not result["errors"], result
+    assert len(checks["live_rendered"]) >= 3 and checks["live_drawn_share"] > 0.003
+    by_version = {v["index"] + 1: v for v in checks["versions"]}
+    assert set(by_version) == {1, 2} and by_version[1]["drawn"] and by_version[2]["drawn"]
+    assert by_version[1]["diff"] and all(d.startswith("added:") for d in by_version[1]["diff"])
+    assert "history" in checks["element_text"].lower()
+    assert checks["trips_listed"] == 6
+    assert {entry.split(":")[0] for entry in checks["tracks_rendered"]} == {"raw", "aligned"}
+    if corrections_exist:  # the human-correction round trip (admin)
+        assert checks["corrections_visible"] and checks["pairs_listed"] >= 1
+        assert checks["corrections_listed"] >= 1, checks
+        assert "job done" in checks["correction_message"], checks["correction_message"]
+        assert checks["versions_after_correction"] >= 1
+    else:
+        assert checks["corrections_visible"] is False
