@@ -46,6 +46,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "task_routes": {
             "csr.ingest_trip": {"queue": "ingest"},
             "csr.align_tile": {"queue": "align"},
+            "csr.correct_tile": {"queue": "align"},
             "csr.merge_tile": {"queue": "merge"},
         },
         "task_acks_late": True,

@@ -80,6 +80,11 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
             aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y)
             return _finish(session_factory, job_id, started,
                            lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
+        if kind == "correct_tile":  # the map team's corrections: re-align the whole tile with them
+            z, x, y = tile_jobs.parse_tile(subject)
+            aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y, full=True)
+            return _finish(session_factory, job_id, started,
+                           lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
         if kind == "merge_tile":
             z, x, y = tile_jobs.parse_tile(subject)
             merged = tile_jobs.compute_merge_tile(session_factory, settings, z, x, y)

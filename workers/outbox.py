@@ -19,7 +19,12 @@ from workers.loop import BackgroundLoop
 log = logging.getLogger(__name__)
 
 BATCH = 200  # outbox rows per round; one publish is ~0.1 ms on loopback Redis
-TASK_OF_KIND = {"ingest_trip": "csr.ingest_trip", "align_tile": "csr.align_tile", "merge_tile": "csr.merge_tile"}
+TASK_OF_KIND = {
+    "ingest_trip": "csr.ingest_trip",
+    "align_tile": "csr.align_tile",
+    "correct_tile": "csr.correct_tile",
+    "merge_tile": "csr.merge_tile",
+}
 
 
 def relay_once(

@@ -39,3 +39,9 @@ def align_tile(job_id: str) -> str:
 def merge_tile(job_id: str) -> str:
     rt = runtime()
     return run_job(rt.session_factory, rt.settings, job_id)
+
+
+@app.task(name="csr.correct_tile", base=JobTask)
+def correct_tile(job_id: str) -> str:
+    rt = runtime()
+    return run_job(rt.session_factory, rt.settings, job_id)

@@ -39,7 +39,8 @@ import shapely
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from csr_core.alignment import AlignmentResult, PriorMap, align_trips
+from csr_core.alignment import AlignmentResult, MatchCorrections, PairConstraint, PriorMap, align_trips
+from csr_core.alignment.corrections import PRIOR_KEY
 from csr_core.errors import AlignmentFailed
 from csr_core.geo import LocalFrame, region_frame_for, tile_bounds_lonlat
 from csr_core.se2 import yaw_rad_to_heading_deg
@@ -64,7 +65,9 @@ from csr_core.types import DividerStyle, ElementType, MapFeature, TripReconstruc
 from csr_core.upload import decode_trip
 from services.db import repo, versions
 from services.db.models import (
+    Correction,
     DirtyTile,
+    Job,
     MatchPair,
     TileVersion,
     Trip,
@@ -130,16 +133,19 @@ class TripAlignment:
 @dataclass
 class AlignTileResult:
     frame: LocalFrame
+    full: bool = False
     trips: list[TripAlignment] = field(default_factory=list)
     match_pairs: list[dict] = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
 
 
 def compute_align_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int,
-                       ) -> AlignTileResult:
+                       *, full: bool = False) -> AlignTileResult:
+    """``full``: re-align every trip of the tile with the map team's corrections (a ``correct_tile``
+    job), against the neighbouring tiles' map only (the tile's own map is what is being redone)."""
     frame = tile_frame(z, x, y)
     with session_factory() as session:
-        has_version = versions.latest_version(session, z=z, x=x, y=y) is not None
+        has_version = versions.latest_version(session, z=z, x=x, y=y) is not None and not full
         rows = session.execute(
             select(TripTile.trip_pk, TripTile.processed_job_id)
             .join(Trip, Trip.id == TripTile.trip_pk)
@@ -148,9 +154,10 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         ).all()
         trip_pks = [pk for pk, done in rows if not (has_version and done)]
         recons = {pk: _load_reconstruction(session, pk, frame) for pk in trip_pks}
-        prior = _prior_map(session, z, x, y, frame, settings.tile_halo_m)
+        prior = _prior_map(session, z, x, y, frame, settings.tile_halo_m, exclude_own=full)
+        constraints = corrections_of_tile(session, z, x, y) if full else ([], [])
     recons = {pk: r for pk, r in recons.items() if r is not None}
-    result = AlignTileResult(frame)
+    result = AlignTileResult(frame, full=full)
     if not recons:
         return result
     polygon = tile_polygon_xy(z, x, y, frame)
@@ -162,7 +169,8 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             piece = crop_reconstruction(recon, start, stop, suffix=f"@{start}")
             pieces.append(piece)
             piece_of[piece.trip.key] = (pk, start, signed[start:stop])
-    alignment = _align(pieces, prior)
+    corrections = piece_constraints(constraints, piece_of, {p.trip.key: p.trip.n_frames for p in pieces})
+    alignment = _align(pieces, prior, corrections)
     per_trip: dict[str, list] = {pk: [] for pk in recons}
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
@@ -205,11 +213,12 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     return result
 
 
-def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None) -> AlignmentResult:
+def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None,
+           corrections: MatchCorrections | None = None) -> AlignmentResult:
     if not pieces:
         return AlignmentResult({}, {}, (), {})
     try:
-        return align_trips(pieces, prior_map=prior)
+        return align_trips(pieces, prior_map=prior, corrections=corrections)
     except AlignmentFailed as exc:  # nothing to align with (one piece, no map): each keeps its own poses
         return AlignmentResult({}, {p.trip.key: f"{NO_OVERLAP}: {exc}" for p in pieces}, (), {})
 
@@ -238,13 +247,17 @@ def reconstruction_from_row(row: TripReconstructionRecord, trip) -> TripReconstr
     )
 
 
-def _prior_map(session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float) -> PriorMap | None:
-    """The live map of the tile and its halo (neighbouring tiles' features near the edge)."""
+def _prior_map(session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float,
+               exclude_own: bool = False) -> PriorMap | None:
+    """The live map of the tile and its halo (neighbouring tiles' features near the edge);
+    ``exclude_own``: the neighbours' only."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
     lat = np.radians((south + north) / 2)
     dlat = halo_m / 111_320.0
     dlon = halo_m / (111_320.0 * max(np.cos(lat), 1e-6))
     features = versions.features_in_bbox(session, bbox_lonlat=(west - dlon, south - dlat, east + dlon, north + dlat))
+    if exclude_own:
+        features = [f for f in features if not f.feature_id.startswith(f"{z}-{x}-{y}-")]
     mapped = [f for f in (_to_map_feature(v, frame) for v in features) if f is not None]
     return PriorMap(tuple(mapped)) if mapped else None
 
@@ -278,8 +291,13 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         else:
             for k, v in values.items():
                 setattr(row, k, v)
+    if result.full:  # the tile was re-aligned as a whole: its earlier pairs no longer hold
+        session.execute(update(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
+                                                MatchPair.job_id != job_id,
+                                                MatchPair.status.in_(("active", "added"))).values(status="superseded"))
     for mp in result.match_pairs:
-        session.add(MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status="active", created_at=now, **mp))
+        status = "added" if mp["record"].get("human") else "active"
+        session.add(MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status=status, created_at=now, **mp))
     aligned_pks = sorted({ta.trip_pk for ta in result.trips})
     session.execute(
         update(TripTile)
@@ -343,6 +361,65 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
     return True
 
 
+# --- corrections ----------------------------------------------------------------------------------
+
+# A constraint as stored: (trip pk or None for the pre-built map, (first, last) frame of the trip)
+Side = tuple[str | None, tuple[int, int]]
+
+
+def corrections_of_tile(session: Session, z: int, x: int, y: int
+                        ) -> tuple[list[tuple[Side, Side]], list[tuple[Side, Side, tuple | None]]]:
+    """The tile's corrections in force (not undone) as rejected and added pairs of trip frames."""
+    rejected, added = [], []
+    rows = session.scalars(select(Correction).where(Correction.z == z, Correction.x == x, Correction.y == y,
+                                                    Correction.undone_at.is_(None)).order_by(Correction.created_at))
+    for c in rows:
+        p = c.payload
+        if c.kind == "reject_pair":
+            rejected.append(((p["trip_i"], tuple(p["frames_i"])), (p["trip_j"], tuple(p["frames_j"]))))
+        elif c.kind == "add_pair":
+            offset = tuple(p["offset_xyyaw"]) if p.get("offset_xyyaw") is not None else None
+            added.append(((p["trip_i"], tuple(p["frames_i"])), (p["trip_j"], tuple(p["frames_j"])), offset))
+    return rejected, added
+
+
+def piece_constraints(constraints, piece_of: dict[str, tuple[str, int, np.ndarray]],
+                      n_frames: dict[str, int]) -> MatchCorrections | None:
+    """Stored corrections (trip frames) -> constraints on this job's pieces (piece keys and frames)."""
+    rejected, added = constraints
+    if not rejected and not added:
+        return None
+
+    def sides(side: Side) -> list[tuple[str, tuple[int, int]]]:
+        pk, (a, b) = side
+        if pk is None:
+            return [(PRIOR_KEY, (0, 0))]
+        out = []
+        for key, (piece_pk, start, _) in piece_of.items():
+            lo, hi = max(a - start, 0), min(b - start, n_frames[key] - 1)
+            if piece_pk == pk and lo <= hi:
+                out.append((key, (lo, hi)))
+        return out
+
+    rej = tuple(PairConstraint(ki, fi, kj, fj) for si, sj in rejected for ki, fi in sides(si) for kj, fj in sides(sj))
+    add = tuple(PairConstraint(ki, fi, kj, fj, off) for si, sj, off in added
+                for ki, fi in sides(si)[:1] for kj, fj in sides(sj)[:1])
+    return MatchCorrections(rej, add)
+
+
+def record_sides(pair: MatchPair) -> tuple[Side, Side]:
+    """A stored match pair's two sides as trip frames (its record names pieces: ``key@start``)."""
+
+    def side(pk: str | None, key: str, frames) -> Side:
+        if pk is None:
+            return None, (0, 0)
+        start = int(key.rsplit("@", 1)[1]) if "@" in key else 0
+        return pk, (int(frames[0]) + start, int(frames[1]) + start)
+
+    r = pair.record
+    return side(pair.trip_pk_i, r["trip_key_i"], r["frames_i"]), side(pair.trip_pk_j, r["trip_key_j"], r["frames_j"])
+
+
 # --- merge_tile -----------------------------------------------------------------------------------
 
 
@@ -357,6 +434,8 @@ class MergeTileResult:
     frame: LocalFrame
     publish: bool
     nothing_to_do: bool = False
+    corrections: list[str] = field(default_factory=list)  # "<id>" applied, "<id>:undo" undone
+    reason: str = "merge"
 
 
 def compute_merge_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int
@@ -379,8 +458,12 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
                                                         MatchPair.status.in_(("active", "added")))).all()
         match_pairs = [p.record for p in pairs]
+        applied = pending_corrections(session, z, x, y)
     if not new:
         return MergeTileResult(expected, [], [], [], {}, None, frame, False, nothing_to_do=True)
+    reason = "merge"
+    if applied:
+        reason = "correction" if any(not a.endswith(":undo") for a in applied) else "undo correction"
     instances = {pk: v[0] for pk, v in inputs_new.items()}
     noise = {pk: v[1] for pk, v in inputs_new.items()}
     paths = {pk: v[2] for pk, v in inputs_new.items()}
@@ -413,6 +496,8 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         state=zlib.compress(pickle.dumps((TOPOLOGY_STATE_VERSION, frame, topology), protocol=5)),
         frame=frame,
         publish=quality["score"] >= settings.publish_min_quality,
+        corrections=applied,
+        reason=reason,
     )
 
 
@@ -498,8 +583,8 @@ def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, re
         return
     try:
         version = versions.write_tile_version(
-            session, z=z, x=x, y=y, features=result.features, reason="merge", job_id=job_id, trips=result.trips,
-            corrections=[], quality=result.quality, origin_lat=result.frame.origin_lat,
+            session, z=z, x=x, y=y, features=result.features, reason=result.reason, job_id=job_id,
+            trips=result.trips, corrections=result.corrections, quality=result.quality, origin_lat=result.frame.origin_lat,
             origin_lon=result.frame.origin_lon, state=result.state, publish=result.publish,
             expected_latest=result.expected_latest)
     except versions.VersionConflict as exc:
@@ -510,6 +595,28 @@ def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, re
                TripTileAlignment.trip_pk.in_(result.merged_alignments))
         .values(merged_version_id=version.id)
     )
+    for entry in result.corrections:
+        correction = session.get(Correction, entry.removesuffix(":undo"))
+        if correction is None:
+            continue
+        if entry.endswith(":undo"):
+            correction.payload = {**correction.payload, "undo_version_id": version.id}
+        else:
+            correction.result_version_id = version.id
+
+
+def pending_corrections(session: Session, z: int, x: int, y: int) -> list[str]:
+    """The tile's corrections applied or undone by a re-alignment but not yet in a version:
+    ``"<id>"`` applied, ``"<id>:undo"`` undone."""
+    out = []
+    done = set(session.scalars(select(Job.id).where(Job.kind == "correct_tile", Job.subject == f"{z}/{x}/{y}",
+                                                    Job.state == "done")))
+    for c in session.scalars(select(Correction).where(Correction.z == z, Correction.x == x, Correction.y == y)):
+        if c.undone_at is None and c.result_version_id is None and c.job_id in done:
+            out.append(c.id)
+        elif c.undone_at is not None and "undo_version_id" not in c.payload and c.payload.get("undo_job_id") in done:
+            out.append(f"{c.id}:undo")
+    return sorted(out)
 
 
 def _npz(**arrays: np.ndarray) -> bytes:

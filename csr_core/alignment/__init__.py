@@ -12,6 +12,7 @@ many trips into one frame, incrementally against a pre-built map.
 - ``association``    Algorithm 1 as one recipe, and the match-pair record
 - ``pose_graph``     incremental pose graph optimisation (Eq. 9-12, gtsam)
 - ``fine``           fine alignment with single-frame perception
+- ``corrections``    human corrections of the association (rejected / added pairs)
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from csr_core.alignment.association import PairMatch, associate
+from csr_core.alignment.corrections import MatchCorrections, PairConstraint, apply_corrections
 from csr_core.alignment.fine import frame_points, frame_residuals, refine_frames
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
@@ -33,7 +35,8 @@ from csr_core.types import MapFeature, TripReconstruction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "MatchPairRecord", "PriorMap", "align_trips"]
+__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "MatchCorrections", "MatchPairRecord", "PairConstraint",
+           "PriorMap", "align_trips"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +70,7 @@ class MatchPairRecord:
     instance_matches: tuple[tuple[int, int], ...]
     match_confidences: tuple[float, ...]
     pose_graph_inlier: bool
+    human: bool = False  # added by a human correction
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,8 +86,9 @@ class AlignmentResult:
 
 
 def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None = None,
-                params: AlignmentParams = DEFAULT) -> AlignmentResult:
-    """Coarse-to-fine multi-trip alignment (Fig. 3), against ``prior_map`` when given."""
+                params: AlignmentParams = DEFAULT, corrections: MatchCorrections | None = None) -> AlignmentResult:
+    """Coarse-to-fine multi-trip alignment (Fig. 3), against ``prior_map`` when given, with the
+    map team's ``corrections`` of the sub-map association when given."""
     if not trips:
         raise AlignmentFailed("no trips to align", reason="empty")
     if prior_map is not None:
@@ -109,6 +114,8 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         timings["split_s"] = time.perf_counter() - clock
         # 2. sub-map data association: topology, graph matching + GNC, temporal, inter-trip (Alg. 1)
         matches = associate(submaps, circles, pairs, trips, noise, params)
+        if corrections:  # the map team's rejected and added pairs (human correction)
+            matches = apply_corrections(matches, submaps, circles, noise, params, corrections)
         timings["associate_s"] = time.perf_counter() - clock - sum(timings.values())
         # 3. incremental pose graph optimisation with adaptive weights (Eq. 9-12)
         graph = optimize_submap_poses(trips, submaps, matches, params)
@@ -164,4 +171,5 @@ def _record(m: PairMatch, submaps: Sequence[Submap], trips: Sequence[TripReconst
         m.i, m.j, key(si), key(sj), (si.first_frame, si.last_frame), (sj.first_frame, sj.last_frame),
         (float(m.centre_xy_world[0]), float(m.centre_xy_world[1])), tuple(float(v) for v in rel),
         m.confidence, m.residual_rms_m, m.instance_matches, tuple(float(c) for c in m.match_confidences), ok,
+        m.human,
     )

@@ -54,6 +54,7 @@ class PairMatch:
     confidence: float  # c_ij: mean of the element confidences
     residual_rms_m: float
     objective: float  # Eq. 4 value of the chosen association
+    human: bool = False  # added by a human correction: a known inlier with a large weight
 
     def relative_pose(self, world_T_i: np.ndarray, world_T_j: np.ndarray) -> np.ndarray:
         """``T_reg^{i,j} = i_T_j`` implied by the registration (initial poses of i and j)."""

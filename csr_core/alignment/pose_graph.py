@@ -127,7 +127,11 @@ def build_factor_graph(
     for m in matches:
         si, sj = submaps[m.i], submaps[m.j]
         T = m.relative_pose(si.world_T_submap, sj.world_T_submap)
-        info = _clip_information(params.reg_alpha * m.confidence * m.information_body_j(sj.world_T_submap), max_eig)
+        info = params.reg_alpha * m.confidence * m.information_body_j(sj.world_T_submap)
+        if m.human:  # a pair a human added: a known inlier, its weight as given (corrections)
+            known.append(g.size())
+        else:
+            info = _clip_information(info, max_eig)
         reg_idx.append(g.size())
         g.add(gtsam.BetweenFactorPose2(S(m.i), S(m.j), gtsam.Pose2(*T), gtsam.noiseModel.Gaussian.Information(info)))
     return g, init, reg_idx, known, weights

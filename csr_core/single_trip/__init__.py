@@ -251,6 +251,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                    for points_w, lat, alo, seen in spliced
                    for k, part in enumerate(sorted(_within_reach(points_w, path_tree, lateral_reach, track.type.is_polygon),
                                                    key=len, reverse=True))]
+        style: list[DividerStyle | None] | None = None  # the track's, voted once
         for points_w, lat, alo, seen in spliced:
             length = float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) if len(points_w) > 1 else 0.0
             if len(seen) < params.TRACK_MIN_FRAMES or (not track.type.is_polygon
@@ -267,9 +268,11 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                           np.round(points_w[0], 1), ratio)
                 n_dropped += 1
                 continue
-            styles = [trip.elements[f][j].style for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
+            if style is None:
+                style = [_style([trip.elements[f][j].style
+                                 for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)])]
             candidates.append((TripInstance(
-                type=track.type, points_xy_world=points_w, style=_style(styles),
+                type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
                 lat, alo))
     # 6. noise per element type from the residuals; an instance whose own residuals are far

@@ -300,12 +300,14 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         # separate the elements of the track along the path; each element is then spliced on
         # the path if it runs along it, else on its own shape
         guide_geom = _geometry(guide)
-        s, d = _project(points_w, guide_geom)
-        if _runs_along(s, points_w, obs_id) < params.SPLICE_ALONG_GUIDE_MIN:
+        ends = np.unique(obs_ends.ravel())  # the along/across test needs only the observation ends
+        s_ends, _ = _project(points_w[ends], guide_geom)
+        if _runs_along(s_ends, points_w[ends], obs_id[ends]) < params.SPLICE_ALONG_GUIDE_MIN:
             # the track runs across the path (a dashed line crossed in a junction): the gaps
             # between its pieces are along its own shape, not along the path
             return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params,
                                      original)
+        s, d = _project(points_w, guide_geom)
         labels = _cluster_sd(s, d, params)
         out = []
         groups: list[np.ndarray] = []
@@ -489,7 +491,8 @@ def n_distinct(ids: np.ndarray) -> int:
 
 def polygon_area(poly: np.ndarray) -> float:
     x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    nxt = np.r_[1:len(poly), 0]  # np.roll(-1) as an index
+    return 0.5 * float(np.dot(x, y[nxt]) - np.dot(y, x[nxt]))
 
 
 def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02
@@ -527,12 +530,13 @@ def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.
     ref_i = cand[int(np.argsort(areas)[len(areas) // 2])]
     ref = ccw[ref_i]
     m = len(ref)
+    roll = (np.arange(m)[:, None] + np.arange(m)[None, :]) % m  # row k: np.roll(p, -k) as an index
     stack, heads = [], []
     for i in cand:
         p = ccw[i]
         if len(p) != m:
             continue
-        shifts = np.stack([np.roll(p, -k, axis=0) for k in range(m)])
+        shifts = p[roll]
         err = np.linalg.norm(shifts - ref[None], axis=-1).sum(1)
         stack.append(shifts[int(np.argmin(err))])
         heads.append(headings_rad[i])

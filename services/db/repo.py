@@ -29,7 +29,12 @@ from services.db.models import (
 
 ROLES = ("vehicle", "reader", "admin")
 BOOTSTRAP_ADMIN_ID = "admin-bootstrap"
-QUEUE_OF_KIND = {"ingest_trip": "ingest", "align_tile": "align", "merge_tile": "merge"}
+QUEUE_OF_KIND = {
+    "ingest_trip": "ingest",
+    "align_tile": "align",
+    "correct_tile": "align",
+    "merge_tile": "merge",
+}
 QUEUES = ("ingest", "align", "merge")
 JOB_STATES = ("queued", "running", "done", "failed")
 

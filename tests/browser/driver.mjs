@@ -182,13 +182,26 @@ async function correction(page, act) {
   await shot(page, 'viewer-corrections');
   const reject = page.locator('#pairs tr[data-pair] button.danger').first();
   if (!(await reject.count())) return;
-  check('rejected_pair', await page.locator('#pairs tr[data-pair]').first().getAttribute('data-pair'));
+  const pairId = await page.locator('#pairs tr[data-pair]').first().getAttribute('data-pair');
+  check('rejected_pair', pairId);
+  const finished = (what) =>
+    page.waitForFunction((w) => new RegExp(`^${w}: (job done|job failed|still running)`).test(document.getElementById('tile-message').textContent), what, { timeout: 180000 });
   await reject.click();
-  await page.waitForFunction(() => / job (done|failed)|submitted|: /.test(document.getElementById('tile-message').textContent) && document.querySelector('#correction-list tr'), null, { timeout: 120000 });
+  await finished('reject_pair');
   check('correction_message', await page.locator('#tile-message').textContent());
   check('corrections_listed', await page.locator('#correction-list tr[data-correction]').count());
-  check('versions_after_correction', Number(await page.locator('#version-slider').getAttribute('max')) + 1 - versionsBefore);
+  check('pair_status_after', await page.locator(`#pairs tr[data-pair="${pairId}"] td:nth-child(4)`).textContent().catch(() => null));
+  const versionsAfter = Number(await page.locator('#version-slider').getAttribute('max')) + 1;
+  check('versions_after_correction', versionsAfter - versionsBefore);
+  check('correction_row', await page.locator('#correction-list tr[data-correction]').first().innerText());
   await shot(page, 'viewer-after-correction');
+  // undo it: another version
+  await page.locator('#correction-list tr[data-correction] button', { hasText: 'undo' }).first().click();
+  await finished('undo');
+  check('undo_message', await page.locator('#tile-message').textContent());
+  check('versions_after_undo', Number(await page.locator('#version-slider').getAttribute('max')) + 1 - versionsAfter);
+  check('correction_row_after_undo', await page.locator('#correction-list tr[data-correction]').first().innerText());
+  await shot(page, 'viewer-after-undo');
 }
 
 // --- ops -----------------------------------------------------------------------------------------

@@ -102,7 +102,7 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
     dep = make_isolated("embedded")
     dep.start_server()
     with dep.admin() as http:
-        for batch in range(2):
+        for _batch in range(2):
             for i in range(3):
                 assert dep.upload(moving_trip(vehicle_id=f"veh-{i}", length_m=300.0)).status_code == 202
             dep.wait_idle()
@@ -116,7 +116,11 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
     corrections_exist = pairs.status_code == 200
 
     result = run_driver(
-        "viewer", base=dep.base_url, key=dep.admin_key, centre=(11.5775, 48.1366), correct=corrections_exist,
+        "viewer",
+        base=dep.base_url,
+        key=dep.admin_key,
+        centre=(11.5775, 48.1366),
+        correct=corrections_exist,
         out_prefix="pipeline-",
     )
     checks = result["checks"]
@@ -128,10 +132,25 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
     assert "history" in checks["element_text"].lower()
     assert checks["trips_listed"] == 6
     assert {entry.split(":")[0] for entry in checks["tracks_rendered"]} == {"raw", "aligned"}
-    if corrections_exist:  # the human-correction round trip (admin)
+    if corrections_exist:  # the human-correction round trip (admin): reject a pair, then undo it
         assert checks["corrections_visible"] and checks["pairs_listed"] >= 1
-        assert checks["corrections_listed"] >= 1, checks
-        assert "job done" in checks["correction_message"], checks["correction_message"]
-        assert checks["versions_after_correction"] >= 1
+        assert checks["corrections_listed"] == 1, checks
+        assert checks["correction_message"].startswith("reject_pair: job done, map version"), checks
+        assert checks["pair_status_after"] == "rejected"
+        assert checks["versions_after_correction"] == 1
+        assert "reject_pair" in checks["correction_row"] and "→ map v" in checks["correction_row"]
+        assert checks["undo_message"].startswith("undo: job done, map version"), checks
+        assert checks["versions_after_undo"] == 1
+        assert "undone → map v" in checks["correction_row_after_undo"]
+        with dep.admin() as http:
+            (correction,) = http.get(
+                "/v1/corrections", params={"z": TILE[0], "x": TILE[1], "y": TILE[2]}
+            ).json()["corrections"]
+            assert correction["payload"]["pair_id"] == checks["rejected_pair"]
+            assert (
+                correction["result_version_id"] and correction["undo_version_id"] and correction["undone_at"]
+            )
+            reasons = [v["reason"] for v in http.get(f"/v1/tiles/{tile}/versions").json()["versions"]]
+            assert reasons[:2] == ["merge", "merge"] and len(reasons) == 4, reasons
     else:
         assert checks["corrections_visible"] is False

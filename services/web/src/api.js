@@ -12,11 +12,14 @@ export class ApiError extends Error {
   }
 }
 
-/** fetch an API path with the key; JSON in and out. Throws ApiError for a non-2xx answer. */
-export async function api(path, { method = 'GET', body } = {}) {
+/** fetch an API path with the key; JSON in and out. Throws ApiError for a non-2xx answer.
+ * ``fresh``: revalidate a cached answer (the TileJSON is cacheable for a short while). */
+export async function api(path, { method = 'GET', body, fresh = false } = {}) {
   const headers = { Authorization: `Bearer ${apiKey()}` };
   if (body !== undefined) headers['Content-Type'] = 'application/json';
-  const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const init = { method, headers, body: body === undefined ? undefined : JSON.stringify(body) };
+  if (fresh) init.cache = 'no-cache'; // revalidate what the API lets browsers cache for a while
+  const res = await fetch(path, init);
   const text = await res.text();
   let data = null;
   try {

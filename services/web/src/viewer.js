@@ -149,7 +149,7 @@ async function addLiveTiles() {
 
 /** After a new version: the TileJSON names the new map version, the live source follows it. */
 async function refreshLive() {
-  const tilejson = await api('/v1/tiles.json').catch(() => null);
+  const tilejson = await api('/v1/tiles.json', { fresh: true }).catch(() => null);
   const source = map.getSource('live');
   if (!tilejson || !source) return;
   document.getElementById('map-version').textContent = `map version ${tilejson.map_version}`;
@@ -327,6 +327,8 @@ async function showElement(feature) {
 
 // --- corrections (admin) -------------------------------------------------------------------------
 
+const MAX_PAIRS = 25; // listed weakest first (the API orders by confidence)
+
 async function loadCorrections() {
   const box = document.getElementById('corrections');
   const path = tilePath(state.tile);
@@ -340,19 +342,20 @@ async function loadCorrections() {
   }
   box.hidden = false;
   pairs = Array.isArray(pairs) ? pairs : pairs.pairs || pairs.match_pairs || [];
-  const short = (id) => (id ? String(id).slice(0, 8) : 'map');
+  const short = (id) => (id ? String(id).slice(0, 6) : 'map');
   document.getElementById('pairs').replaceChildren(
     pairs.length
       ? el('table', {}, el('tr', {}, ...['trips', 'conf.', 'rms m', 'status', ''].map((h) => el('th', {}, h))),
-        ...pairs.map((pair) => el('tr', { 'data-pair': pair.id, class: pair.status === 'active' ? '' : 'muted' },
+        ...pairs.slice(0, MAX_PAIRS).map((pair) => el('tr', { 'data-pair': pair.id, class: pair.status === 'active' ? '' : 'muted' },
           el('td', { class: 'mono', title: `${pair.trip_i} ↔ ${pair.trip_j}` }, `${short(pair.trip_i)}↔${short(pair.trip_j)}`),
           el('td', {}, fmt(pair.confidence)), el('td', {}, fmt(pair.residual_rms_m, 3)), el('td', {}, pair.status),
           el('td', {},
-            pair.centre ? el('button', { type: 'button', onclick: () => map.flyTo({ center: pair.centre, zoom: Math.max(map.getZoom(), 18) }) }, 'show') : null,
+            pair.centre ? el('button', { type: 'button', title: 'show on the map', onclick: () => map.flyTo({ center: pair.centre, zoom: Math.max(map.getZoom(), 18) }) }, 'show') : null,
             pair.status === 'active' || pair.status === 'added'
               ? el('button', { type: 'button', class: 'danger', onclick: () => correct({ kind: 'reject_pair', pair_id: pair.id }) }, 'reject')
               : null))))
       : el('p', { class: 'muted' }, 'no match pairs'),
+    pairs.length > MAX_PAIRS ? el('p', { class: 'muted' }, `… ${pairs.length - MAX_PAIRS} more (weakest first)`) : '',
   );
   let corrections = [];
   try {
@@ -365,32 +368,52 @@ async function loadCorrections() {
     corrections.length
       ? el('table', {}, ...corrections.map((c) => el('tr', { 'data-correction': c.id },
         el('td', {}, c.kind), el('td', { class: 'mono' }, short(c.payload?.pair_id ?? c.pair_id ?? c.id)),
-        el('td', {}, c.result_version ? `→ v${c.result_version}` : c.job_id ? 'pending' : ''),
-        el('td', {}, c.undone_at ? 'undone' : el('button', { type: 'button', onclick: () => undo(c.id) }, 'undo')))))
+        el('td', { title: `by ${c.author_key_id ?? '?'} at ${c.created_at ?? ''}` }, c.result_version_id ? `→ map v${c.result_version_id}` : 'pending'),
+        el('td', {}, c.undone_at ? `undone${c.undo_version_id ? ` → map v${c.undo_version_id}` : ''}` : el('button', { type: 'button', onclick: () => undo(c.id) }, 'undo')))))
       : el('p', { class: 'muted' }, 'none'),
   );
 }
 
-async function waitForJob(jobId, timeoutMs = 120000) {
-  const deadline = Date.now() + timeoutMs;
-  while (Date.now() < deadline) {
-    const job = await api(`/v1/jobs/${jobId}`).catch(() => null);
-    if (job && (job.state === 'done' || job.state === 'failed')) return job;
-    await new Promise((r) => setTimeout(r, 700));
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+/** Poll ``probe`` until it returns something truthy (or give up after ``timeoutMs``). */
+async function poll(probe, timeoutMs = 120000) {
+  for (const deadline = Date.now() + timeoutMs; Date.now() < deadline; await sleep(700)) {
+    const value = await probe().catch(() => null);
+    if (value) return value;
   }
   return null;
 }
 
-async function afterCorrection(answer, what) {
-  setMessage(`${what}: job ${answer?.job_id ?? '?'} queued…`);
-  const job = answer?.job_id ? await waitForJob(answer.job_id) : null;
-  setMessage(job ? `${what}: job ${job.state}${job.error ? ` (${job.error})` : ''}` : `${what}: submitted`, job?.state === 'failed');
+/** A correction runs as a ``correct_tile`` job, then ``merge_tile`` makes the new version: wait for
+ * the job, then for the correction to name its version (``field``: result_version_id or
+ * undo_version_id). */
+async function afterCorrection(answer, field, what) {
+  const jobId = field === 'undo_version_id' ? answer.undo_job_id : answer.job_id;
+  setMessage(`${what}: job ${jobId} queued…`);
+  const job = await poll(async () => {
+    const j = await api(`/v1/jobs/${jobId}`);
+    return ['done', 'failed'].includes(j.state) && j;
+  });
+  let version = null;
+  if (job?.state === 'done') {
+    const { z, x, y } = state.tile;
+    version = await poll(async () => {
+      const { corrections } = await api(`/v1/corrections?z=${z}&x=${x}&y=${y}`);
+      return corrections.find((c) => c.id === answer.id)?.[field];
+    }, 60000);
+  }
   await Promise.all([loadVersions({ showNewest: true }), loadCorrections(), refreshLive()]);
+  setMessage(
+    !job ? `${what}: still running` : job.state === 'failed' ? `${what}: job failed (${job.error})`
+      : `${what}: job done${version ? `, map version ${version}` : ''}`,
+    job?.state === 'failed',
+  );
 }
 
 async function correct(body) {
   try {
-    await afterCorrection(await api(`${tilePath(state.tile)}/corrections`, { method: 'POST', body }), body.kind);
+    await afterCorrection(await api(`${tilePath(state.tile)}/corrections`, { method: 'POST', body }), 'result_version_id', body.kind);
   } catch (err) {
     setMessage(`${body.kind}: ${err.message}`, true);
   }
@@ -398,7 +421,7 @@ async function correct(body) {
 
 async function undo(correctionId) {
   try {
-    await afterCorrection(await api(`/v1/corrections/${correctionId}/undo`, { method: 'POST' }), 'undo');
+    await afterCorrection(await api(`/v1/corrections/${correctionId}/undo`, { method: 'POST' }), 'undo_version_id', 'undo');
   } catch (err) {
     setMessage(`undo: ${err.message}`, true);
   }
