@@ -162,28 +162,44 @@ def _pairs_between(keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndar
     return a, b
 
 
-def _bbox_near(pw: np.ndarray, a: np.ndarray, b: np.ndarray, margin_m: float) -> np.ndarray:
-    lo, hi = pw.min(1), pw.max(1)
-    gap = np.maximum(lo[b] - hi[a], lo[a] - hi[b])
+@dataclass(frozen=True, slots=True)
+class _Shapes:
+    """Per-piece quantities of the pair pre-tests, computed once per trip."""
+
+    lo: np.ndarray  # (Q, 2) bounding box
+    hi: np.ndarray
+    start: np.ndarray  # (Q, 2) first point
+    u: np.ndarray  # (Q, 2) unit chord
+    length: np.ndarray  # (Q,) chord length
+    mid: np.ndarray  # (Q, 2) middle point
+    sag: np.ndarray  # (Q,) largest distance of a point to the chord line
+
+    @staticmethod
+    def of(pw: np.ndarray) -> _Shapes:
+        chord = pw[:, -1] - pw[:, 0]
+        length = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
+        u = chord / length[:, None]
+        rel = pw - pw[:, :1]
+        sag = np.abs(rel[..., 0] * u[:, None, 1] - rel[..., 1] * u[:, None, 0]).max(1)
+        return _Shapes(pw.min(1), pw.max(1), pw[:, 0], u, length, pw[:, pw.shape[1] // 2], sag)
+
+
+def _bbox_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, margin_m: float) -> np.ndarray:
+    gap = np.maximum(sh.lo[b] - sh.hi[a], sh.lo[a] - sh.hi[b])
     return (gap <= margin_m).all(-1)
 
 
-def _coarse_near(pw: np.ndarray, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float,
+def _coarse_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float,
                  min_cos: float) -> np.ndarray:
     """Cheap pre-test of pairs: bounding boxes within reach; chords nearly parallel (pieces
     shorter than 2 m exempt); the middle point of one within ``gate_m`` plus both pieces'
     sagitta (curvature) of the other's chord line."""
-    keep = _bbox_near(pw, a, b, ext_m)
+    keep = _bbox_near(sh, a, b, ext_m)
     a, b = a[keep], b[keep]
-    chord = pw[:, -1] - pw[:, 0]
-    length = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
-    u = chord / length[:, None]
-    mid = pw[:, pw.shape[1] // 2]
-    rel = pw - pw[:, :1]
-    sag = np.abs(rel[..., 0] * u[:, None, 1] - rel[..., 1] * u[:, None, 0]).max(1)
-    r1 = mid[b] - pw[a, 0]
+    u, length, sag = sh.u, sh.length, sh.sag
+    r1 = sh.mid[b] - sh.start[a]
     lat1 = np.abs(r1[:, 0] * u[a, 1] - r1[:, 1] * u[a, 0])
-    r2 = mid[a] - pw[b, 0]
+    r2 = sh.mid[a] - sh.start[b]
     lat2 = np.abs(r2[:, 0] * u[b, 1] - r2[:, 1] * u[b, 0])
     cos = np.abs((u[a] * u[b]).sum(1))
     short = (length[a] < 2.0) | (length[b] < 2.0)
@@ -241,7 +257,8 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
     b = order[b_sorted]
     m = a < b
     a, b = a[m], b[m]
-    m = _coarse_near(pc.points_w, a, b, ext, params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
+    shapes = _Shapes.of(pc.points_w)
+    m = _coarse_near(shapes, a, b, ext, params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
                      np.cos(params.TRACK_MAX_ANGLE_RAD))
     a, b = a[m], b[m]
     if len(a):
@@ -258,7 +275,7 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         b = order[b_sorted]
         if len(a) == 0:
             continue
-        m = _coarse_near(pc.points_w, a, b, ext, params.TRACK_GATE_M + params.TRACK_COARSE_MARGIN_M,
+        m = _coarse_near(shapes, a, b, ext, params.TRACK_GATE_M + params.TRACK_COARSE_MARGIN_M,
                          np.cos(params.TRACK_MAX_ANGLE_RAD))
         a, b = a[m], b[m]
         if len(a) == 0:

@@ -105,7 +105,17 @@ def test_rejecting_a_pair_reoptimizes_the_tile_and_is_audited(make_isolated, fle
         assert [v["version"] for v in versions][-1] == 2 and versions[-1]["reason"] == "correction"
         rejected = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "rejected"}).json()
         assert [p["id"] for p in rejected["match_pairs"]] == [target["id"]]
-        current = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs").json()["match_pairs"]
-        assert current and all(p["id"] != target["id"] for p in current)
+        current = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "active"}).json()["match_pairs"]
+
+        def overlaps(a, b):
+            return a[0] <= b[1] and b[0] <= a[1]
+
+        def same_pair(p):  # the re-alignment found no pair between the rejected frames again
+            return ({p["trip_i"], p["trip_j"]} == {target["trip_i"], target["trip_j"]}
+                    and any(overlaps(p[f"frames_{a}"], target["frames_i"]) and overlaps(p[f"frames_{b}"],
+                                                                                       target["frames_j"])
+                            for a, b in (("i", "j"), ("j", "i"))))
+
+        assert current and not any(same_pair(p) for p in current)
         (entry,) = http.get("/v1/corrections").json()["corrections"]
         assert entry["kind"] == "reject_pair" and entry["result_version_id"] == versions[-1]["map_version"]
