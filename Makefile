@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: setup serve worker test test-unit test-integration lint bench-ingest clean-data
+.PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data
 
 setup: $(VENV)/.installed
 
@@ -22,7 +22,8 @@ serve: setup
 worker: setup
 	$(BIN)/csr worker
 
-test: setup
+test: setup services/web/node_modules/.package-lock.json
+	bash scripts/system-deps
 	$(BIN)/python -m services.devsetup
 	$(BIN)/python -m pytest
 
@@ -30,6 +31,7 @@ test-unit: setup
 	$(BIN)/python -m pytest -m unit
 
 test-integration: setup
+	bash scripts/system-deps
 	$(BIN)/python -m services.devsetup
 	$(BIN)/python -m pytest -m integration
 
@@ -46,3 +48,11 @@ bench-ingest: setup
 
 clean-data:
 	rm -rf data
+
+# The viewer and ops bundle in services/web/dist (committed); needs Node.js and npm
+web: services/web/node_modules/.package-lock.json
+	cd services/web && npm run build
+
+# playwright-core for the browser tests (and esbuild, MapLibre for `make web`)
+services/web/node_modules/.package-lock.json: services/web/package-lock.json
+	cd services/web && npm ci --no-audit --no-fund

@@ -542,6 +542,7 @@ def clip_to_tile(features: Sequence[MapFeature], frame: LocalFrame, z: int, x: i
     for f in features:
         lonlat = frame.to_lonlat(f.points_xy_world)
         props = {k: v for k, v in _plain_json(f.properties).items() if k != "trips"}
+        props["n_flags"] = len(props.get("flags") or [])  # a scalar: vector tiles drop lists
         fid = f"{z}-{x}-{y}-{f.feature_id}"
         style = f.style.value if f.style is not None else None
         if f.type.is_polygon:

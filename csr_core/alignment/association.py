@@ -23,7 +23,7 @@ from csr_core.alignment.graph_matching import (
     rrwm_match,
 )
 from csr_core.alignment.params import AlignmentParams, NoiseScales
-from csr_core.alignment.registration import match_confidence, register_elements
+from csr_core.alignment.registration import LandmarkSets, match_confidence, register_elements
 from csr_core.alignment.submaps import Circle, Submap
 from csr_core.types import TripReconstruction
 
@@ -76,6 +76,19 @@ def element_set(submap: Submap, centre_xy_world: np.ndarray, world_T_submap: np.
     return ElementSet(tuple(e.type for e in submap.elements), tuple(p - centre_xy_world for p in pts))
 
 
+def landmark_pairs(si: Submap, sj: Submap, centre_xy_world: np.ndarray, noise: NoiseScales,
+                   params: AlignmentParams) -> LandmarkSets | None:
+    """Both sub-maps' dash-end landmarks in the circle's local frame, with the sigma of each
+    (one sighting's along sigma over the square root of its sightings, at most 4 counted: the
+    sightings share the trip's local pose error)."""
+    if not params.landmarks or len(si.landmarks_xy_submap) == 0 or len(sj.landmarks_xy_submap) == 0:
+        return None
+    (pa, ua), (pb, ub) = si.landmarks_world(), sj.landmarks_world()
+    sig = lambda n: noise.dash_end_sigma_m / np.sqrt(np.minimum(n, 4))  # noqa: E731
+    return LandmarkSets(pa - centre_xy_world, ua, sig(si.landmark_counts), pb - centre_xy_world, ub,
+                        sig(sj.landmark_counts), params.landmark_gate_max_m)
+
+
 def _point_sigma(noise: NoiseScales) -> float:
     lat = [v for v in noise.lateral_sigma_m.values()]
     return float(np.sqrt(2.0) * np.sqrt(np.mean(np.square(lat))))
@@ -112,7 +125,8 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
     if len(matches) < params.min_matched_elements:
         return None
     closed = [e.closed for e in si.elements]
-    reg = register_elements(a, b, matches, _point_sigma(noise), params, closed, initial)
+    reg = register_elements(a, b, matches, _point_sigma(noise), params, closed, initial,
+                            landmark_pairs(si, sj, circle.centre_xy_world, noise, params))
     if reg is None or reg.residual_rms_m > params.max_registration_rms_k * _point_sigma(noise):
         return None
     kept = [m for m, ok in zip(matches, reg.element_inlier, strict=False) if ok]

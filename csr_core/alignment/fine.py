@@ -351,32 +351,55 @@ def _keyframes(poses: np.ndarray, spacing_m: float) -> np.ndarray:
 def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, maps: Mapping, owner: int,
                 noise: NoiseScales, params: AlignmentParams, dashes: DashEnds | None = None,
                 dash_map: DashMap | None = None) -> np.ndarray:
-    """Frame-level pose graph of one trip (odometry chain + frame registrations + coarse prior)."""
+    """Frame-level pose graph of one trip: one ``Pose2`` per keyframe, chained at the *current*
+    (coarse) relative poses, frame registrations as priors, a weak prior at the coarse pose.
+
+    The chain holds the coarse solution's relative motion (already GNSS + odometry smoothed and
+    calibrated, so its scale and yaw-rate bias are right) with the smoothed trajectory's
+    relative accuracy (``fine_chain_*``): the fine stage estimates a *correction* that varies
+    slowly along the trip and cannot add frame-to-frame noise. Raw odometry increments would
+    re-introduce the odometry scale error that the single-trip stage removed. The keyframe
+    corrections are spread to every frame linearly in travelled distance."""
     frames = _keyframes(poses, params.fine_keyframe_spacing_m)
+    if frames[-1] != len(poses) - 1:
+        frames = np.append(frames, len(poses) - 1)
     xi, info, n_in = frame_registrations(fp, poses, frames, maps, owner, noise, params, dashes, dash_map)
+    kf = poses[frames]
     g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    n = len(poses)
-    for t in range(n):
-        init.insert(X(t), gtsam.Pose2(*poses[t]))
-    odom = trip.trip.odom_xyyaw
-    rel = se2.between(odom[:-1], odom[1:])
+    for slot in range(len(frames)):
+        init.insert(X(slot), gtsam.Pose2(*kf[slot]))
+    rel = se2.between(kf[:-1], kf[1:])
     d = np.hypot(rel[:, 0], rel[:, 1])
-    sxy = params.fine_odom_sigma_floor_m + params.fine_odom_sigma_per_m * d
-    syaw = 1e-4 + params.fine_odom_sigma_yaw_per_m * d
-    for t in range(n - 1):
-        g.add(gtsam.BetweenFactorPose2(X(t), X(t + 1), gtsam.Pose2(*rel[t]),
-                                       gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[t], sxy[t], syaw[t]]))))
+    sxy = params.fine_chain_sigma_floor_m + params.fine_chain_sigma_per_m * d
+    syaw = params.fine_chain_sigma_yaw_floor_rad + params.fine_chain_sigma_yaw_per_m * d
+    for slot in range(len(frames) - 1):
+        g.add(gtsam.BetweenFactorPose2(X(slot), X(slot + 1), gtsam.Pose2(*rel[slot]),
+                                       gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[slot], sxy[slot], syaw[slot]]))))
     weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([params.fine_prior_sigma_xy_m] * 2 + [params.fine_prior_sigma_yaw_rad]))
-    for slot, t in enumerate(frames):
-        g.add(gtsam.PriorFactorPose2(X(t), gtsam.Pose2(*poses[t]), weak))
+    for slot in range(len(frames)):
+        g.add(gtsam.PriorFactorPose2(X(slot), gtsam.Pose2(*kf[slot]), weak))
         if n_in[slot] >= params.fine_min_points:
-            H = 0.5 * (info[slot] + info[slot].T)
-            target = se2.compose(poses[t], xi[slot])
-            g.add(gtsam.PriorFactorPose2(X(t), gtsam.Pose2(*target), gtsam.noiseModel.Gaussian.Information(H)))
+            H = params.fine_registration_weight * 0.5 * (info[slot] + info[slot].T)
+            target = se2.compose(kf[slot], xi[slot])
+            g.add(gtsam.PriorFactorPose2(X(slot), gtsam.Pose2(*target), gtsam.noiseModel.Gaussian.Information(H)))
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(20)
-    res = gtsam.LevenbergMarquardtOptimizer(g, init, lm).optimize()
-    return gtsam.utilities.extractPose2(res)
+    res = gtsam.utilities.extractPose2(gtsam.LevenbergMarquardtOptimizer(g, init, lm).optimize())
+    return spread_corrections(poses, frames, se2.compose(res, se2.inverse(kf)))
+
+
+def spread_corrections(poses: np.ndarray, frames: np.ndarray, corrections_xyyaw: np.ndarray) -> np.ndarray:
+    """Apply world-frame corrections ``c_k`` known at keyframes ``frames`` (ascending, first and
+    last frame included) to every frame, interpolated linearly in travelled distance:
+    ``x_t = c(s_t) o poses_t``. ``(N, 3)``."""
+    s = arclength_m(poses[:, :2])
+    sk = s[frames]
+    if len(frames) == 1:
+        c = np.repeat(corrections_xyyaw, len(poses), axis=0)
+    else:
+        c = np.column_stack([np.interp(s, sk, corrections_xyyaw[:, 0]), np.interp(s, sk, corrections_xyyaw[:, 1]),
+                             np.interp(s, sk, np.unwrap(corrections_xyyaw[:, 2]))])
+    return se2.compose(c, poses)
 
 
 def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],

@@ -80,6 +80,8 @@ class AlignmentParams:
     registration_prior_sigma_xy_m: float = 1.5  # pull to the start pose (GNSS-relative error scale)
     registration_prior_sigma_yaw_rad: float = 0.03
     max_registration_rms_k: float = 3.0
+    landmarks: bool = True  # dash ends as along-road landmarks in the sub-map registration
+    landmark_gate_max_m: float = 3.0  # association gate (also kept below 0.4 x the dash period)
     degenerate_sigma_xy_m: float = 5.0  # regulariser on unobservable directions
     degenerate_sigma_yaw_rad: float = 0.2
 
@@ -107,9 +109,13 @@ class AlignmentParams:
     fine_keyframe_spacing_m: float = 2.0
     fine_gate_k: float = 4.0  # association gate = k * single-frame lateral sigma (+ coarse sigma)
     fine_coarse_sigma_m: float = 0.15  # expected error left by coarse alignment
-    fine_odom_sigma_per_m: float = 0.01
-    fine_odom_sigma_yaw_per_m: float = 0.0005
-    fine_odom_sigma_floor_m: float = 0.005
+    # chain between keyframes at the coarse relative pose: the relative accuracy of the
+    # smoothed trajectory (measured against truth: ~1 cm along / 2 cm across over 10 m)
+    fine_chain_sigma_per_m: float = 0.002
+    fine_chain_sigma_floor_m: float = 0.002
+    fine_chain_sigma_yaw_per_m: float = 0.0002
+    fine_chain_sigma_yaw_floor_rad: float = 0.0002
+    fine_registration_weight: float = 0.2  # keyframe spacing / ~10 m over which a frame's perception errors stay correlated
     fine_prior_sigma_xy_m: float = 0.5  # keeps along-track where perception is degenerate
     fine_prior_sigma_yaw_rad: float = 0.02
     fine_min_points: int = 6
@@ -129,6 +135,7 @@ class NoiseScales:
     boundary_sigma_m: float
     sigma_p_m: float
     sigma_e_m: float
+    dash_end_sigma_m: float = 0.5  # one sighting of a dash end, along the dash (divider along sigma)
 
     def lateral(self, element_type: ElementType) -> float:
         return self.lateral_sigma_m.get(element_type, FALLBACK_LATERAL_SIGMA_M)
@@ -151,4 +158,7 @@ def noise_scales(trips: Sequence[TripReconstruction], params: AlignmentParams) -
     typical = float(np.sqrt(np.mean(np.square(lines))))
     sigma_p = params.sigma_p_k * float(np.sqrt(2 * typical**2 + bdr**2)) + params.sigma_p_floor_m
     sigma_e = max(params.sigma_e_k * np.sqrt(2.0) * typical, params.sigma_e_floor_m)
-    return NoiseScales(lat, bdr, sigma_p, float(sigma_e))
+    along = [t.noise[ElementType.LANE_DIVIDER].along_sigma_m for t in trips
+             if ElementType.LANE_DIVIDER in t.noise and np.isfinite(t.noise[ElementType.LANE_DIVIDER].along_sigma_m)]
+    dash = float(np.sqrt(np.mean(np.square(along)))) if along else 0.5
+    return NoiseScales(lat, bdr, sigma_p, float(sigma_e), dash)

@@ -23,6 +23,7 @@ import numpy as np
 from csr_core import se2
 from csr_core.alignment.geometry import point_to_segments
 from csr_core.alignment.graph_matching import ElementSet, element_distances, node_similarity
+from csr_core.alignment.landmarks import associate_landmarks, landmark_gate_m
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 
 MAX_POINTS_PER_ELEMENT = 15
@@ -40,6 +41,33 @@ class Registration:
     element_inlier: np.ndarray  # (N_m,) bool per match
     residual_rms_m: float
     n_points: int
+
+
+@dataclass(frozen=True, slots=True)
+class LandmarkSets:
+    """Point landmarks (dash ends) of the target and the source in the common local frame:
+    points ``(L, 2)``, unit directions towards the other end of their dash ``(L, 2)``, and
+    sigma of each ``(L,)`` (metres, along the dash)."""
+
+    target_xy: np.ndarray
+    target_dir: np.ndarray
+    target_sigma_m: np.ndarray
+    source_xy: np.ndarray
+    source_dir: np.ndarray
+    source_sigma_m: np.ndarray
+    gate_max_m: float
+
+
+def _landmark_rows(delta: np.ndarray, lm: LandmarkSets, gate_m: float):
+    """Rows of the landmarks at ``delta``: moved source points, foot (associated target
+    landmark), normal (the target's dash direction: the residual is along the dash), validity
+    and sigma of each residual."""
+    moved = se2.transform_points(delta, lm.source_xy)
+    c, s_ = np.cos(delta[2]), np.sin(delta[2])
+    dirs = lm.source_dir @ np.array([[c, -s_], [s_, c]]).T
+    idx, ok = associate_landmarks(moved, dirs, lm.target_xy, lm.target_dir, gate_m)
+    sigma = np.sqrt(lm.source_sigma_m**2 + lm.target_sigma_m[idx] ** 2)
+    return lm.source_xy, lm.target_xy[idx], lm.target_dir[idx], ok, sigma
 
 
 def _nearest_on_polylines(points: np.ndarray, owner: np.ndarray, padded: np.ndarray, lengths: np.ndarray):
@@ -70,10 +98,14 @@ def _subsample(points: np.ndarray, n_max: int) -> np.ndarray:
 def register_elements(
     target: ElementSet, source: ElementSet, matches: Sequence[tuple[int, int]], point_sigma_m: float,
     params: AlignmentParams, closed_target: Sequence[bool] | None = None,
-    initial_xyyaw: np.ndarray | None = None,
+    initial_xyyaw: np.ndarray | None = None, landmarks: LandmarkSets | None = None,
 ) -> Registration | None:
     """GNC-TLS registration of ``source`` onto ``target`` over matched elements ``(k, k')``
-    (``k`` in target, ``k'`` in source). None when fewer than ``min_matched_elements`` remain."""
+    (``k`` in target, ``k'`` in source). None when fewer than ``min_matched_elements`` remain.
+
+    ``landmarks`` (dash ends) add one row each, along the dash: associated every step to the
+    nearest target end of the same kind within a gate kept below half the dash period (read
+    from the target), TLS-weighted with the other rows in units of their own sigma."""
     if len(matches) < 1:
         return None
     closed_target = closed_target or [False] * len(target)
@@ -110,15 +142,23 @@ def register_elements(
     # road) where the initial pose put them instead of letting them drift
     delta0 = delta.copy()
     H_prior = np.diag([1 / params.registration_prior_sigma_xy_m**2] * 2 + [1 / params.registration_prior_sigma_yaw_rad**2])
-    c_bar = params.gnc_inlier_k * point_sigma_m
+    c_bar = params.gnc_inlier_k  # in units of each row's sigma
+    n_line = len(src_pts)
+    gate = landmark_gate_m(landmarks.target_xy, landmarks.target_dir, landmarks.gate_max_m) if landmarks else 0.0
     mu = None
-    w = np.ones(len(src_pts))
+    w = np.ones(n_line)
     for outer in range(params.gnc_max_outer + 1):
         moved = se2.transform_points(delta, src_pts)
         foot, normal, valid = _nearest_on_polylines(moved, owner, padded, lengths)
         foot[is_fixed], normal[is_fixed], valid[is_fixed] = fixed_foot[is_fixed], fixed_normal[is_fixed], True
+        pts, sig = src_pts, np.full(n_line, point_sigma_m)
+        if landmarks is not None:
+            lp, lf, ln, lv, ls = _landmark_rows(delta, landmarks, gate)
+            pts, sig = np.vstack([src_pts, lp]), np.concatenate([sig, ls])
+            moved = np.vstack([moved, se2.transform_points(delta, lp)])
+            foot, normal, valid = np.vstack([foot, lf]), np.vstack([normal, ln]), np.concatenate([valid, lv])
         r = np.einsum("ij,ij->i", normal, moved - foot)
-        r2 = np.where(valid, r**2, 0.0)
+        r2 = np.where(valid, (r / sig) ** 2, 0.0)
         if mu is None:
             r_max2 = float(r2[valid].max()) if valid.any() else 0.0
             mu = c_bar**2 / max(2 * r_max2 - c_bar**2, 1e-9) if r_max2 > c_bar**2 else 1e6
@@ -128,26 +168,32 @@ def register_elements(
                      c_bar * np.sqrt(mu * (mu + 1)) / np.sqrt(np.maximum(r2, 1e-12)) - mu))
         w = np.clip(w, 0.0, 1.0) * valid
         J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])
-        H = (J * w[:, None]).T @ J / point_sigma_m**2 + H_prior
+        wj = J * (w / sig**2)[:, None]
+        H = wj.T @ J + H_prior
         dev = np.r_[delta[:2] - delta0[:2], se2.wrap_angle(delta[2] - delta0[2])]
-        g = (J * w[:, None]).T @ r / point_sigma_m**2 + H_prior @ dev
+        g = wj.T @ r + H_prior @ dev
         step = -np.linalg.solve(H, g)
         delta = se2.compose(step, delta)
         if outer == params.gnc_max_outer or (mu >= 1e2 and np.linalg.norm(step) < 1e-4):
             break
         mu = min(mu * GNC_MU_FACTOR, 1e6)
-    inlier_pts = w > 0.5
+    inlier_pts = w[:n_line] > 0.5
     element_inlier = np.array([np.sum(inlier_pts[owner == m]) >= max(2, 0.5 * np.sum(owner == m))
                                for m in range(len(matches))])
     if element_inlier.sum() < params.min_matched_elements:
         return None
     sel = inlier_pts & element_inlier[owner]
-    moved = se2.transform_points(delta, src_pts)
-    rms = float(np.sqrt(np.mean(r[sel] ** 2))) if sel.any() else float("inf")
-    J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])[sel]
+    r_line = r[:n_line]
+    rms = float(np.sqrt(np.mean(r_line[sel] ** 2))) if sel.any() else float("inf")
+    J_all = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])
+    J = J_all[:n_line][sel]
     # points of one element share its perception error: count ~2 independent samples per element
     n_eff = 2.0 * element_inlier.sum()
     info = J.T @ J / point_sigma_m**2 * (n_eff / max(len(J), 1))
+    if landmarks is not None:  # each landmark is its own (independent) sample
+        lm_in = w[n_line:] > 0.5
+        J_lm = J_all[n_line:][lm_in]
+        info += (J_lm / sig[n_line:][lm_in, None] ** 2).T @ J_lm
     info += np.diag([1 / UNOBSERVED_SIGMA_XY_M**2] * 2 + [1 / UNOBSERVED_SIGMA_YAW_RAD**2])  # invertible only
     return Registration(delta, info, element_inlier, rms, int(sel.sum()))
 

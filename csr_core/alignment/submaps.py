@@ -19,7 +19,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from csr_core import se2
 from csr_core.alignment.geometry import arclength_m, resample_polyline
+from csr_core.alignment.landmarks import Landmarks, trip_landmarks
 from csr_core.alignment.params import AlignmentParams
 from csr_core.types import ElementType, MapFeature, TripReconstruction
 
@@ -57,10 +58,21 @@ class Submap:
     last_frame: int
     world_T_submap: np.ndarray  # (3,) initial (smoothed) pose of the anchor
     elements: tuple[SubmapElement, ...]
+    # dash-end landmarks seen in this run, sub-map frame (see ``landmarks``); empty for map patches
+    landmarks_xy_submap: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    landmark_dirs_submap: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    landmark_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
     @property
     def is_prior(self) -> bool:
         return self.trip_index < 0
+
+    def landmarks_world(self, world_T_submap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark points and unit directions in the world (at ``world_T_submap``)."""
+        pose = self.world_T_submap if world_T_submap is None else world_T_submap
+        c, s_ = np.cos(pose[2]), np.sin(pose[2])
+        rot = np.array([[c, -s_], [s_, c]])
+        return se2.transform_points(pose, self.landmarks_xy_submap), self.landmark_dirs_submap @ rot.T
 
     def element_points_world(self, world_T_submap: np.ndarray | None = None) -> list[np.ndarray]:
         pose = self.world_T_submap if world_T_submap is None else world_T_submap
@@ -195,6 +207,7 @@ def split_submaps(
     circles, members = split_circles(graph, params)
     prepared = [_prepared_instances(t, params) for t in trips]
     types = [[inst.type for inst in t.instances] for t in trips]
+    marks = [trip_landmarks(t) if params.landmarks else Landmarks.empty() for t in trips]
     submaps: list[Submap] = []
     for circle, mem in zip(circles, members, strict=False):
         for k in np.unique(graph.trip_index[mem]):
@@ -218,9 +231,15 @@ def split_submaps(
                     if inst.last_frame > inst.first_frame and (inst.last_frame < lo or inst.first_frame > hi):
                         continue  # not seen while in this circle
                     elems.append(SubmapElement(inst.type, se2.transform_points(inv, pts), i, closed))
+                lm = marks[k]
+                sel = ((np.linalg.norm(lm.points_xy - circle.centre_xy_world, axis=1) <= circle.radius_m)
+                       & (lm.last_frame >= lo) & (lm.first_frame <= hi))
+                c, s_ = np.cos(pose[2]), np.sin(pose[2])
                 submaps.append(Submap(
                     len(submaps), circle.circle_id, int(k), tr.trip.key, anchor, lo, hi, pose,
                     _limit(elems, params.max_elements_per_submap),
+                    se2.transform_points(inv, lm.points_xy[sel]),
+                    lm.direction_xy[sel] @ np.array([[c, -s_], [s_, c]]), lm.count[sel],
                 ))
     return circles, submaps
 

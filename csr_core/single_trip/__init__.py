@@ -153,6 +153,47 @@ def _resplice_mixture(obs: np.ndarray, obs_points_w: np.ndarray, obs_frame: np.n
     return out
 
 
+def _inside_polygon(point: np.ndarray, outline: np.ndarray) -> bool:
+    """Even-odd rule."""
+    x, y = outline[:, 0], outline[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    crosses = (y > point[1]) != (yn > point[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = x + (point[1] - y) * (xn - x) / (yn - y)
+    return bool(np.count_nonzero(crosses & (point[0] < x_at)) % 2)
+
+
+def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarray]) -> list:
+    """One instance per polygon: a crosswalk passed twice (out and back, a loop) or seen whole on
+    one pass and only clipped by the BEV range on another comes out of two tracks. Of polygons of
+    one type whose centroids lie inside each other's outlines, the one fused from whole outlines
+    and seen most often is kept (a rectangle fitted to clipped outlines covers only the part seen;
+    Karlsruhe s11: two such rectangles were 40 m of false crosswalk outline)."""
+    polys = [i for i, c in enumerate(candidates) if c[0].type.is_polygon]
+    if len(polys) < 2:
+        return candidates
+
+    def rank(i: int) -> tuple[bool, int]:
+        inst = candidates[i][0]
+        return id(inst.points_xy_world) in whole_ids, inst.n_observations
+
+    dropped: set[int] = set()
+    for i in sorted(polys, key=rank, reverse=True):
+        if i in dropped:
+            continue
+        a = candidates[i][0]
+        ca = a.points_xy_world.mean(0)
+        for j in polys:
+            b = candidates[j][0]
+            if j == i or j in dropped or b.type != a.type:
+                continue
+            cb = b.points_xy_world.mean(0)
+            if _inside_polygon(cb, a.points_xy_world) or _inside_polygon(ca, b.points_xy_world):
+                log.debug("dropped %s at %s: duplicate of the one at %s", b.type.value, np.round(cb, 1), np.round(ca, 1))
+                dropped.add(j)
+    return [c for i, c in enumerate(candidates) if i not in dropped]
+
+
 def _style(styles: list) -> DividerStyle | None:
     votes = Counter(s for s in styles if s is not None and s != DividerStyle.UNKNOWN)
     if votes:
@@ -194,6 +235,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     along: dict[ElementType, list[np.ndarray]] = {}
     n_dropped = 0
     candidates: list[tuple[TripInstance, np.ndarray, np.ndarray]] = []
+    whole_polygons: dict[int, np.ndarray] = {}  # polygon outlines fused from whole (unclipped) outlines, by id (kept alive)
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     lateral_reach = max(abs(box[2]), abs(box[3]))
@@ -229,6 +271,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             obs_w = np.split(pts_w, offsets[1:-1])
             outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2])
             spliced.append((outline, lat, alo, track.frames))
+            if whole.any():
+                whole_polygons[id(outline)] = outline
         else:
             obs_ends = np.column_stack([offsets[:-1], offsets[1:] - 1])
             end_free = _inside(pts_v[obs_ends], box, edge_margin)
@@ -275,13 +319,16 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
                 lat, alo))
-    # 6. noise per element type from the residuals; an instance whose own residuals are far
-    # wider than its type's (a mixture of elements: connectors crossing in a junction) is dropped
+    candidates = _without_duplicate_polygons(candidates, whole_polygons)
+    # 6. noise per element type from the residuals; a line whose own residuals are far wider
+    # than its type's (a mixture of elements: connectors crossing in a junction) is dropped.
+    # Not a polygon: its vertex residuals include vertices sliding along a side (a crosswalk's
+    # intermediate vertices), so a whole, well-seen crosswalk looked like a mixture.
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in ElementType},
                            {t: [c[2] for c in candidates if c[0].type == t] for t in ElementType}, params)
     for inst, lat, alo in candidates:
         ref = noise[inst.type]
-        if (len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
+        if (not inst.type.is_polygon and len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
                 and robust_sigma(lat) > params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m):
             log.debug("dropped %s from %s: lateral sigma %.2f m vs type %.2f m", inst.type.value,
                       np.round(inst.points_xy_world[0], 1), robust_sigma(lat), ref.lateral_sigma_m)

@@ -31,6 +31,7 @@ from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import ElementType
 
 TYPE_CODES = {t: i for i, t in enumerate(ElementType)}
+_POLYGON_CODES = np.array([t.is_polygon for t in ElementType])
 _LATERAL_CODES = np.array([t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
                            for t in ElementType])
 
@@ -252,10 +253,11 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
     keys_sorted = key[order]
     rows, cols = [], []
 
-    # 1. pieces of one element within a frame: collinear within the merge gate
+    # 1. pieces of one element within a frame: collinear within the merge gate (lines only: a
+    # polygon is detected whole or clipped, never in pieces; two crosswalks side by side are two)
     a, b_sorted = _pairs_between(keys_sorted, key, np.arange(q))
     b = order[b_sorted]
-    m = a < b
+    m = (a < b) & ~_POLYGON_CODES[pc.type_code[a]]
     a, b = a[m], b[m]
     shapes = _Shapes.of(pc.points_w)
     m = _coarse_near(shapes, a, b, ext, params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
@@ -281,6 +283,9 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         if len(a) == 0:
             continue
         chamfer = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
+        poly = _POLYGON_CODES[pc.type_code[a]]
+        if poly.any():  # an outline is not extended along its chord (a side): a neighbour is not it
+            chamfer[poly] = pair_distance(pc.points_w[b[poly]], pc.points_w[a[poly]], 0.0, cap).mean(1)
         # pose uncertainty over the travel between the frames widens the gate
         gap_m = np.abs(travel_m[frames[pc.frame[b]]] - travel_m[frames[pc.frame[a]]])
         sig_rel = params.ODOM_SIGMA_XY_PER_M * gap_m + params.ODOM_SIGMA_YAW_PER_M * gap_m * 15.0

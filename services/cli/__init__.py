@@ -18,7 +18,9 @@ import sys  # noqa: E402
 # module name -> owns these subcommands
 _COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest", "reprocess")
 _COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
+_COMMAND_MODULES += ("bench_service",)  # csr bench-service: the per-tile pipeline over HTTP
 _COMMAND_MODULES += ("bench_tiles",)  # csr bench-tiles: tile serving vs nginx (services/cli/bench_tiles.py)
+_COMMAND_MODULES += ("demo",)  # csr demo: the README's first command (services/cli/demo.py)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,7 +14,7 @@ from typing import Any
 from sqlalchemy import case, delete, func, or_, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, aliased
 
 from services.db.models import (
     ApiKey,
@@ -287,6 +287,16 @@ def reset_running_jobs(session: Session) -> int:
 
 def job_summary(session: Session) -> dict[str, int]:
     counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
+    # a failed job retried since (a newer job of the same kind and subject) is no longer outstanding
+    newer = aliased(Job)
+    retried = session.scalar(
+        select(func.count()).select_from(Job).where(
+            Job.state == "failed",
+            select(newer.id).where(newer.kind == Job.kind, newer.subject == Job.subject,
+                                   newer.created_at > Job.created_at).exists(),
+        )
+    ) or 0
+    counts["failed"] = counts.get("failed", 0) - retried
     dirty = session.scalar(select(func.count()).select_from(DirtyTile)) or 0
     return {
         "queued": int(counts.get("queued", 0)),

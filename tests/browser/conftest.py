@@ -3,8 +3,8 @@
 screenshots land in ``test-artifacts/browser/``.
 
 Needs: ``/usr/bin/chromium`` (``apt-get install -y chromium``), Node.js, and
-``npm ci`` in ``services/web`` (playwright-core is a dev dependency there). Set
-``CSR_SKIP_BROWSER_TESTS=1`` to skip them on a machine without a browser.
+``npm ci`` in ``services/web`` (playwright-core is a dev dependency there): ``.ci/run`` and
+``make test`` install them. A machine without them fails these tests, naming what is missing.
 """
 
 from __future__ import annotations
@@ -38,14 +38,14 @@ def _missing() -> str | None:
 @pytest.fixture(scope="session")
 def browser_ready() -> None:
     problem = _missing()
-    if problem and os.environ.get("CSR_SKIP_BROWSER_TESTS") == "1":
-        pytest.skip(problem)
-    assert problem is None, f"browser tests: {problem} (or set CSR_SKIP_BROWSER_TESTS=1)"
+    assert problem is None, f"browser tests: {problem}"
 
 
 def run_driver(scenario: str, **config: Any) -> dict[str, Any]:
     """Run one scenario of driver.mjs; returns what it saw (``checks``, ``screenshots``, ``errors``)."""
     config = {"out": str(OUT), "chromium": CHROMIUM, **config}
+    for old in OUT.glob(f"{config.get('out_prefix', '')}{scenario}-*"):  # no stale screenshots
+        old.unlink()
     done = subprocess.run(
         ["node", str(DRIVER), scenario, json.dumps(config)],
         capture_output=True,
