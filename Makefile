@@ -18,6 +18,13 @@ $(VENV)/.installed: pyproject.toml
 serve: setup
 	$(BIN)/csr serve --host $(HOST) --port $(PORT)
 
+# The README's first command: the service (embedded) on a simulated Karlsruhe fleet, uploaded over HTTP,
+# processed and scored against the ground truth; serves until Ctrl-C. Data in ./data/demo.
+# More options: make demo ARGS='--exit --trips 6' (see .venv/bin/csr demo --help)
+.PHONY: demo
+demo: setup
+	$(BIN)/csr demo --host $(HOST) --port $(PORT) $(ARGS)
+
 # The distributed deployment's worker (needs CSR_DATABASE_URL and CSR_REDIS_URL)
 worker: setup
 	$(BIN)/csr worker

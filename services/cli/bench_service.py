@@ -148,9 +148,12 @@ def part_scaleout(scenario: Path, work: Path, args) -> list[str]:
             with fleet.client_for(dep.base_url, dep.admin_key) as http:
                 fleet.upload_scenario(http, scenario, progress=False)
                 deadline = time.monotonic() + 600
-                while http.get("/v1/jobs/summary").json()["queued"] and time.monotonic() < deadline:
-                    time.sleep(0.5)  # ingest done before the clock starts
-                dirty = http.get("/v1/jobs/summary").json()["dirty_tiles"]
+                while time.monotonic() < deadline:  # every ingest done before the clock starts
+                    s = http.get("/v1/jobs/summary").json()
+                    if s["queued"] == 0 and s["running"] == 0:
+                        break
+                    time.sleep(0.5)
+                dirty = s["dirty_tiles"]
                 before = dep.job_seconds()
                 t0 = time.perf_counter()
                 http.post("/v1/process").raise_for_status()

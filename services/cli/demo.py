@@ -82,22 +82,27 @@ def register(sub: argparse._SubParsersAction) -> None:
 # --- 0. the data dir: one demo at a time, reused when the parameters match ------------------------
 
 
-def _code_fingerprint() -> str:
-    """12 hex digits of a hash of the simulator, the algorithm and the job code (``csr_core``,
-    ``workers``): after a change there, the same seed may give other trips or another map."""
+def _stamp(args: argparse.Namespace) -> dict[str, Any]:
+    """What makes the trips: the same stamp gives byte-identical trips (the simulator's fingerprint:
+    a hash of ``csr_core/sim``)."""
+    from csr_core.bench.runner import simulator_fingerprint
+
+    return {"world": args.world, "trips": args.trips, "trip_length_m": args.trip_length_m,
+            "profile": args.profile, "seed": args.seed, "simulator": simulator_fingerprint()}
+
+
+def algorithm_fingerprint() -> str:
+    """12 hex digits of a hash of the algorithm and the job code (``csr_core`` but the simulator,
+    ``workers``): when it changed, a reused data dir holds results of the old code."""
     import hashlib
 
     root = Path(__file__).resolve().parents[2]
     digest = hashlib.sha1()
     for package in ("csr_core", "workers"):
         for path in sorted((root / package).rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+            if path.parent.name != "sim":
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()[:12]
-
-
-def _stamp(args: argparse.Namespace) -> dict[str, Any]:
-    return {"world": args.world, "trips": args.trips, "trip_length_m": args.trip_length_m,
-            "profile": args.profile, "seed": args.seed, "code": _code_fingerprint()}
 
 
 @contextlib.contextmanager
@@ -128,6 +133,11 @@ def _prepare_data_dir(data_dir: Path, stamp: dict[str, Any], fresh: bool) -> boo
             print(f"csr demo: {why}: starting from an empty {data_dir}")
         for child in data_dir.iterdir():
             if child.name == ".lock":
+                continue
+            if child.name == "service":  # the admin key stays valid (a viewer tab keeps working)
+                for part in child.iterdir():
+                    if part.name != "admin.key":
+                        shutil.rmtree(part) if part.is_dir() else part.unlink()
                 continue
             shutil.rmtree(child) if child.is_dir() else child.unlink()
         stamp_path.write_bytes(orjson.dumps(stamp, option=orjson.OPT_INDENT_2))
@@ -163,7 +173,6 @@ class Service:
 
     proc: subprocess.Popen
     base_url: str
-    public_url: str
     admin_key: str
     log_path: Path
 
@@ -214,7 +223,7 @@ def start_service(service_dir: Path, host: str, wanted_port: int) -> Service:
     url_host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     url_host = f"[{url_host}]" if ":" in url_host else url_host
     base_url = f"http://{url_host}:{port}"
-    service = Service(proc, base_url, base_url, admin_key, log_path)
+    service = Service(proc, base_url, admin_key, log_path)
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while True:
         service.check_alive()
@@ -417,18 +426,24 @@ def _run(args: argparse.Namespace) -> int:
         raise SystemExit("csr demo: --trips must be at least 1 and --trip-length-m positive")
     signal.signal(signal.SIGTERM, _interrupt)
     if not args.verbose:  # the progress bars and the table tell the story; one line per request would bury it
-        for noisy in ("httpx", "matplotlib", "csr_core"):
+        for noisy in ("httpx", "matplotlib", "csr_core", "services.settings"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
     data_dir: Path = args.data_dir
     started = time.perf_counter()
     with _locked_data_dir(data_dir):
         reused = _prepare_data_dir(data_dir, _stamp(args), args.fresh)
+        algorithm_path = data_dir / "algorithm.txt"  # the code that computed the results in data_dir
+        if reused and algorithm_path.exists() and algorithm_path.read_text().strip() != algorithm_fingerprint():
+            print("csr demo: note: the algorithm changed since this data dir was processed; the results below are "
+                  "the old code's (--fresh recomputes them)")
         service = start_service(data_dir / "service", args.host, args.port)
         shown = False  # the results are printed: Ctrl-C from then on is the normal way out
         try:
             print(f"csr demo: service (embedded: SQLite + in-process jobs) on {service.base_url}, "
                   f"data in {data_dir}/service" + (" (reused from the last run)" if reused else ""), flush=True)
             _demo(args, service, data_dir, started)
+            if not algorithm_path.exists():
+                algorithm_path.write_text(algorithm_fingerprint() + "\n")
             shown = True
             if args.exit:
                 return 0
@@ -445,6 +460,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: float) -> None:
     """Steps 2-5 against the running ``service``."""
+    import httpx
     import orjson
 
     from csr_core.bench.evaluate import evaluate_output
@@ -491,9 +507,10 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
         print(f"  {path}  {caption}")
 
     service.check_alive()
-    print(f"\ncsr demo: done in {time.perf_counter() - started:.0f} s\n"
-          f"  viewer     {service.public_url}/viewer/\n"
-          f"  ops        {service.public_url}/ops/\n"
-          f"  API docs   {service.public_url}/docs\n"
-          f"  admin key  {service.admin_key}   (also in {data_dir}/service/admin.key)\n"
-          f"  service log {service.log_path}", flush=True)
+    print(f"\ncsr demo: done in {time.perf_counter() - started:.0f} s")
+    for label, path in (("viewer", "/viewer/"), ("ops", "/ops/"), ("API docs", "/docs")):
+        answer = httpx.get(service.base_url + path, timeout=10)
+        note = "" if answer.status_code == 200 else f"   (answers {answer.status_code}: {answer.text[:120]})"
+        print(f"  {label:<11} {service.base_url}{path}{note}")
+    print(f"  {'admin key':<11} {service.admin_key}   (also in {data_dir}/service/admin.key; the pages ask for it)\n"
+          f"  {'service log':<11} {service.log_path}", flush=True)

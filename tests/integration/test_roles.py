@@ -50,48 +50,93 @@ def world(deployment: Deployment) -> World:
     return World(keys, trip.json()["id"])
 
 
+BBOX = "8.39,49.0,8.41,49.02"
+# endpoint -> (method, path, request keyword arguments); the tile 16/0/0 is always empty
+REQUESTS = {
+    "GET /healthz": ("GET", "/healthz", {}),
+    "GET /metrics": ("GET", "/metrics", {}),
+    "GET /v1/trips": ("GET", "/v1/trips", {"params": {"bbox": BBOX}}),
+    "GET /v1/trips/{id}/poses": ("GET", "/v1/trips/{trip}/poses", {}),
+    "GET /v1/trips/{id}/track.geojson": ("GET", "/v1/trips/{trip}/track.geojson", {}),
+    "GET /v1/trips/{id}": ("GET", "/v1/trips/{trip}", {}),
+    "GET /v1/jobs/summary": ("GET", "/v1/jobs/summary", {}),
+    "GET /v1/jobs": ("GET", "/v1/jobs", {}),
+    "GET /v1/jobs/{id}": ("GET", "/v1/jobs/no-such-job", {}),
+    "POST /v1/jobs/{id}/retry": ("POST", "/v1/jobs/no-such-job/retry", {}),
+    "GET /v1/tiles/dirty": ("GET", "/v1/tiles/dirty", {}),
+    "POST /v1/process": ("POST", "/v1/process", {}),
+    "POST /v1/keys": ("POST", "/v1/keys", {"json": {"role": "reader"}}),
+    "GET /v1/map": ("GET", "/v1/map", {"params": {"bbox": BBOX}}),
+    "GET /v1/tiles/{z}/{x}/{y}.mvt": ("GET", "/v1/tiles/16/0/0.mvt", {}),
+    "GET /v1/tiles/{z}/{x}/{y}.geojson": ("GET", "/v1/tiles/16/0/0.geojson", {}),
+    "GET /v1/tiles.json": ("GET", "/v1/tiles.json", {}),
+    "GET /v1/tiles/{z}/{x}/{y}/versions": ("GET", "/v1/tiles/16/0/0/versions", {}),
+    "GET /v1/tiles/{z}/{x}/{y}/versions/{v}": ("GET", "/v1/tiles/16/0/0/versions/1", {}),
+    "GET /v1/tiles/{z}/{x}/{y}/diff": ("GET", "/v1/tiles/16/0/0/diff", {"params": {"from": 1, "to": 2}}),
+    "GET /v1/changes": ("GET", "/v1/changes", {}),
+    "POST /v1/tiles/{z}/{x}/{y}/rollback": ("POST", "/v1/tiles/16/0/0/rollback", {"json": {"version": 1}}),
+    "POST /v1/tiles/{z}/{x}/{y}/versions/{v}/approve": ("POST", "/v1/tiles/16/0/0/versions/1/approve", {}),
+    "GET /v1/features/{id}": ("GET", "/v1/features/none", {}),
+    "GET /v1/tiles/{z}/{x}/{y}/match-pairs": ("GET", "/v1/tiles/16/0/0/match-pairs", {}),
+    "POST /v1/tiles/{z}/{x}/{y}/corrections": ("POST", "/v1/tiles/16/0/0/corrections",
+                                               {"json": {"kind": "reject_pair", "pair_id": "none"}}),
+    "GET /v1/corrections": ("GET", "/v1/corrections", {}),
+    "POST /v1/corrections/{id}/undo": ("POST", "/v1/corrections/none/undo", {}),
+    "GET /v1/export/lanelet2": ("GET", "/v1/export/lanelet2", {"params": {"bbox": BBOX}}),
+}
+
+
 def _call(dep: Deployment, world: World, endpoint: str, caller: str):
     key = world.keys[caller]
     with dep.client(key) as http:
-        if endpoint == "GET /healthz":
-            return http.get("/healthz")
-        if endpoint == "GET /metrics":
-            return http.get("/metrics")
         if endpoint == "POST /v1/trips":
             return http.post(
                 "/v1/trips",
                 content=orjson.dumps(unique_trip("veh-a")),
                 headers={"Content-Type": "application/json"},
             )
-        if endpoint == "GET /v1/trips/{id}":
-            return http.get(f"/v1/trips/{world.trip_pk}")
-        if endpoint == "GET /v1/trips/{id}/poses":
-            return http.get(f"/v1/trips/{world.trip_pk}/poses")
-        if endpoint == "GET /v1/jobs/summary":
-            return http.get("/v1/jobs/summary")
-        if endpoint == "POST /v1/process":
-            return http.post("/v1/process")
-        if endpoint == "POST /v1/keys":
-            return http.post("/v1/keys", json={"role": "reader"})
         if endpoint == "DELETE /v1/keys/{id}":
             with dep.admin() as admin:
                 victim = admin.post("/v1/keys", json={"role": "reader"}).json()["id"]
             return http.delete(f"/v1/keys/{victim}")
-    raise AssertionError(endpoint)
+        method, path, kwargs = REQUESTS[endpoint]
+        return http.request(method, path.format(trip=world.trip_pk), **kwargs)
 
 
 # fmt: off
 #                              none  unknown revoked vehicle other  reader admin   (other: a vehicle key of another vehicle)
 MATRIX = {
-    "GET /healthz":              (200, 200,    200,    200,    200,   200,   200),
-    "GET /metrics":              (401, 401,    401,    403,    403,   200,   200),
-    "POST /v1/trips":            (401, 401,    401,    202,    403,   403,   202),
-    "GET /v1/trips/{id}":        (401, 401,    401,    200,    403,   200,   200),
-    "GET /v1/trips/{id}/poses":  (401, 401,    401,    403,    403,   409,   409),
-    "GET /v1/jobs/summary":      (401, 401,    401,    403,    403,   200,   200),
-    "POST /v1/process":          (401, 401,    401,    403,    403,   403,   202),
-    "POST /v1/keys":             (401, 401,    401,    403,    403,   403,   201),
-    "DELETE /v1/keys/{id}":      (401, 401,    401,    403,    403,   403,   204),
+    "GET /healthz":                      (200, 200, 200, 200, 200, 200, 200),
+    "GET /metrics":                      (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/trips":                    (401, 401, 401, 202, 403, 403, 202),
+    "GET /v1/trips":                     (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/trips/{id}":                (401, 401, 401, 200, 403, 200, 200),
+    "GET /v1/trips/{id}/poses":          (401, 401, 401, 403, 403, 409, 409),
+    "GET /v1/trips/{id}/track.geojson":  (401, 401, 401, 200, 403, 200, 200),
+    "GET /v1/jobs/summary":              (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/jobs":                      (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/jobs/{id}":                 (401, 401, 401, 403, 403, 404, 404),
+    "POST /v1/jobs/{id}/retry":          (401, 401, 401, 403, 403, 403, 404),
+    "GET /v1/tiles/dirty":               (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/process":                  (401, 401, 401, 403, 403, 403, 202),
+    "POST /v1/keys":                     (401, 401, 401, 403, 403, 403, 201),
+    "DELETE /v1/keys/{id}":              (401, 401, 401, 403, 403, 403, 204),
+    "GET /v1/map":                       (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/tiles/{z}/{x}/{y}.mvt":     (401, 401, 401, 403, 403, 204, 204),
+    "GET /v1/tiles/{z}/{x}/{y}.geojson": (401, 401, 401, 403, 403, 204, 204),
+    "GET /v1/tiles.json":                (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/tiles/{z}/{x}/{y}/versions":     (401, 401, 401, 403, 403, 404, 404),
+    "GET /v1/tiles/{z}/{x}/{y}/versions/{v}": (401, 401, 401, 403, 403, 404, 404),
+    "GET /v1/tiles/{z}/{x}/{y}/diff":    (401, 401, 401, 403, 403, 404, 404),
+    "GET /v1/changes":                   (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/tiles/{z}/{x}/{y}/rollback":             (401, 401, 401, 403, 403, 403, 404),
+    "POST /v1/tiles/{z}/{x}/{y}/versions/{v}/approve": (401, 401, 401, 403, 403, 403, 404),
+    "GET /v1/features/{id}":             (401, 401, 401, 403, 403, 404, 404),
+    "GET /v1/tiles/{z}/{x}/{y}/match-pairs":  (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/tiles/{z}/{x}/{y}/corrections": (401, 401, 401, 403, 403, 403, 404),
+    "GET /v1/corrections":               (401, 401, 401, 403, 403, 200, 200),
+    "POST /v1/corrections/{id}/undo":    (401, 401, 401, 403, 403, 403, 404),
+    "GET /v1/export/lanelet2":           (401, 401, 401, 403, 403, 200, 200),
 }
 # fmt: on
 CASES = [
@@ -101,11 +146,17 @@ CASES = [
 ]
 
 
+def _generic(path: str) -> str:
+    for name in ("{trip_pk}", "{key_id}", "{job_id}", "{feature_id}", "{correction_id}"):
+        path = path.replace(name, "{id}")
+    return path
+
+
 def test_the_matrix_names_every_route(deployment: Deployment):
     with deployment.admin() as http:
         spec = http.get("/openapi.json").json()
     routes = {
-        f"{method.upper()} {path.replace('{trip_pk}', '{id}').replace('{key_id}', '{id}')}"
+        f"{method.upper()} {_generic(path)}"
         for path, item in spec["paths"].items()
         for method in item
     }
