@@ -177,17 +177,25 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
         inst = candidates[i][0]
         return id(inst.points_xy_world) in whole_ids, inst.n_observations
 
+    centre = np.array([candidates[i][0].points_xy_world.mean(0) for i in polys])
+    diagonal = np.array([np.hypot(*np.ptp(candidates[i][0].points_xy_world, axis=0)) for i in polys])
+    near = cKDTree(centre).query_pairs(float(diagonal.max()) + 1e-6, output_type="ndarray")
+    partners: dict[int, list[int]] = {}
+    for u, v in near.tolist():  # a point inside an outline is within its bounding box's diagonal of its centre
+        partners.setdefault(polys[u], []).append(v)
+        partners.setdefault(polys[v], []).append(u)
     dropped: set[int] = set()
     for i in sorted(polys, key=rank, reverse=True):
         if i in dropped:
             continue
         a = candidates[i][0]
-        ca = a.points_xy_world.mean(0)
-        for j in polys:
+        ca = centre[polys.index(i)]
+        for k in partners.get(i, []):
+            j = polys[k]
             b = candidates[j][0]
-            if j == i or j in dropped or b.type != a.type:
+            if j in dropped or b.type != a.type:
                 continue
-            cb = b.points_xy_world.mean(0)
+            cb = centre[k]
             if _inside_polygon(cb, a.points_xy_world) or _inside_polygon(ca, b.points_xy_world):
                 log.debug("dropped %s at %s: duplicate of the one at %s", b.type.value, np.round(cb, 1), np.round(ca, 1))
                 dropped.add(j)

@@ -125,18 +125,17 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     q = np.arange(spacing_m, length_m + 1e-9, spacing_m)
 
     def arc(end: np.ndarray, before: np.ndarray, span: float, head_prev: float) -> np.ndarray:
-        t = end - before
-        head = float(np.arctan2(t[1], t[0]))
-        kappa = float(np.angle(np.exp(1j * (head - head_prev)))) / max(span, 1e-6)
-        kappa = float(np.clip(kappa, -0.1, 0.1))  # radius at least 10 m
+        head = math.atan2(float(end[1] - before[1]), float(end[0] - before[0]))
+        turn = head - head_prev
+        kappa = math.atan2(math.sin(turn), math.cos(turn)) / max(span, 1e-6)
+        kappa = min(max(kappa, -0.1), 0.1)  # radius at least 10 m
         th = head + kappa * q
         if abs(kappa) < 1e-6:
-            return end + q[:, None] * np.array([np.cos(head), np.sin(head)])
-        return end + np.column_stack([(np.sin(th) - np.sin(head)) / kappa, -(np.cos(th) - np.cos(head)) / kappa])
+            return end + q[:, None] * np.array([math.cos(head), math.sin(head)])
+        return end + np.column_stack([(np.sin(th) - math.sin(head)) / kappa, -(np.cos(th) - math.cos(head)) / kappa])
 
     def heading(i: int, j: int) -> float:
-        t = line[j] - line[i]
-        return float(np.arctan2(t[1], t[0]))
+        return math.atan2(float(line[j, 1] - line[i, 1]), float(line[j, 0] - line[i, 0]))
 
     n = len(line)
     span = min(curvature_m, s[-1] / 2)

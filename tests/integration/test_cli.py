@@ -23,6 +23,13 @@ TABLES = {
     "dirty_tiles",
     "jobs",
     "trip_reconstructions",
+    "trip_tile_alignments",
+    "trip_poses",
+    "match_pairs",
+    "tile_versions",
+    "tile_heads",
+    "map_features",
+    "corrections",
 }
 
 
