@@ -26,7 +26,7 @@ import numpy as np
 
 from csr_core.alignment.association import PairMatch, associate
 from csr_core.alignment.corrections import MatchCorrections, PairConstraint, apply_corrections
-from csr_core.alignment.fine import frame_points, frame_residuals, refine_frames
+from csr_core.alignment.fine import dash_ends, frame_points, frame_residuals, refine_frames
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
 from csr_core.alignment.submaps import Submap, prior_patches, reduce_prior_map, split_submaps, submap_pairs
@@ -100,6 +100,8 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     clock = time.perf_counter()
     noise = noise_scales(trips, params)
     poses = {t.trip.key: t.poses_xyyaw_world.copy() for t in trips}
+    # dash-end sightings (along-road landmarks of the coarse and the fine stage), read once
+    dashes = [dash_ends(t) for t in trips] if (params.landmarks and params.coarse) or params.fine_dashes else None
     submaps: list[Submap] = []
     matches: list[PairMatch] = []
     pairs: list[tuple[int, int]] = []
@@ -107,7 +109,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     prior_shifts: list[float] = []
     if params.coarse:
         # 1. sub-map splitting, and matching pairs with other trips and the pre-built map (Fig. 4)
-        circles, submaps = split_submaps(trips, params)
+        circles, submaps = split_submaps(trips, params, dashes)
         if prior_map is not None:
             submaps += prior_patches(circles, prior_map.features, params, first_id=len(submaps))
         pairs = submap_pairs(submaps, params)
@@ -129,7 +131,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     fps = [frame_points(t) for t in trips]
     if params.fine:
         # 5. fine alignment: the same flow with single-frame perception as the primitive
-        poses = refine_frames(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
+        poses = refine_frames(trips, fps, poses, prior_map.features if prior_map else (), noise, params, dashes)
         timings["fine_s"] = time.perf_counter() - clock - sum(timings.values())
     # 6. per-frame residuals, failed trips, and the match pairs kept for validation
     residuals = frame_residuals(trips, fps, poses, prior_map.features if prior_map else (), noise, params)

@@ -403,14 +403,18 @@ def spread_corrections(poses: np.ndarray, frames: np.ndarray, corrections_xyyaw:
 
 
 def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
-                  prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams) -> dict[str, np.ndarray]:
-    """Fine alignment of every trip (``fps``: each trip's :func:`frame_points`)."""
+                  prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams,
+                  dash_sightings: Sequence[DashEnds] | None = None) -> dict[str, np.ndarray]:
+    """Fine alignment of every trip (``fps``: each trip's :func:`frame_points`; ``dash_sightings``:
+    each trip's :func:`dash_ends`, computed here when not given)."""
     current = {k: np.asarray(v, float).copy() for k, v in poses.items()}
     prior = [(f.type, resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
               f.type.is_polygon) for f in prior_features]
     if len(trips) < 2 and not prior:
         return current
-    dashes = [dash_ends(t) for t in trips] if len(trips) > 1 and params.fine_dashes else None
+    dashes = None
+    if len(trips) > 1 and params.fine_dashes:
+        dashes = list(dash_sightings) if dash_sightings is not None else [dash_ends(t) for t in trips]
     for _ in range(params.fine_iterations):
         owners = {k: _aligned_instances(t, current[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
         if prior:

@@ -23,7 +23,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from csr_core.alignment.fine import dash_ends
+from csr_core.alignment.fine import DashEnds, dash_ends
 from csr_core.types import TripReconstruction
 
 MERGE_RADIUS_M = 0.75  # sightings of one dash end; same-kind ends of one line are >= a dash period apart
@@ -50,9 +50,9 @@ class Landmarks:
         return len(self.points_xy)
 
 
-def trip_landmarks(trip: TripReconstruction) -> Landmarks:
-    """Merge the per-frame dash-end sightings of a trip into landmarks."""
-    d = dash_ends(trip)
+def trip_landmarks(trip: TripReconstruction, sightings: DashEnds | None = None) -> Landmarks:
+    """Merge the per-frame dash-end sightings of a trip (``dash_ends(trip)`` unless given) into landmarks."""
+    d = dash_ends(trip) if sightings is None else sightings
     if len(d.frame) < MIN_SIGHTINGS:
         return Landmarks.empty()
     pose = trip.poses_xyyaw_world[d.frame]

@@ -151,10 +151,10 @@ def register_elements(
         moved = se2.transform_points(delta, src_pts)
         foot, normal, valid = _nearest_on_polylines(moved, owner, padded, lengths)
         foot[is_fixed], normal[is_fixed], valid[is_fixed] = fixed_foot[is_fixed], fixed_normal[is_fixed], True
-        pts, sig = src_pts, np.full(n_line, point_sigma_m)
+        sig = np.full(n_line, point_sigma_m)
         if landmarks is not None:
             lp, lf, ln, lv, ls = _landmark_rows(delta, landmarks, gate)
-            pts, sig = np.vstack([src_pts, lp]), np.concatenate([sig, ls])
+            sig = np.concatenate([sig, ls])
             moved = np.vstack([moved, se2.transform_points(delta, lp)])
             foot, normal, valid = np.vstack([foot, lf]), np.vstack([normal, ln]), np.concatenate([valid, lv])
         r = np.einsum("ij,ij->i", normal, moved - foot)

@@ -200,14 +200,15 @@ def _limit(elements: list[SubmapElement], n_max: int) -> tuple[SubmapElement, ..
 
 
 def split_submaps(
-    trips: Sequence[TripReconstruction], params: AlignmentParams
+    trips: Sequence[TripReconstruction], params: AlignmentParams, dash_sightings: Sequence | None = None,
 ) -> tuple[list[Circle], list[Submap]]:
     """Fig. 4: circles over the frame graph and one sub-map per trip (run) per circle."""
     graph = build_frame_graph(trips, params)
     circles, members = split_circles(graph, params)
     prepared = [_prepared_instances(t, params) for t in trips]
     types = [[inst.type for inst in t.instances] for t in trips]
-    marks = [trip_landmarks(t) if params.landmarks else Landmarks.empty() for t in trips]
+    marks = [trip_landmarks(t, dash_sightings[k] if dash_sightings else None) if params.landmarks
+             else Landmarks.empty() for k, t in enumerate(trips)]
     submaps: list[Submap] = []
     for circle, mem in zip(circles, members, strict=False):
         for k in np.unique(graph.trip_index[mem]):
