@@ -174,7 +174,8 @@ def assemble_poses(fallback_xyyaw: np.ndarray, contributions: list[tuple[np.ndar
     """A trip's final poses from the tiles that aligned its frames.
 
     ``contributions``: ``(frame_indices (F,), poses_xyyaw (F, 3), weights (F,))`` per tile, all in
-    one frame. A frame aligned by several tiles takes their weighted mean (headings on the
+    one frame; frames of weight 0 (a piece that could not be aligned) do not count. A frame aligned
+    by several tiles takes their weighted mean (headings on the
     circle). A frame no tile aligned (a run too short to align) moves with the correction
     (aligned minus ``fallback``, the single-trip pose) interpolated from the aligned frames
     around it. Returns the poses ``(N, 3)`` and which frames were aligned ``(N,)``."""
@@ -183,7 +184,8 @@ def assemble_poses(fallback_xyyaw: np.ndarray, contributions: list[tuple[np.ndar
     acc = np.zeros((n, 4))  # sum w*x, w*y, w*e^{i yaw} (re, im)
     wsum = np.zeros(n)
     for idx, poses, w in contributions:
-        w = np.maximum(np.asarray(w, float), 1e-6)
+        w = np.asarray(w, float)
+        idx, poses, w = np.asarray(idx)[w > 0], np.asarray(poses)[w > 0], w[w > 0]
         np.add.at(acc, idx, np.column_stack([w * poses[:, 0], w * poses[:, 1],
                                              w * np.cos(poses[:, 2]), w * np.sin(poses[:, 2])]))
         np.add.at(wsum, idx, w)

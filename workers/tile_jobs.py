@@ -182,9 +182,13 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         else:
             poses = alignment.poses_xyyaw_world[piece.trip.key]
         residuals = alignment.frame_residuals_m.get(piece.trip.key, np.full(len(poses), np.nan))
-        moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
-        per_trip[pk].append((start, poses, blend_weight(signed, settings.tile_halo_m), residuals, moved,
-                             reason if reason is not None and not reason.startswith(NO_OVERLAP) else None))
+        failed = reason if reason is not None and not reason.startswith(NO_OVERLAP) else None
+        weights = blend_weight(signed, settings.tile_halo_m)
+        if failed:  # a piece that could not be aligned speaks for nothing: neither poses nor map
+            moved, weights = (), np.zeros_like(weights)
+        else:
+            moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
+        per_trip[pk].append((start, poses, weights, residuals, moved, failed))
     for pk, parts in per_trip.items():
         if not parts:
             continue  # only a short run here: its frames follow the neighbouring tiles' alignment
@@ -198,8 +202,13 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             residuals_m=np.concatenate([np.asarray(p[3], float) for p in parts]),
             instances=[instance_json(i) for p in parts for i in p[4]],
             noise=_plain_json(noise_json(recons[pk].noise)),
-            failed_reason="; ".join(reasons) if reasons else None,
+            # only when no piece here could be aligned; a failed piece among aligned ones just has
+            # no weight (its frames follow the aligned ones: ``assemble_poses``)
+            failed_reason="; ".join(reasons) if len(reasons) == len(parts) else None,
         ))
+        if reasons and len(reasons) < len(parts):
+            log.info("tile %d/%d/%d: trip %s: %d of %d pieces not aligned (%s)", z, x, y, pk, len(reasons),
+                     len(parts), reasons[0])
     for rec in alignment.match_pairs:
         if not rec.pose_graph_inlier:
             continue
@@ -341,7 +350,9 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
         contributions.append((arrays["frame_indices"].astype(np.int64), poses, arrays["weights"]))
         if a.failed_reason:
             reasons.append(f"tile {a.z}/{a.x}/{a.y}: {a.failed_reason}")
-    poses, _ = assemble_poses(smoothed, contributions)
+    poses, aligned = assemble_poses(smoothed, contributions)
+    if aligned.any():  # a tile that could not align it is bridged by the others' correction
+        reasons = []
     upload = repo.raw_upload(session, trip_pk=trip_pk)
     t = decode_trip(orjson.loads(gzip.decompress(upload.body))).timestamps_s if upload is not None else None
     if t is None or len(t) != len(poses):

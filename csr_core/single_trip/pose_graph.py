@@ -370,10 +370,10 @@ class _NodeGraph:
             else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
         models: dict[float, gtsam.noiseModel.Base] = {}  # one noise model per distinct sigma
         for zi, node, sig in zip(z, self.node_of[gnss_idx].tolist(), self.factor_sigma[gnss_idx].tolist(), strict=True):
-            model = models.get(sig)
-            if model is None:
-                model = models[sig] = gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sig))
-            g.add(gtsam.PoseTranslationPrior2D(node, zi, model))
+            robust = models.get(sig)
+            if robust is None:
+                robust = models[sig] = gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sig))
+            g.add(gtsam.PoseTranslationPrior2D(node, zi, robust))
         head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
         head_model = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
         for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():

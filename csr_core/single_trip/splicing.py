@@ -88,7 +88,9 @@ def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
     s = _arclength(points)
     if s[-1] <= 0:
         return points[:1].copy()
-    q = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / spacing_m)) + 1, 2))
+    n = max(int(math.ceil(s[-1] / spacing_m)) + 1, 2)
+    q = np.arange(n) * (float(s[-1]) / (n - 1))  # np.linspace(0, s[-1], n) without its per-call cost
+    q[-1] = s[-1]
     return np.column_stack([np.interp(q, s, points[:, 0]), np.interp(q, s, points[:, 1])])
 
 
@@ -299,7 +301,7 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         # separate the elements of the track along the path; each element is then spliced on
         # the path if it runs along it, else on its own shape
         guide_geom = _geometry(guide)
-        ends = np.unique(obs_ends.ravel())  # the along/across test needs only the observation ends
+        ends = unique_ids(obs_ends.ravel())  # the along/across test needs only the observation ends
         s_ends, _ = _project(points_w[ends], guide_geom)
         if _runs_along(s_ends, points_w[ends], obs_id[ends]) < params.SPLICE_ALONG_GUIDE_MIN:
             # the track runs across the path (a dashed line crossed in a junction): the gaps
@@ -460,7 +462,7 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
     ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
     along_res = np.concatenate([s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi])
-    obs = np.unique(obs_id[sel[inl]])
+    obs = unique_ids(obs_id[sel[inl]])
     return [SplicedLine(line, lat, along_res, obs)]
 
 
@@ -478,6 +480,15 @@ def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tu
     return s_lo, max(s_hi, s_lo)
 
 
+def unique_ids(ids: np.ndarray) -> np.ndarray:
+    """``np.unique(ids)``, without the sort when ``ids`` is already non-decreasing."""
+    if len(ids) < 2:
+        return np.unique(ids)
+    if bool((ids[1:] < ids[:-1]).any()):
+        return np.unique(ids)
+    return ids[np.concatenate(([True], ids[1:] != ids[:-1]))]
+
+
 def n_distinct(ids: np.ndarray) -> int:
     """``len(np.unique(ids))`` without the sort when ``ids`` is already non-decreasing."""
     if len(ids) < 2:
@@ -490,7 +501,7 @@ def n_distinct(ids: np.ndarray) -> int:
 
 def polygon_area(poly: np.ndarray) -> float:
     x, y = poly[:, 0], poly[:, 1]
-    nxt = np.r_[1:len(poly), 0]  # np.roll(-1) as an index
+    nxt = np.arange(1, len(poly) + 1) % len(poly)  # np.roll(-1) as an index
     return 0.5 * float(np.dot(x, y[nxt]) - np.dot(y, x[nxt]))
 
 

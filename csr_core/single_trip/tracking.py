@@ -87,13 +87,13 @@ def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float
     same[offsets[1:-1] - 1] = False  # no segment across polylines
     k = np.where(same, np.maximum(np.ceil(seg / max_step_m).astype(np.int64), 1), 1)
     # each point i < n-1 emits k_i points (itself and k_i - 1 interpolated); the last emits one
-    counts = np.r_[k, 1]
+    counts = np.append(k, 1)
     start = np.repeat(np.arange(n), counts)
     frac = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
     frac = frac / np.repeat(counts, counts)
     nxt = np.minimum(start + 1, n - 1)
     out = points[start] + frac[:, None] * (points[nxt] - points[start])
-    new_off = np.r_[0, np.cumsum(counts)][offsets]
+    new_off = np.concatenate(([0], np.cumsum(counts)))[offsets]
     return out, new_off, frac == 0
 
 

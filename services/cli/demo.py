@@ -18,8 +18,9 @@ The recipe, one step per function below:
 Reruns are safe and cheap: ``DATA_DIR`` (default ``./data/demo``) is kept, the same parameters give
 the same trips (byte-identical for a seed), which the service recognises as already uploaded (200,
 the same ids) and already processed; the scenario and the baseline are reused. Other parameters (or
-another simulator or algorithm version) start from an empty ``DATA_DIR``; so does ``--fresh``.
-The demo ignores ``CSR_DATABASE_URL``, ``CSR_REDIS_URL``, ``CSR_ADMIN_KEY`` and ``CSR_DATA_DIR``.
+a changed simulator, ``csr_core/sim``) start from an empty ``DATA_DIR`` but for the admin key; so
+does ``--fresh``. A changed algorithm (``csr_core``, ``workers``) is only noted: ``--fresh``
+recomputes. The demo ignores ``CSR_DATABASE_URL``, ``CSR_REDIS_URL``, ``CSR_ADMIN_KEY`` and ``CSR_DATA_DIR``.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ from typing import Any
 from services.cli.simulate import PROFILES, WORLDS
 
 DEFAULT_DATA_DIR = Path("data/demo")
-# The default fleet: 10 trips of 1 km on the Karlsruhe map; measured on the 2-core dev machine
-# (shared with other jobs): simulate ~12 s, upload ~6 s, processing ~75 s, baseline ~20 s.
+# The default fleet: 10 trips of 1 km on the Karlsruhe map. Measured on the 2-core dev machine shared
+# with other jobs: 100-195 s in all (simulate 4-8 s, upload 4-7 s, processing 66-125 s, GNSS-only
+# baseline 7-16 s, scoring and figures ~40 s); a rerun ~50 s.
 DEFAULT_TRIPS = 10
 DEFAULT_TRIP_LENGTH_M = 1000.0
 PROCESS_TIMEOUT_S = 1200.0

@@ -38,7 +38,8 @@ def _demo(data_dir: Path, port: int, *extra: str, timeout_s: float = 420) -> sub
     run = subprocess.run([str(BIN / "csr"), "demo", *SMALL, "--data-dir", str(data_dir), "--port", str(port),
                           *extra], capture_output=True, text=True, timeout=timeout_s, env=_env(), cwd=REPO)
     ARTIFACTS.mkdir(exist_ok=True)
-    (ARTIFACTS / f"demo-{data_dir.name}-{port}.log").write_text(run.stdout + "\n--- stderr ---\n" + run.stderr)
+    log = ARTIFACTS / f"demo-{time.strftime('%H%M%S')}-{port}.log"
+    log.write_text(run.stdout + "\n--- stderr ---\n" + run.stderr)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     return run
 
@@ -140,7 +141,12 @@ def test_demo_serves_until_ctrl_c(tmp_path):
                              str(data), "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, env=_env(),
                             cwd=REPO)
     try:
-        wait_until(lambda: "serving until Ctrl-C" in Path(log.name).read_text(), timeout_s=300, interval_s=1.0,
+        def serving() -> bool:
+            output = Path(log.name).read_text()
+            assert proc.poll() is None, f"the demo exited ({proc.returncode}) before serving:\n{output[-3000:]}"
+            return "serving until Ctrl-C" in output
+
+        wait_until(serving, timeout_s=300, interval_s=1.0,
                    what=lambda: f"the demo to serve; output:\n{Path(log.name).read_text()[-3000:]}")
         key = (data / "service" / "admin.key").read_text().strip()
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"}) as http:
