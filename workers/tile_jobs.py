@@ -497,7 +497,9 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
                                      trip_times={pk: started.get(pk, "") for pk in inputs_all},
                                      match_pairs=records, paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()})
     features = clip_to_tile(topology.features, frame, z, x, y)
-    quality = tile_quality(features)
+    with session_factory() as session:
+        seams = check_seams(session, features, frame, z, x, y)
+    quality = {**tile_quality(features), "seams": seams}
     return MergeTileResult(
         expected_latest=expected,
         features=features,
@@ -570,6 +572,57 @@ def clip_to_tile(features: Sequence[MapFeature], frame: LocalFrame, z: int, x: i
         for k, part in enumerate(sorted(parts, key=lambda g: -g.length)):
             out.append(versions.VersionFeature(fid if k == 0 else f"{fid}.{k}", f.type.value, style, props, part))
     return out
+
+
+SEAM_FLOOR_M = 0.10  # two tiles' halves of an element may differ this much whatever their uncertainty
+SEAM_SEARCH_M = 2.0  # beyond this the neighbour has no half of this element (it ends at the edge)
+
+
+def check_seams(session: Session, features: list[versions.VersionFeature], frame: LocalFrame, z: int, x: int,
+                y: int) -> dict[str, Any]:
+    """Where a line crosses the tile's edge, its neighbour's half must continue it: the gap between the
+    two ends on the edge within ``max(SEAM_FLOOR_M, 3 sigma)`` (sigma: both halves' uncertainty).
+    Flags ``seam_gap`` on the features that break it; returns the gaps' statistics."""
+    west, south, east, north = tile_bounds_lonlat(z, x, y)
+    eps = 1e-9
+
+    def edge_ends(f: versions.VersionFeature) -> list[np.ndarray]:
+        if f.geometry.geom_type != "LineString":
+            return []
+        coords = np.asarray(f.geometry.coords)[:, :2]
+        return [p for p in (coords[0], coords[-1])
+                if min(abs(p[0] - west), abs(p[0] - east), abs(p[1] - south), abs(p[1] - north)) < eps]
+
+    mine = [(f, p) for f in features for p in edge_ends(f)]
+    if not mine:
+        return {"checked": 0}
+    margin = 1e-4  # ~10 m: the neighbours' elements touching this tile's edges
+    others = [f for f in versions.features_in_bbox(session, bbox_lonlat=(west - margin, south - margin,
+                                                                         east + margin, north + margin))
+              if not f.feature_id.startswith(f"{z}-{x}-{y}-")]
+    theirs = [(f, p) for f in others for p in edge_ends(f)]
+    gaps = []
+    for f, p in mine:
+        candidates = [(g, q) for g, q in theirs if g.type == f.type]
+        if not candidates:
+            continue
+        here = frame.to_local(p[None])[0]
+        dist = np.linalg.norm(frame.to_local(np.array([q for _, q in candidates])) - here, axis=1)
+        k = int(np.argmin(dist))
+        if dist[k] > SEAM_SEARCH_M:
+            continue
+        sigma = np.hypot(float(f.properties.get("uncertainty_m") or 0.0),
+                         float(candidates[k][0].properties.get("uncertainty_m") or 0.0))
+        gaps.append(float(dist[k]))
+        if dist[k] > max(SEAM_FLOOR_M, 3.0 * sigma):
+            flags = sorted(set(f.properties.get("flags") or []) | {"seam_gap"})
+            f.properties["flags"], f.properties["n_flags"] = flags, len(flags)
+    if not gaps:
+        return {"checked": 0}
+    g = np.asarray(gaps)
+    return {"checked": len(g), "median_gap_m": round(float(np.median(g)), 4),
+            "p95_gap_m": round(float(np.percentile(g, 95)), 4), "max_gap_m": round(float(g.max()), 4),
+            "flagged": int(sum(1 for f, _ in mine if "seam_gap" in (f.properties.get("flags") or [])))}
 
 
 def tile_quality(features: Sequence[versions.VersionFeature]) -> dict[str, Any]:

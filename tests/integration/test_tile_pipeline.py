@@ -5,6 +5,7 @@ incremental trip, two merges racing for one tile, and a worker killed in the mid
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import subprocess
@@ -83,6 +84,11 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(k
 
     tiles = dep.rows("SELECT z, x, y, version, status, n_features FROM tile_versions ORDER BY id")
     assert tiles and all(t.version == 1 and t.status == "published" for t in tiles), tiles
+    # seams: where an element crosses a tile edge, the neighbour's half continues it
+    qualities = [q if isinstance(q, dict) else json.loads(q) for (q,) in dep.rows("SELECT quality FROM tile_versions")]
+    seams = [q["seams"] for q in qualities if q.get("seams", {}).get("checked")]
+    assert seams, "no element crossing a tile edge was checked against its neighbour"
+    assert max(s["median_gap_m"] for s in seams) < 0.15, seams
     busiest = max(tiles, key=lambda t: t.n_features)
     with dep.admin() as http:
         mvt = http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}.mvt")
