@@ -64,9 +64,11 @@ def _run_fleet(dep: Deployment, scenario: Path, out: Path) -> dict[str, str]:
 
 
 @pytest.mark.parametrize("kind", ["embedded", "distributed"])
-def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(kind, make_isolated, shared_redis_url,
+def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(kind, make_isolated, request,
                                                                               fleet_dirs, tmp_path):
-    dep = make_isolated(kind, redis_url=shared_redis_url)
+    # a Redis of its own: workers of another deployment on the same Redis would take its jobs
+    redis_url = request.getfixturevalue("private_redis").url if kind == "distributed" else ""
+    dep = make_isolated(kind, redis_url=redis_url)
     dep.start_server()
     if dep.distributed:
         dep.start_worker()
@@ -113,10 +115,11 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(k
     assert all(late_trip in str(r.trips) for r in dep.rows("SELECT trips FROM tile_versions WHERE version = 2"))
 
 
-def test_two_merges_of_one_tile_one_writes_the_other_retries(make_isolated, shared_redis_url, fleet_dirs, tmp_path):
+def test_two_merges_of_one_tile_one_writes_the_other_retries(make_isolated, private_redis: RedisServer, fleet_dirs,
+                                                             tmp_path):
     """Both read version 1 and fuse the same new trip; the first writes version 2, the second finds
     version 2 where it expected 1 (the OSM API's 409) and is retried: then nothing is left to merge."""
-    dep = make_isolated("distributed", redis_url=shared_redis_url)
+    dep = make_isolated("distributed", redis_url=private_redis.url)
     dep.start_server()
     dep.start_worker()
     _run_fleet(dep, fleet_dirs["first"], tmp_path / "service")
