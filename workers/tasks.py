@@ -23,25 +23,18 @@ class JobTask(Task):
         mark_job_failed(runtime().session_factory, args[0], exc)
 
 
-@app.task(name="csr.ingest_trip", base=JobTask)
-def ingest_trip(job_id: str) -> str:
-    rt = runtime()
-    return run_job(rt.session_factory, rt.settings, job_id)
+def _job_task(kind: str) -> JobTask:
+    """The Celery task of one job kind (``csr.<kind>``): it runs the job by id."""
+
+    def run(job_id: str) -> str:
+        rt = runtime()
+        return run_job(rt.session_factory, rt.settings, job_id)
+
+    run.__name__ = kind
+    return app.task(name=f"csr.{kind}", base=JobTask)(run)
 
 
-@app.task(name="csr.align_tile", base=JobTask)
-def align_tile(job_id: str) -> str:
-    rt = runtime()
-    return run_job(rt.session_factory, rt.settings, job_id)
-
-
-@app.task(name="csr.merge_tile", base=JobTask)
-def merge_tile(job_id: str) -> str:
-    rt = runtime()
-    return run_job(rt.session_factory, rt.settings, job_id)
-
-
-@app.task(name="csr.correct_tile", base=JobTask)
-def correct_tile(job_id: str) -> str:
-    rt = runtime()
-    return run_job(rt.session_factory, rt.settings, job_id)
+ingest_trip = _job_task("ingest_trip")
+align_tile = _job_task("align_tile")
+correct_tile = _job_task("correct_tile")
+merge_tile = _job_task("merge_tile")

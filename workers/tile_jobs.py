@@ -584,7 +584,7 @@ def check_seams(session: Session, features: list[versions.VersionFeature], frame
     two ends on the edge within ``max(SEAM_FLOOR_M, 3 sigma)`` (sigma: both halves' uncertainty).
     Flags ``seam_gap`` on the features that break it; returns the gaps' statistics."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
-    eps = 1e-9
+    eps = 5e-8  # stored coordinates are rounded to 1e-8 degrees
 
     def edge_ends(f: versions.VersionFeature) -> list[np.ndarray]:
         if f.geometry.geom_type != "LineString":

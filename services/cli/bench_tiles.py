@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import math
 import os
 import re
 import secrets
@@ -36,6 +35,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from services.cli.bench_ingest import _free_port, _percentile
 
 LON, LAT = 8.40, 49.01
 _CONTENT_LENGTH = re.compile(rb"(?i)\r\ncontent-length:\s*(\d+)")
@@ -162,19 +163,6 @@ def warm_load(port: int, path: str, key: str | None, seconds: float, connections
 
     wall = asyncio.run(main())
     return {"rps": len(latencies) / wall, "p50_ms": 1000 * _percentile(latencies, 0.5), "statuses": statuses}
-
-
-def _percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))]
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait_http(url: str, proc: subprocess.Popen | None, timeout_s: float = 60.0) -> None:
