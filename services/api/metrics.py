@@ -4,12 +4,15 @@ scrape time (so that the figures include the work of every Celery worker)."""
 from __future__ import annotations
 
 import logging
+from datetime import UTC
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db import repo
+from services.db.models import TileHead
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +28,8 @@ class _JobCollector:
             counts = repo.job_counts(session)
             summary = repo.job_summary(session)
             durations = repo.job_duration_stats(session, buckets=JOB_DURATION_BUCKETS_S)
+            heads = session.execute(select(TileHead.z, TileHead.x, TileHead.y, TileHead.latest_version,
+                                           TileHead.updated_at)).all()
         depth = GaugeMetricFamily("csr_queue_depth", "Jobs waiting to run, per queue", labels=["queue"])
         queued = {q: 0 for q in repo.QUEUES}
         jobs = GaugeMetricFamily("csr_jobs", "Jobs per queue and state", labels=["queue", "state"])
@@ -46,6 +51,16 @@ class _JobCollector:
             ]
             hist.add_metric([kind], buckets, total)
         yield hist
+        updated = GaugeMetricFamily("csr_tile_last_update_timestamp_seconds",
+                                    "When each tile last got a new version (Unix time)", labels=["tile"])
+        version = GaugeMetricFamily("csr_tile_version", "Each tile's latest version number", labels=["tile"])
+        for z, x, y, latest, at in heads:
+            tile = f"{z}/{x}/{y}"
+            at = at if at.tzinfo else at.replace(tzinfo=UTC)
+            updated.add_metric([tile], at.timestamp())
+            version.add_metric([tile], latest)
+        yield updated
+        yield version
 
 
 class Metrics:

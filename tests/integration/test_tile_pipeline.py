@@ -97,6 +97,9 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(k
         assert mvt.status_code == 200, mvt.text
         layers = mapbox_vector_tile.decode(mvt.content)
         assert sum(len(layer["features"]) for layer in layers.values()) >= busiest.n_features * 0.9
+        metrics = http.get("/metrics").text  # ops: per-tile version and last update
+        assert f'csr_tile_version{{tile="{busiest.z}/{busiest.x}/{busiest.y}"}} 1.0' in metrics
+        assert f'csr_tile_last_update_timestamp_seconds{{tile="{busiest.z}/{busiest.x}/{busiest.y}"}}' in metrics
         history = http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}/versions").raise_for_status().json()
         assert [v["version"] for v in history["versions"]] == [1]
 
