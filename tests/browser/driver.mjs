@@ -202,6 +202,49 @@ async function correction(page, act) {
   check('versions_after_undo', Number(await page.locator('#version-slider').getAttribute('max')) + 1 - versionsAfter);
   check('correction_row_after_undo', await page.locator('#correction-list tr[data-correction]').first().innerText());
   await shot(page, 'viewer-after-undo');
+  if (config.add_offset) await addPair(page, finished);
+}
+
+/** Add a pair through the form: prefilled by a click on a listed (active) pair, with an offset. */
+async function addPair(page, finished) {
+  const row = page.locator('#pairs tr[data-pair]', { has: page.locator('td:nth-child(4)', { hasText: /^active$/ }) }).first();
+  const pairId = await row.getAttribute('data-pair');
+  await row.locator('td').first().click();
+  const form = page.locator('#add-pair');
+  const formValues = () => form.evaluate((f) => ({
+    trip_i: f.elements.trip_i.value, trip_j: f.elements.trip_j.value || null,
+    frames_i: [...f.querySelectorAll('[name=frames_i]')].map((i) => Number(i.value)),
+    frames_j: [...f.querySelectorAll('[name=frames_j]')].map((i) => Number(i.value)),
+  }));
+  const prefilled = await formValues();
+  const pair = await page.evaluate((id) => window.csrViewer.state.pairs.find((p) => p.id === id), pairId);
+  check('add_prefilled', prefilled);
+  check('add_from_pair', { id: pairId, trip_i: pair.trip_i, trip_j: pair.trip_j, frames_i: pair.frames_i, frames_j: pair.frames_j });
+  check('add_trip_options', await form.locator('select[name=trip_j] option').count());
+  // a frame beyond the trip: the API's 422 names the field, the form shows it
+  const last = form.locator('[name=frames_i]').nth(1);
+  await last.fill('999999');
+  await form.locator('button[type=submit]').click();
+  await page.waitForSelector('#add-pair-message.error');
+  check('add_error_message', await page.locator('#add-pair-message').textContent());
+  check('add_error_marked', await form.locator('[name=frames_i].invalid').count());
+  await shot(page, 'viewer-add-pair-error');
+  await last.fill(String(prefilled.frames_i[1]));
+  const inputs = form.locator('[name=offset_xyyaw]');
+  for (const [k, v] of config.add_offset.entries()) await inputs.nth(k).fill(String(v));
+  await form.locator('[name=note]').fill('browser test: pair added by hand');
+  await form.locator('button[type=submit]').click();
+  await page.waitForFunction(() => /^correction \S+ queued: job \S+/.test(document.getElementById('add-pair-message').textContent));
+  check('add_answer_message', await page.locator('#add-pair-message').textContent());
+  await finished('add_pair');
+  check('add_message', await page.locator('#tile-message').textContent());
+  check('add_version_label', await page.locator('#version-label').textContent());
+  check('add_correction_rows', await page.locator('#correction-list tr[data-correction]').allInnerTexts());
+  check('add_pair_rows', await page.locator('#pairs tr[data-pair]').evaluateAll((rows) => rows.map((r) => ({
+    id: r.dataset.pair, trips: r.children[0].title, status: r.children[3].textContent,
+  }))));
+  await page.locator('#pairs tr[data-pair] .human').first().evaluate((e) => e.closest('tr').scrollIntoView({ block: 'start' }));
+  await shot(page, 'viewer-after-add-pair');
 }
 
 // --- ops -----------------------------------------------------------------------------------------

@@ -95,10 +95,14 @@ def test_viewer(browser_ready, make_isolated) -> None:
     assert "corrections_visible" in checks
 
 
+ADD_OFFSET = [0.1, -0.05, 0.002]  # metres, metres, radians: asserted with the added pair
+
+
 def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
     """A small fleet through the real pipeline (ingest, align_tile, merge_tile) in two batches: two
     versions of the tile, real aligned poses, real match pairs; a correction round trip through the
-    page once the correction endpoints exist."""
+    page once the correction endpoints exist: reject a pair, undo it, then add a pair through the
+    form (prefilled from a listed pair, with an asserted offset)."""
     dep = make_isolated("embedded")
     dep.start_server()
     with dep.admin() as http:
@@ -121,6 +125,7 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
         key=dep.admin_key,
         centre=(11.5775, 48.1366),
         correct=corrections_exist,
+        add_offset=ADD_OFFSET,
         out_prefix="pipeline-",
     )
     checks = result["checks"]
@@ -142,15 +147,35 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
         assert checks["undo_message"].startswith("undo: job done, map version"), checks
         assert checks["versions_after_undo"] == 1
         assert "undone → map v" in checks["correction_row_after_undo"]
+        # add a pair through the form: prefilled from the clicked pair; a bad frame gets the API's 422
+        source = checks["add_from_pair"]
+        sides = ("trip_i", "trip_j", "frames_i", "frames_j")
+        assert checks["add_prefilled"] == {k: source[k] for k in sides}
+        assert checks["add_trip_options"] >= 2  # "the map" and the trips crossing the tile
+        assert checks["add_error_message"].startswith("frames_i: ") and "999999" in checks["add_error_message"]
+        assert checks["add_error_marked"] == 2
+        assert checks["add_message"].startswith("add_pair: job done, map version"), checks
+        assert checks["add_version_label"].startswith("v5 of 5") and " · correction · " in checks["add_version_label"]
+        assert len(checks["add_correction_rows"]) == 2 and "add_pair" in checks["add_correction_rows"][1]
+        assert "→ map v" in checks["add_correction_rows"][1]
+        trips = {source["trip_i"], source["trip_j"]}
+        added = [r for r in checks["add_pair_rows"] if r["status"] == "added human"]
+        assert any(set(r["trips"].split(" ↔ ")) == trips for r in added), checks["add_pair_rows"]
         with dep.admin() as http:
-            (correction,) = http.get(
+            rejected, added_c = http.get(
                 "/v1/corrections", params={"z": TILE[0], "x": TILE[1], "y": TILE[2]}
             ).json()["corrections"]
-            assert correction["payload"]["pair_id"] == checks["rejected_pair"]
-            assert (
-                correction["result_version_id"] and correction["undo_version_id"] and correction["undone_at"]
-            )
+            assert rejected["payload"]["pair_id"] == checks["rejected_pair"]
+            assert rejected["result_version_id"] and rejected["undo_version_id"] and rejected["undone_at"]
+            assert added_c["kind"] == "add_pair" and added_c["result_version_id"] and not added_c["undone_at"]
+            assert {k: added_c["payload"][k] for k in sides} == {k: source[k] for k in sides}
+            assert added_c["payload"]["offset_xyyaw"] == ADD_OFFSET
+            assert added_c["payload"]["note"].startswith("browser test")
+            # the 202 answer shown by the form names the correction and its job
+            assert checks["add_answer_message"] == f"correction {added_c['id']} queued: job {added_c['job_id']}"
             reasons = [v["reason"] for v in http.get(f"/v1/tiles/{tile}/versions").json()["versions"]]
-            assert reasons[:2] == ["merge", "merge"] and len(reasons) == 4, reasons
+            assert reasons == ["merge", "merge", "correction", "undo correction", "correction"], reasons
+            pairs = http.get(f"/v1/tiles/{tile}/match-pairs").json()["match_pairs"]
+            assert any(p["human"] and p["status"] == "added" and {p["trip_i"], p["trip_j"]} == trips for p in pairs)
     else:
         assert checks["corrections_visible"] is False

@@ -71,6 +71,7 @@ const state = {
   versions: [], // of the selected tile, oldest first
   shownVersion: null,
   tracks: new Map(), // trip id -> its FeatureCollection
+  pairs: [], // the selected tile's match pairs, as listed
 };
 
 const empty = { type: 'FeatureCollection', features: [] };
@@ -187,10 +188,16 @@ function tileAt(lngLat, z) {
   return { z, x: Math.min(Math.max(x, 0), n - 1), y: Math.min(Math.max(y, 0), n - 1) };
 }
 
-function tilePolygon({ z, x, y }) {
+/** [west, south, east, north] of a tile, degrees. */
+function tileBounds({ z, x, y }) {
   const lon = (xx) => (xx / 2 ** z) * 360 - 180;
   const lat = (yy) => (Math.atan(Math.sinh(Math.PI * (1 - (2 * yy) / 2 ** z))) * 180) / Math.PI;
-  const ring = [[lon(x), lat(y)], [lon(x + 1), lat(y)], [lon(x + 1), lat(y + 1)], [lon(x), lat(y + 1)], [lon(x), lat(y)]];
+  return [lon(x), lat(y + 1), lon(x + 1), lat(y)];
+}
+
+function tilePolygon(tile) {
+  const [w, s, e, n] = tileBounds(tile);
+  const ring = [[w, n], [e, n], [e, s], [w, s], [w, n]];
   return { type: 'Feature', properties: {}, geometry: { type: 'Polygon', coordinates: [ring] } };
 }
 
@@ -328,6 +335,7 @@ async function showElement(feature) {
 // --- corrections (admin) -------------------------------------------------------------------------
 
 const MAX_PAIRS = 25; // listed weakest first (the API orders by confidence)
+const short = (id) => (id ? String(id).slice(0, 6) : 'map');
 
 async function loadCorrections() {
   const box = document.getElementById('corrections');
@@ -342,13 +350,21 @@ async function loadCorrections() {
   }
   box.hidden = false;
   pairs = Array.isArray(pairs) ? pairs : pairs.pairs || pairs.match_pairs || [];
-  const short = (id) => (id ? String(id).slice(0, 6) : 'map');
+  // human (added) pairs first, then weakest first as the API lists them
+  state.pairs = pairs.slice().sort((a, b) => Boolean(b.human) - Boolean(a.human));
+  pairs = state.pairs;
   document.getElementById('pairs').replaceChildren(
     pairs.length
       ? el('table', {}, el('tr', {}, ...['trips', 'conf.', 'rms m', 'status', ''].map((h) => el('th', {}, h))),
-        ...pairs.slice(0, MAX_PAIRS).map((pair) => el('tr', { 'data-pair': pair.id, class: pair.status === 'active' ? '' : 'muted' },
+        ...pairs.slice(0, MAX_PAIRS).map((pair) => el('tr', {
+          'data-pair': pair.id, class: ['active', 'added'].includes(pair.status) ? 'pick' : 'pick muted', title: 'click: prefill "add a pair"',
+          onclick: (e) => {
+            if (!e.target.closest('button')) prefillPair(pair, e.currentTarget); // not on "show" / "reject"
+          },
+        },
           el('td', { class: 'mono', title: `${pair.trip_i} ↔ ${pair.trip_j}` }, `${short(pair.trip_i)}↔${short(pair.trip_j)}`),
-          el('td', {}, fmt(pair.confidence)), el('td', {}, fmt(pair.residual_rms_m, 3)), el('td', {}, pair.status),
+          el('td', {}, fmt(pair.confidence)), el('td', {}, fmt(pair.residual_rms_m, 3)),
+          el('td', {}, pair.status, pair.human ? el('span', { class: 'human' }, ' human') : null),
           el('td', {},
             pair.centre ? el('button', { type: 'button', title: 'show on the map', onclick: () => map.flyTo({ center: pair.centre, zoom: Math.max(map.getZoom(), 18) }) }, 'show') : null,
             pair.status === 'active' || pair.status === 'added'
@@ -357,6 +373,7 @@ async function loadCorrections() {
       : el('p', { class: 'muted' }, 'no match pairs'),
     pairs.length > MAX_PAIRS ? el('p', { class: 'muted' }, `… ${pairs.length - MAX_PAIRS} more (weakest first)`) : '',
   );
+  await loadPairTrips(pairs);
   let corrections = [];
   try {
     const data = await api(`/v1/corrections?z=${state.tile.z}&x=${state.tile.x}&y=${state.tile.y}`);
@@ -367,7 +384,8 @@ async function loadCorrections() {
   document.getElementById('correction-list').replaceChildren(
     corrections.length
       ? el('table', {}, ...corrections.map((c) => el('tr', { 'data-correction': c.id },
-        el('td', {}, c.kind), el('td', { class: 'mono' }, short(c.payload?.pair_id ?? c.pair_id ?? c.id)),
+        el('td', {}, c.kind),
+        el('td', { class: 'mono' }, c.kind === 'add_pair' ? `${short(c.payload.trip_i)}↔${short(c.payload.trip_j)}` : short(c.payload?.pair_id ?? c.pair_id ?? c.id)),
         el('td', { title: `by ${c.author_key_id ?? '?'} at ${c.created_at ?? ''}` }, c.result_version_id ? `→ map v${c.result_version_id}` : 'pending'),
         el('td', {}, c.undone_at ? `undone${c.undo_version_id ? ` → map v${c.undo_version_id}` : ''}` : el('button', { type: 'button', onclick: () => undo(c.id) }, 'undo')))))
       : el('p', { class: 'muted' }, 'none'),
@@ -427,6 +445,68 @@ async function undo(correctionId) {
   }
 }
 
+// --- add a pair (admin) --------------------------------------------------------------------------
+
+const addForm = document.getElementById('add-pair');
+const fields = (name) => [...addForm.querySelectorAll(`[name="${name}"]`)];
+const numbers = (name) => fields(name).map((i) => (i.value.trim() === '' ? null : Number(i.value)));
+
+/** The trip selects: the trips crossing the tile (``GET /v1/trips?bbox=``) and those its pairs name. */
+async function loadPairTrips(pairs) {
+  const data = await api(`/v1/trips?bbox=${tileBounds(state.tile).map((v) => v.toFixed(7)).join(',')}&limit=200`).catch(() => ({ trips: [] }));
+  const names = new Map(data.trips.map((t) => [t.id, `${t.vehicle_id}/${t.trip_id}`]));
+  for (const id of pairs.flatMap((p) => [p.trip_i, p.trip_j])) if (id && !names.has(id)) names.set(id, short(id));
+  for (const select of [addForm.elements.trip_i, addForm.elements.trip_j]) {
+    const keep = select.value;
+    select.replaceChildren(...(select.name === 'trip_j' ? [el('option', { value: '' }, 'the map')] : []),
+      ...[...names].map(([id, label]) => el('option', { value: id, title: id }, label)));
+    if ([...select.options].some((o) => o.value === keep)) select.value = keep;
+  }
+  mapSide();
+}
+
+/** Trip j "the map": its frames mean nothing (sent as [0, 0]). */
+const mapSide = () => fields('frames_j').forEach((i) => (i.disabled = !addForm.elements.trip_j.value));
+
+function prefillPair(pair, row) {
+  document.querySelectorAll('#pairs tr.active').forEach((r) => r.classList.remove('active'));
+  row.classList.add('active');
+  addForm.elements.trip_i.value = pair.trip_i;
+  addForm.elements.trip_j.value = pair.trip_j ?? '';
+  for (const side of ['i', 'j']) fields(`frames_${side}`).forEach((input, k) => (input.value = pair[`frames_${side}`]?.[k] ?? ''));
+  mapSide();
+}
+
+async function addPair(event) {
+  event.preventDefault();
+  const out = document.getElementById('add-pair-message');
+  const show = (text, isError) => Object.assign(out, { textContent: text, className: isError ? 'error' : 'muted' });
+  addForm.querySelectorAll('.invalid').forEach((i) => i.classList.remove('invalid'));
+  const tripJ = addForm.elements.trip_j.value || null;
+  const body = {
+    kind: 'add_pair', trip_i: addForm.elements.trip_i.value || null, frames_i: numbers('frames_i'),
+    trip_j: tripJ, frames_j: tripJ ? numbers('frames_j') : [0, 0],
+  };
+  const offset = numbers('offset_xyyaw');
+  if (offset.some((v) => v !== null)) body.offset_xyyaw = offset;
+  if (addForm.elements.note.value.trim()) body.note = addForm.elements.note.value.trim();
+  const button = addForm.querySelector('button[type=submit]');
+  button.disabled = true;
+  try {
+    const answer = await api(`${tilePath(state.tile)}/corrections`, { method: 'POST', body });
+    show(`correction ${answer.id} ${answer.status ?? 'queued'}: job ${answer.job_id}`);
+    await afterCorrection(answer, 'result_version_id', 'add_pair');
+  } catch (err) {
+    // the API names the field: "trip_j", or "body.frames_i.1" for a malformed body
+    const where = err.body?.location || '';
+    show(where && !err.message.startsWith(where) ? `${where}: ${err.message}` : err.message, true);
+    const field = where.replace(/^body\./, '').split('.')[0];
+    if (field) fields(field).forEach((i) => i.classList.add('invalid'));
+  } finally {
+    button.disabled = false;
+  }
+}
+
 // --- trips ---------------------------------------------------------------------------------------
 
 async function loadTrips() {
@@ -473,6 +553,8 @@ map.on('mousemove', (event) => {
 document.getElementById('version-slider').addEventListener('input', (e) => showVersion(Number(e.target.value)).catch((err) => setMessage(err.message, true)));
 document.getElementById('live-button').addEventListener('click', showLive);
 document.getElementById('trips-refresh').addEventListener('click', loadTrips);
+addForm.addEventListener('submit', addPair);
+addForm.elements.trip_j.addEventListener('change', mapSide);
 
 legend();
 const ready = new Promise((resolve) => map.on('load', resolve));
