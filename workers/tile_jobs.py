@@ -307,7 +307,10 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
     for mp in result.match_pairs:
         status = "added" if mp["record"].get("human") else "active"
         session.add(MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status=status, created_at=now, **mp))
-    aligned_pks = sorted({ta.trip_pk for ta in result.trips})
+    # the trips this job takes: only they can become complete now
+    taken = set(session.scalars(select(TripTile.trip_pk).where(
+        TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))))
+    taken |= {ta.trip_pk for ta in result.trips}
     session.execute(
         update(TripTile)
         .where(TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))
@@ -320,10 +323,7 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         session.delete(dirty)
     if result.trips:
         repo.add_job(session, kind="merge_tile", subject=f"{z}/{x}/{y}")
-    tile_pks = session.scalars(
-        select(TripTile.trip_pk).where(TripTile.z == z, TripTile.x == x, TripTile.y == y)
-    ).all()
-    for pk in sorted(set(tile_pks) | set(aligned_pks)):
+    for pk in sorted(taken):
         finish_trip_if_complete(session, pk, job_id)
 
 
