@@ -455,15 +455,16 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
     with session_factory() as session:
         latest = versions.latest_version(session, z=z, x=x, y=y)
         expected = latest.version if latest is not None else None
-        rows = session.scalars(
-            select(TripTileAlignment).where(TripTileAlignment.z == z, TripTileAlignment.x == x,
-                                            TripTileAlignment.y == y).order_by(TripTileAlignment.created_at)
-        ).all()
+        state = _load_state(latest)
+        stmt = select(TripTileAlignment).where(TripTileAlignment.z == z, TripTileAlignment.x == x,
+                                               TripTileAlignment.y == y)
+        if state is not None:  # incremental: only what is new is read
+            stmt = stmt.where(TripTileAlignment.merged_version_id.is_(None))
+        rows = session.scalars(stmt.order_by(TripTileAlignment.created_at)).all()
         started = dict(session.execute(select(Trip.id, Trip.started_at).where(
             Trip.id.in_([r.trip_pk for r in rows]))).all()) if rows else {}
         new = [r for r in rows if r.merged_version_id is None and not r.failed_reason]
         everything = [r for r in rows if not r.failed_reason]
-        state = _load_state(latest)
         inputs_new = {r.trip_pk: _alignment_inputs(r, frame) for r in new}
         inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything} if state is None else {}
         pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
@@ -492,6 +493,8 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
                     TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
                     TripTileAlignment.failed_reason.is_(None))).all()
                 inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything}
+                started = dict(session.execute(select(Trip.id, Trip.started_at).where(
+                    Trip.id.in_(list(inputs_all)))).all())
         topology = generate_topology({pk: v[0] for pk, v in inputs_all.items()},
                                      {pk: v[1] for pk, v in inputs_all.items()}, previous=state,
                                      trip_times={pk: started.get(pk, "") for pk in inputs_all},
