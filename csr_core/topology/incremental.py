@@ -1,11 +1,9 @@
 """Incremental update: new aligned trips update the existing map instead of rebuilding it.
 
 Every existing instance takes part in association as one pseudo-member (its fused geometry,
-sigma = its uncertainty, the standard error of the fused line: it weighs like all the trips
-behind it) next to the new trips' instances. Only groups that contain a new instance are
-refitted, recursively: from the existing instances as pseudo-members plus the new instances, so
-that adding a trip costs the same whether 5 or 50 trips made the map; support, trips and times
-still count every member (``TopologyResult.members`` keeps them); ids continue (``identity``). Instances no new
+sigma = its uncertainty) next to the new trips' instances. Only groups that contain a new
+instance are refitted, from the stored members of the existing instances in the group plus
+the new ones (``TopologyResult.members``); their ids continue (``identity``). Instances no new
 trip touched keep their geometry and properties unchanged. Lane graph and validation are then
 recomputed over the map (cheap next to fusion).
 
@@ -77,22 +75,16 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
             if all(k < len(pseudo) for k in g):
                 continue
             for k in g:
-                if k < len(pseudo):  # the map's instance stands for all its members (recursive fusion)
+                if k < len(pseudo):
                     touched.add(k)
-                    touched_members.append(pseudo[k])
+                    touched_members.extend(previous.members.get(old[k].feature_id, ()))
                 else:
                     touched_members.append(pool[k])
         kept.extend(f for k, f in enumerate(old) if k not in touched)
         touched_old.extend(old[k] for k in sorted(touched))
         for fused, mem in fuse_type(touched_members, etype, params):
-            # support, trips and times count every trip behind the map's instance, not the instance
-            expanded = tuple(e for m in mem for e in (
-                previous.members.get(old[m.index].feature_id, ()) if m.trip_key == MAP_KEY else (m,)))
-            feature = feature_from_fused(fused, expanded or mem, times or None)
-            feature.properties["outlier_trips"] = sorted(
-                {mem[k].trip_key for k in fused.outlier_members if k < len(mem) and mem[k].trip_key != MAP_KEY})
-            refit.append(feature)
-            refit_members.append(expanded or mem)
+            refit.append(feature_from_fused(fused, mem, times or None))
+            refit_members.append(mem)
     t1 = time.perf_counter()
     # 3. directions, then ids: refitted instances continue the touched ones
     refit = orient_centerlines(refit, path_probes(paths_xy_per_trip), params)
