@@ -55,9 +55,9 @@ def overlap_counts(new: Sequence[np.ndarray], old: Sequence[np.ndarray], gate_m:
     hits = tree.query_ball_point(new_pts, gate_m)
     rows = np.repeat(np.arange(len(new_pts)), [len(h) for h in hits])
     cols = np.fromiter((c for h in hits for c in h), dtype=np.int64, count=len(rows))
-    if len(rows):
-        pairs = np.unique(np.column_stack([rows, old_own[cols]]), axis=0)
-        np.add.at(counts, (new_own[pairs[:, 0]], pairs[:, 1]), 1.0)
+    if len(rows):  # each new sample counts once per old geometry it is near (1-D keys: a fast unique)
+        keys = np.unique(rows * len(os_) + old_own[cols])
+        np.add.at(counts, (new_own[keys // len(os_)], keys % len(os_)), 1.0)
     return counts, n_new, n_old
 
 
