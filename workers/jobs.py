@@ -38,6 +38,7 @@ from services.db import repo
 from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
 from services.reconstructions import row_values
 from services.settings import Settings
+from services.tile_frames import parse_tile
 from workers import tile_jobs
 
 log = logging.getLogger(__name__)
@@ -76,17 +77,17 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
                 time.sleep(settings.test_ingest_delay_s)
             return _finish(session_factory, job_id, started, lambda s: _persist_ingest(s, subject, result))
         if kind == "align_tile":
-            z, x, y = tile_jobs.parse_tile(subject)
+            z, x, y = parse_tile(subject)
             aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y)
             return _finish(session_factory, job_id, started,
                            lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
         if kind == "correct_tile":  # the map team's corrections: re-align the whole tile with them
-            z, x, y = tile_jobs.parse_tile(subject)
+            z, x, y = parse_tile(subject)
             aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y, full=True)
             return _finish(session_factory, job_id, started,
                            lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
         if kind == "merge_tile":
-            z, x, y = tile_jobs.parse_tile(subject)
+            z, x, y = parse_tile(subject)
             merged = tile_jobs.compute_merge_tile(session_factory, settings, z, x, y)
             if settings.test_merge_delay_s and attempt == 1:
                 time.sleep(settings.test_merge_delay_s)

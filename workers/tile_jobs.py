@@ -30,7 +30,7 @@ import logging
 import pickle
 import zlib
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -42,13 +42,14 @@ from sqlalchemy.orm import Session, sessionmaker
 from csr_core.alignment import AlignmentResult, MatchCorrections, PairConstraint, PriorMap, align_trips
 from csr_core.alignment.corrections import PRIOR_KEY
 from csr_core.errors import AlignmentFailed
-from csr_core.geo import LocalFrame, region_frame_for, tile_bounds_lonlat
+from csr_core.geo import LocalFrame, tile_bounds_lonlat
 from csr_core.se2 import yaw_rad_to_heading_deg
 from csr_core.tiling import (
     assemble_poses,
     blend_weight,
     crop_reconstruction,
     piece_runs,
+    reframe_points,
     reframe_poses,
     reframe_reconstruction,
     signed_distance_m,
@@ -87,6 +88,7 @@ from services.reconstructions import (
     noise_json,
 )
 from services.settings import Settings
+from services.tile_frames import Side, tile_frame
 
 log = logging.getLogger(__name__)
 
@@ -100,17 +102,6 @@ GATE_FLAGS = SUSPECT - {"low_support", "gap"}
 
 class RetryJob(Exception):
     """A transient conflict (another job wrote the tile first): the job is queued again."""
-
-
-def tile_frame(z: int, x: int, y: int) -> LocalFrame:
-    """The world frame a tile is processed in: its region's (shared with the trips around it)."""
-    west, south, east, north = tile_bounds_lonlat(z, x, y)
-    return region_frame_for(((west + east) / 2, (south + north) / 2))
-
-
-def parse_tile(subject: str) -> tuple[int, int, int]:
-    z, x, y = (int(v) for v in subject.split("/"))
-    return z, x, y
 
 
 # --- align_tile -----------------------------------------------------------------------------------
@@ -374,10 +365,6 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
 
 # --- corrections ----------------------------------------------------------------------------------
 
-# A constraint as stored: (trip pk or None for the pre-built map, (first, last) frame of the trip)
-Side = tuple[str | None, tuple[int, int]]
-
-
 def corrections_of_tile(session: Session, z: int, x: int, y: int
                         ) -> tuple[list[tuple[Side, Side]], list[tuple[Side, Side, tuple | None]]]:
     """The tile's corrections in force (not undone) as rejected and added pairs of trip frames."""
@@ -418,19 +405,6 @@ def piece_constraints(constraints, piece_of: dict[str, tuple[str, int, np.ndarra
     return MatchCorrections(rej, add)
 
 
-def record_sides(pair: MatchPair) -> tuple[Side, Side]:
-    """A stored match pair's two sides as trip frames (its record names pieces: ``key@start``)."""
-
-    def side(pk: str | None, key: str, frames) -> Side:
-        if pk is None:
-            return None, (0, 0)
-        start = int(key.rsplit("@", 1)[1]) if "@" in key else 0
-        return pk, (int(frames[0]) + start, int(frames[1]) + start)
-
-    r = pair.record
-    return side(pair.trip_pk_i, r["trip_key_i"], r["frames_i"]), side(pair.trip_pk_j, r["trip_key_j"], r["frames_j"])
-
-
 # --- merge_tile -----------------------------------------------------------------------------------
 
 
@@ -438,8 +412,7 @@ def record_sides(pair: MatchPair) -> tuple[Side, Side]:
 class MergeTileResult:
     expected_latest: int | None
     features: list[versions.VersionFeature]
-    trips: list[str]
-    merged_alignments: list[str]  # trip pks whose alignment rows this merge took in
+    trips: list[str]  # the trips merged: their alignment rows get the new version
     quality: dict
     state: bytes | None
     frame: LocalFrame
@@ -472,7 +445,7 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         match_pairs = [p.record for p in pairs]
         applied = pending_corrections(session, z, x, y)
     if not new:
-        return MergeTileResult(expected, [], [], [], {}, None, frame, False, nothing_to_do=True)
+        return MergeTileResult(expected, [], [], {}, None, frame, False, nothing_to_do=True)
     reason = "merge"
     if applied:
         reason = "correction" if any(not a.endswith(":undo") for a in applied) else "undo correction"
@@ -507,7 +480,6 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         expected_latest=expected,
         features=features,
         trips=sorted(inputs_new),
-        merged_alignments=sorted(inputs_new),
         quality=quality,
         state=zlib.compress(pickle.dumps((TOPOLOGY_STATE_VERSION, frame, topology), protocol=5)),
         frame=frame,
@@ -529,10 +501,7 @@ def _alignment_inputs(row: TripTileAlignment, frame: LocalFrame):
     src = LocalFrame(row.origin_lat, row.origin_lon)
     instances = [instance_from_json(i) for i in row.instances]
     if src != frame:
-        from csr_core.tiling import reframe_points
-
-        instances = [type(i)(i.type, reframe_points(i.points_xy_world, src, frame), i.style, i.n_observations,
-                             i.first_frame, i.last_frame) for i in instances]
+        instances = [replace(i, points_xy_world=reframe_points(i.points_xy_world, src, frame)) for i in instances]
     poses = reframe_poses(arrays["poses_xyyaw"], src, frame)
     return instances, noise_from_json(row.noise), poses[:, :2]
 
@@ -660,7 +629,7 @@ def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, re
     session.execute(
         update(TripTileAlignment)
         .where(TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
-               TripTileAlignment.trip_pk.in_(result.merged_alignments))
+               TripTileAlignment.trip_pk.in_(result.trips))
         .values(merged_version_id=version.id)
     )
     for entry in result.corrections:

@@ -23,7 +23,7 @@ from services.api.deps import Admin, Ctx, Reader, SessionDep
 from services.api.errors import ApiError
 from services.db import repo
 from services.db.models import Correction, MatchPair, Trip, TripTile, utcnow
-from workers.tile_jobs import record_sides, tile_frame
+from services.tile_frames import record_sides, tile_frame
 
 router = APIRouter(prefix="/v1", tags=["corrections"])
 
