@@ -38,6 +38,9 @@ from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, TripInstance
 
 
+MAP_MEMBER_KEY = "<map>"  # trip key of a map instance standing for its members (incremental update)
+
+
 @dataclass(frozen=True, slots=True)
 class Member:
     """One aligned trip instance taking part in fusion; ``sigma_m`` its lateral 1-sigma

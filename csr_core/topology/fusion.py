@@ -36,7 +36,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import _robust_ends, resample_polyline, splice_polygon
-from csr_core.topology.association import Member
+from csr_core.topology.association import MAP_MEMBER_KEY, Member
 from csr_core.topology.params import TopologyParams
 from csr_core.types import DividerStyle, ElementType
 
@@ -59,6 +59,7 @@ class FusedInstance:
     rejected_weight_share: float  # weight of trips the robust fit rejected / all
     outlier_members: tuple[int, ...]  # members mostly rejected by the robust fit
     max_internal_gap_m: float  # longest unsupported stretch spanned inside
+    member_scatter2: tuple[float, ...] = ()  # per member: mean (offset / sigma)^2 of its used samples (nan: none)
 
 
 def arclength(points: np.ndarray) -> np.ndarray:
@@ -106,15 +107,20 @@ def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int,
     return prof, den
 
 
-def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray
-                   ) -> np.ndarray:
+def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray,
+                   anchored: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """The member most others agree with (x weight), prolonged at either end by the contiguous
     part of the member that runs on past it furthest (the member must be within its gate of
-    the backbone near that end): partial overlaps chain, branches do not jump."""
+    the backbone near that end): partial overlaps chain, branches do not jump. The backbone is
+    smoothed, except an ``anchored`` seed (the map's fused line in an incremental update:
+    smoothing it again at every update would flatten curves a little more each time). Returns
+    the backbone and the index of its seed member."""
     pts = np.concatenate(lines)
     own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
     seed = int(np.argmax(_consensus(pts, own, gates, len(lines)) * weights))
     backbone = lines[seed]
+    keep_seed = anchored is not None and bool(anchored[seed]) and len(backbone) >= 2
+    n_before = 0
     used = {seed}
     tree = cKDTree(pts)
     near_end = 3.0 * spacing
@@ -150,6 +156,9 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         _, end, ext, k = best
         used.add(k)
         backbone = np.vstack([backbone, ext]) if end else np.vstack([ext[::-1], backbone])
+        n_before += 0 if end else len(ext)
+    if keep_seed:
+        return _extend_straight(_smooth_around(backbone, n_before, len(lines[seed]), spacing), 3.0, spacing), seed
     backbone = resample_polyline(backbone, spacing)
     if len(backbone) >= 5:
         # smoothed with point-reflected ends (a straight line stays straight and keeps its
@@ -161,7 +170,18 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         padded = np.vstack([head, backbone, tail])
         sm = np.column_stack([gaussian_filter1d(padded[:, i], sigma, mode="nearest") for i in (0, 1)])
         backbone = resample_polyline(sm[len(head):len(head) + len(backbone)], spacing)
-    return _extend_straight(backbone, 3.0, spacing)
+    return _extend_straight(backbone, 3.0, spacing), seed
+
+
+def _smooth_around(backbone: np.ndarray, start: int, count: int, spacing: float) -> np.ndarray:
+    """``backbone`` with its rows ``[start, start + count)`` (the anchored seed) as they are and
+    the prolongations on either side smoothed (2 m Gaussian, rows about ``spacing`` apart)."""
+    out = backbone.copy()
+    if len(backbone) > count:
+        sm = np.column_stack([gaussian_filter1d(backbone[:, i], 2.0 / spacing, mode="nearest") for i in (0, 1)])
+        out[:start] = sm[:start]
+        out[start + count:] = sm[start + count:]
+    return resample_polyline(out, spacing)
 
 
 def _extend_straight(line: np.ndarray, length_m: float, spacing: float) -> np.ndarray:
@@ -206,25 +226,33 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     gate = np.array([params.gate_m(sg, sg) for sg in sigma])
     spacing = 0.5 * params.BIN_M
     lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
-    backbone = _grow_backbone(lines, gate, spacing, w_member)
+    anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
+    backbone, seed = _grow_backbone(lines, gate, spacing, w_member, anchored if anchored.any() else None)
     if len(backbone) < 3:
         return []
+    # an anchored seed's own vertices are the output where it reaches (no re-interpolation drift)
+    anchor_xy = np.asarray(members[seed].instance.points_xy_world, float) if anchored[seed] else None
     # 1. all member samples on the backbone
     points = np.concatenate(lines)
     own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
     s, d = project_on_polyline(points, backbone)
-    on_backbone = (s >= -spacing) & (s <= arclength(backbone)[-1] + spacing)
+    # only samples alongside the backbone (within the association window of it) speak for its
+    # profile: in a group chained through splits and merges the other lanes may outnumber it
+    on_backbone = ((s >= -spacing) & (s <= arclength(backbone)[-1] + spacing)
+                   & (np.abs(d) <= params.WINDOW_GATES * gate[own]))
     s0 = float(s.min())
     bins = np.floor((s - s0) / params.BIN_M).astype(np.int64)
     n_bins = int(bins.max()) + 1
     w0 = w_member[own]
     sig = sigma[own]
     # 2. robust weighted profile: weighted median, then Tukey IRLS on the smoothed profile
-    mu = _weighted_median_per_bin(bins, d, w0, n_bins)
+    if not on_backbone.any():
+        return []
+    mu = _weighted_median_per_bin(bins[on_backbone], d[on_backbone], w0[on_backbone], n_bins)
     ok = np.isfinite(mu)
     mu = np.interp(np.arange(n_bins), np.flatnonzero(ok), mu[ok])
     r = d - mu[bins]
-    scale = max(1.4826 * float(np.median(np.abs(r))), 1e-3)
+    scale = max(1.4826 * float(np.median(np.abs(r[on_backbone]))), 1e-3)
     c = params.TUKEY_C_SIGMAS * np.maximum(sig, scale)
     sm_bins = params.SMOOTH_SIGMA_M / params.BIN_M
     w = w0
@@ -279,8 +307,13 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     n_bin = np.bincount(bins[use], minlength=n_bins) / per_trip_bin
     var_emp = r2 / np.maximum(np.bincount(bins[use], weights=w[use], minlength=n_bins), 1e-12)
     se_emp = np.sqrt(var_emp / np.maximum(n_bin - 1, 1))
-    se = np.maximum(se_model, np.where(n_bin >= 2, se_emp, 0.0))
+    # an anchored map line's sigma is already its standard error, empirical scatter included:
+    # with it the model error is the recursive update (the spread of two members says nothing)
+    se = se_model if anchored.any() else np.maximum(se_model, np.where(n_bin >= 2, se_emp, 0.0))
     scatter = float(np.sqrt(np.mean((r[use] / sig[use]) ** 2)))
+    z2_sum = np.bincount(own[use], weights=(r[use] / sig[use]) ** 2, minlength=n_m)
+    z2_cnt = np.bincount(own[use], minlength=n_m)
+    member_scatter2 = tuple(float(v) for v in np.where(z2_cnt > 0, z2_sum / np.maximum(z2_cnt, 1), np.nan))
     style = vote_style([members[k] for k in range(n_m) if keep_m[k]])
     out = []
     for span in spans:
@@ -292,12 +325,14 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             continue
         q = np.arange(s_lo, s_hi, params.OUTPUT_SPACING_M)
         q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
+        base = np.column_stack([np.interp(q, s_b, backbone[:, 0]), np.interp(q, s_b, backbone[:, 1])])
+        if anchor_xy is not None:
+            q, base = _with_anchor_vertices(q, base, anchor_xy, backbone, params.OUTPUT_SPACING_M)
         dq = np.interp(q, centers, mu)
         nx = np.interp(q, s_b, normal[:, 0])
         ny = np.interp(q, s_b, normal[:, 1])
         nn = np.maximum(np.hypot(nx, ny), 1e-12)
-        line = np.column_stack([np.interp(q, s_b, backbone[:, 0]) + dq * nx / nn,
-                                np.interp(q, s_b, backbone[:, 1]) + dq * ny / nn])
+        line = base + np.column_stack([dq * nx / nn, dq * ny / nn])
         span_members = tuple(int(k) for k in np.unique(own[in_span]))
         gaps = np.diff(span) * params.BIN_M - params.BIN_M
         if element_type == ElementType.CENTERLINE:
@@ -307,8 +342,24 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             detached=tuple(detached), uncertainty_m=float(np.median(se[span[0]:span[-1] + 1][support[span[0]:span[-1] + 1]])),
             scatter_ratio=scatter, rejected_weight_share=rejected_share,
             outlier_members=tuple(k for k in outliers if k in span_members),
-            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0))
+            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2))
     return out
+
+
+def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: np.ndarray,
+                          spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Output stations ``q`` and base points: inside the span of the anchored seed its own
+    vertices (a curve sampled again at other stations would be cut a little inside at every
+    update), the regular stations beyond it."""
+    s_v, _ = project_on_polyline(anchor_xy, backbone)
+    inside = (s_v >= q[0]) & (s_v <= q[-1])
+    if inside.sum() < 2 or bool((np.diff(s_v[inside]) <= 0).any()):
+        return q, base
+    lo, hi = float(s_v[inside][0]), float(s_v[inside][-1])
+    before = q < lo - 0.5 * spacing_m
+    after = q > hi + 0.5 * spacing_m
+    return (np.r_[q[before], s_v[inside], q[after]],
+            np.vstack([base[before], anchor_xy[inside], base[after]]))
 
 
 def _orient(line: np.ndarray, members: Sequence[Member], weights: np.ndarray) -> np.ndarray:

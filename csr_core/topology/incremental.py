@@ -2,9 +2,17 @@
 
 Every existing instance takes part in association as one pseudo-member (its fused geometry,
 sigma = its uncertainty) next to the new trips' instances. Only groups that contain a new
-instance are refitted, from the stored members of the existing instances in the group plus
-the new ones (``TopologyResult.members``); their ids continue (``identity``). Instances no new
-trip touched keep their geometry and properties unchanged. Lane graph and validation are then
+instance are refitted; instances no new trip touched keep their geometry and properties.
+
+Lines are refitted recursively: the map's instance stands for all its members (its line, with
+the weight of its standard error, ``uncertainty_m``: about sigma / sqrt(trips)) and is fused
+with the new members only, so the cost of adding a trip does not grow with the trips already
+in the map. This is the recursive form of the weighted least-squares profile of ``fusion``: a
+new trip moves the line by its weight share, and the robust fit rejects it where it is off
+the map's line. The statistics validation reads (support, scatter, rejected share, outlier
+trips, times) are carried over from the map's instance and updated with the new members.
+Polygons (few, small groups) are refitted from their stored members
+(``TopologyResult.members``). Ids continue (``identity``). Lane graph and validation are then
 recomputed over the map (cheap next to fusion).
 
 A trip already in the map (re-aligned after a correction) cannot be added again: rebuild with
@@ -19,7 +27,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from csr_core.errors import ReconstructionError
-from csr_core.topology.association import Member, associate_lines, associate_polygons
+from csr_core.topology.association import MAP_MEMBER_KEY, Member, associate_lines, associate_polygons
+from csr_core.topology.fusion import FusedInstance
 from csr_core.topology.instances import (
     TopologyResult,
     assign_ids,
@@ -34,7 +43,8 @@ from csr_core.topology.instances import (
 from csr_core.topology.params import DEFAULT, TopologyParams
 from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 
-MAP_KEY = "<map>"
+MAP_KEY = MAP_MEMBER_KEY
+MIN_ANCHOR_SIGMA_M = 0.02  # a map instance never weighs more than one of 2 cm standard error
 
 
 def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[str, Sequence[TripInstance]],
@@ -63,12 +73,12 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
             kept.extend(old)
             continue
         # 1. associate the map's instances (as pseudo-members) with the new trips' instances
-        pseudo = [Member(MAP_KEY, k, TripInstance(etype, f.points_xy_world, f.style), max(
-            float(f.properties.get("uncertainty_m", 0.05)), 0.02)) for k, f in enumerate(old)]
+        pseudo = [_anchor(k, f) for k, f in enumerate(old)]
         pool = pseudo + new
         groups = (associate_polygons(pool, params) if etype.is_polygon
                   else associate_lines(pool, etype, params))
-        # 2. refit the touched groups from their stored members plus the new ones
+        # 2. refit the touched groups: lines from the map's instance (standing for its members)
+        #    plus the new ones; polygons from their stored members plus the new ones
         touched_members: list[Member] = []
         touched: set[int] = set()
         for g in groups:
@@ -77,14 +87,22 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
             for k in g:
                 if k < len(pseudo):
                     touched.add(k)
-                    touched_members.extend(previous.members.get(old[k].feature_id, ()))
+                    touched_members.extend(previous.members.get(old[k].feature_id, ()) if etype.is_polygon
+                                           else (pool[k],))
                 else:
                     touched_members.append(pool[k])
         kept.extend(f for k, f in enumerate(old) if k not in touched)
         touched_old.extend(old[k] for k in sorted(touched))
         for fused, mem in fuse_type(touched_members, etype, params):
-            refit.append(feature_from_fused(fused, mem, times or None))
-            refit_members.append(mem)
+            anchors = [old[m.index] for m in mem if m.trip_key == MAP_KEY]
+            if anchors:
+                real = tuple(m for m in mem if m.trip_key != MAP_KEY)
+                refit.append(_continued_feature(fused, mem, anchors, times))
+                refit_members.append(tuple(m for a in anchors for m in previous.members.get(a.feature_id, ()))
+                                     + real)
+            else:
+                refit.append(feature_from_fused(fused, mem, times or None))
+                refit_members.append(mem)
     t1 = time.perf_counter()
     # 3. directions, then ids: refitted instances continue the touched ones
     refit = orient_centerlines(refit, path_probes(paths_xy_per_trip), params)
@@ -106,3 +124,55 @@ def _strip(f: MapFeature) -> MapFeature:
     """An untouched instance: its validation fields are recomputed."""
     props = {k: v for k, v in f.properties.items() if k not in ("flags", "coverage_trips")}
     return MapFeature(f.type, f.points_xy_world, f.style, f.feature_id, props)
+
+
+def _anchor(k: int, f: MapFeature) -> Member:
+    """The map's instance ``k`` as a pseudo-member: its line, weighing as its standard error."""
+    sigma = max(float(f.properties.get("uncertainty_m", 0.05)), MIN_ANCHOR_SIGMA_M)
+    n_obs = int(f.properties.get("support_observations", 1))
+    return Member(MAP_KEY, k, TripInstance(f.type, f.points_xy_world, f.style, n_obs), sigma)
+
+
+def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors: Sequence[MapFeature],
+                       trip_times: Mapping[str, object]) -> MapFeature:
+    """The properties of a map instance refitted with new members (``feature_from_fused`` for
+    the anchors' members and the new ones together): supports add up, the scatter and the
+    rejected share are the trip-weighted means of the map's and the new members', times
+    span both."""
+    real = [(k, m) for k, m in enumerate(members) if m.trip_key != MAP_KEY]
+    old_trips = {t for a in anchors for t in a.properties.get("trips", ())}
+    trips = sorted(old_trips | {m.trip_key for _, m in real})
+    outliers = {members[k].trip_key for k in fused.outlier_members
+                if k < len(members) and members[k].trip_key != MAP_KEY}
+    z2_old = sum(float(a.properties.get("scatter_ratio", 1.0)) ** 2 * int(a.properties.get("support_trips", 1))
+                 for a in anchors)
+    n_z_old = sum(int(a.properties.get("support_trips", 1)) for a in anchors)
+    z2_new = [fused.member_scatter2[k] for k, _ in real
+              if k < len(fused.member_scatter2) and np.isfinite(fused.member_scatter2[k])
+              and members[k].trip_key not in outliers]
+    scatter = float(np.sqrt((z2_old + sum(z2_new)) / max(n_z_old + len(z2_new), 1)))
+    rejected_old = sum(float(a.properties.get("rejected_weight_share", 0.0)) * int(a.properties.get(
+        "support_trips", 1)) for a in anchors)
+    rejected = (rejected_old + len(outliers)) / max(n_z_old + len(real), 1)
+    seen = [a.properties.get("first_seen") for a in anchors] + [trip_times.get(m.trip_key) for _, m in real]
+    confirmed = [a.properties.get("last_confirmed") for a in anchors] + [trip_times.get(m.trip_key) for _, m in real]
+    seen = [t for t in seen if t is not None]
+    confirmed = [t for t in confirmed if t is not None]
+    first = min(anchors, key=lambda a: (a.properties.get("first_seen") is None, str(a.properties.get("first_seen"))))
+    props = {
+        "support_trips": len(trips),
+        "support_observations": int(sum(int(a.properties.get("support_observations", 0)) for a in anchors)
+                                    + sum(m.instance.n_observations for _, m in real)),
+        "uncertainty_m": round(float(fused.uncertainty_m), 4),
+        "first_seen": min(seen) if seen else None,
+        "last_confirmed": max(confirmed) if confirmed else None,
+        "style": fused.style.value if fused.style is not None else None,
+        "trips": trips,
+        "scatter_ratio": round(scatter, 3),
+        "rejected_weight_share": round(float(rejected), 3),
+        "outlier_trips": sorted({t for a in anchors for t in a.properties.get("outlier_trips", ())} | outliers),
+        "max_internal_gap_m": round(float(fused.max_internal_gap_m), 2),
+        "first_trip": first.properties.get("first_trip", trips[0] if trips else ""),
+    }
+    return MapFeature(type=fused.type, points_xy_world=fused.points_xy_world, style=fused.style, feature_id="",
+                      properties=props)
