@@ -329,10 +329,18 @@ def job_duration_stats(
 
 def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | None) -> list[Job]:
     """Create a tile job for each dirty tile without one whose last new trip is older than
-    ``last_marked_before`` (``None``: every dirty tile, now). Safe against concurrent schedulers."""
+    ``last_marked_before`` (``None``: every dirty tile, now). Safe against concurrent schedulers.
+
+    The biggest tiles (most trips waiting) are queued first: with several workers the batch ends
+    when its longest job does, so that one must not start last (longest processing time first)."""
+    waiting = (select(func.count()).select_from(TripTile)
+               .where(TripTile.z == DirtyTile.z, TripTile.x == DirtyTile.x, TripTile.y == DirtyTile.y,
+                      TripTile.processed_job_id.is_(None))
+               .scalar_subquery())
     stmt = select(DirtyTile).where(DirtyTile.job_id.is_(None))
     if last_marked_before is not None:
         stmt = stmt.where(DirtyTile.last_marked_at <= last_marked_before)
+    stmt = stmt.order_by(waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y)
     jobs = []
     for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
         job = add_job(session, kind="align_tile", subject=f"{tile.z}/{tile.x}/{tile.y}")

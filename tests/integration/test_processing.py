@@ -77,6 +77,29 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     assert [tuple(r) for r in kinds] == [("ingest_trip", "done", 1)]
 
 
+def test_process_queues_the_busiest_tiles_first(deployment: Deployment):
+    """Longest processing time first: a tile with three trips waiting is queued before a tile with
+    one (with several workers, the batch ends when its longest job does)."""
+    from services.cli.bench_ingest import straight_trip
+
+    def drive(lat: float, lon: float) -> str:
+        doc = straight_trip(vehicle_id="veh-lpt", trip_id="lpt-" + secrets.token_hex(4), length_m=120.0,
+                            origin_lat=lat, origin_lon=lon, heading_deg=0.0)
+        return deployment.upload(doc).json()["id"]
+
+    # the quiet tile is uploaded first and sorts first by z/x/y: only the trip count puts it last
+    quiet = drive(47.5101, 9.4101)
+    busy = [drive(47.6101, 9.6101) for _ in range(3)]
+    deployment.wait_idle()
+    tiles = {pk: _trip(deployment, pk)["tiles"] for pk in (*busy, quiet)}
+    with deployment.admin() as http:
+        order = [job["tile"] for job in http.post("/v1/process").json()["jobs"]]
+    busy_tile, quiet_tile = tiles[busy[0]][0], tiles[quiet][0]
+    assert busy_tile in order and quiet_tile in order, (order, tiles)
+    assert order.index(busy_tile) < order.index(quiet_tile), order
+    deployment.wait_idle()
+
+
 def test_process_with_nothing_dirty_schedules_nothing(deployment: Deployment):
     deployment.wait_idle()
     with deployment.admin() as http:
