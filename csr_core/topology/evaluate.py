@@ -44,6 +44,7 @@ from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
 CORRIDOR_INSIDE_M = 12.0  # truth is kept within 15 m of true frames; judge 3 m inside
+LOCAL_RADIUS_M = 50.0  # diagnostic: the map offset shared by the instances this close
 
 
 def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
@@ -86,30 +87,94 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
     return out
 
 
-def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> dict:
-    """Recall and precision of the suspect flags against really wrong instances (module
-    docstring). Only samples well inside the evaluated corridor (``CORRIDOR_INSIDE_M`` of a true
-    frame: truth beyond 15 m is cut away) are judged; instances mostly outside are left out."""
+def judge_instances(result: TopologyResult, truth_map, true_xy: np.ndarray) -> list[tuple[MapFeature, bool, bool]]:
+    """(instance, really wrong, wrong beyond the local map offset) for every judged instance
+    (published or suppressed): only samples well inside the evaluated corridor
+    (``CORRIDOR_INSIDE_M`` of a true frame: truth beyond 15 m is cut away) are judged;
+    instances mostly outside are left out.
+
+    The third value is a diagnostic, not the score: the instance judged again after removing
+    the offset that the *other* instances within ``LOCAL_RADIUS_M`` share (least-squares
+    translation from their samples' normal offsets to truth). An error shared by every trip
+    in a region (the map as a whole placed off there) is invisible to checks that compare trips
+    with each other; this separates it from errors of the instance itself."""
     from scipy.spatial import cKDTree
 
     frames = cKDTree(true_xy)
-    wrong, flagged = [], []
+    judged: list[tuple[MapFeature, np.ndarray, np.ndarray]] = []
+    normals, offsets, where = [], [], []  # per judged sample: truth normal, signed offset, (feature, xy)
     for etype in ElementType:
         feats = [f for f in (*result.features, *result.suppressed) if f.type == etype]
         if not feats:
             continue
-        _, segs = metrics.truth_in_corridor([f for f in truth_map if f.type == etype], true_xy)
+        truth_xy, segs = metrics.truth_in_corridor([f for f in truth_map if f.type == etype], true_xy)
+        tree = cKDTree(truth_xy) if len(truth_xy) >= 2 else None
         for f in feats:
             samples = metrics.sample_features([f])
             inside = frames.query(samples)[0] <= CORRIDOR_INSIDE_M
             if inside.mean() < 0.5:
                 continue
-            d = metrics.distances_to_segments(samples[inside], segs)
-            wrong.append(float(np.mean(d > metrics.MATCH_THRESHOLD_M)) >= WRONG_SHARE)
-            flagged.append(bool(set(f.properties.get("flags", ())) & SUSPECT))
-    w, fl = np.array(wrong), np.array(flagged)
-    return {"instances": int(len(w)), "wrong": int(w.sum()), "flagged": int(fl.sum()),
-            "recall": float((w & fl).sum() / max(w.sum(), 1)), "precision": float((w & fl).sum() / max(fl.sum(), 1))}
+            judged.append((f, samples[inside], segs))
+            if tree is None:
+                continue
+            q = samples[inside]
+            dist, i = tree.query(q, k=2, distance_upper_bound=2.0)
+            ok = np.isfinite(dist).all(axis=1)
+            if not ok.any():
+                continue
+            tan = truth_xy[i[ok, 1]] - truth_xy[i[ok, 0]]
+            tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
+            nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
+            normals.append(nrm)
+            offsets.append(((truth_xy[i[ok, 0]] - q[ok]) * nrm).sum(1))
+            where.append(np.column_stack([np.full(ok.sum(), len(judged) - 1), q[ok]]))
+    out = []
+    nrm = np.concatenate(normals) if normals else np.zeros((0, 2))
+    off = np.concatenate(offsets) if offsets else np.zeros(0)
+    wh = np.concatenate(where) if where else np.zeros((0, 3))
+    near = cKDTree(wh[:, 1:]) if len(wh) else None
+    for k, (f, q, segs) in enumerate(judged):
+        d = metrics.distances_to_segments(q, segs)
+        wrong = float(np.mean(d > metrics.MATCH_THRESHOLD_M)) >= WRONG_SHARE
+        shift = np.zeros(2)
+        if near is not None:
+            idx = np.array(near.query_ball_point(q[len(q) // 2], LOCAL_RADIUS_M), dtype=np.int64)
+            idx = idx[wh[idx, 0] != k] if len(idx) else idx
+            if len(idx) >= 20:
+                a = nrm[idx].T @ nrm[idx]
+                if np.linalg.eigvalsh(a)[0] > 0.1 * len(idx):  # constrained in both directions
+                    shift = np.linalg.solve(a, nrm[idx].T @ off[idx])
+        d_local = metrics.distances_to_segments(q + shift, segs)
+        out.append((f, wrong, float(np.mean(d_local > metrics.MATCH_THRESHOLD_M)) >= WRONG_SHARE))
+    return out
+
+
+def _recall_precision(wrong: np.ndarray, flagged: np.ndarray) -> dict:
+    return {"wrong": int(wrong.sum()), "flagged": int(flagged.sum()),
+            "recall": float((wrong & flagged).sum() / max(wrong.sum(), 1)),
+            "precision": float((wrong & flagged).sum() / max(flagged.sum(), 1))}
+
+
+def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> dict:
+    """Recall and precision of the suspect flags against really wrong instances (module
+    docstring). Diagnostics: per flag kind, how many judged instances carry it (``flagged``),
+    how many of those are really wrong (``wrong``), and the same for the instances whose only
+    suspect flag it is (``alone``, ``alone_wrong``); ``beyond_local_offset``: the same recall and
+    precision against instances still wrong once the offset shared by the map around them is
+    removed (``judge_instances``)."""
+    judged = judge_instances(result, truth_map, true_xy)
+    w = np.array([wr for _, wr, _ in judged], bool)
+    w_local = np.array([wl for _, _, wl in judged], bool)
+    kinds = [set(f.properties.get("flags", ())) for f, _, _ in judged]
+    fl = np.array([bool(k & SUSPECT) for k in kinds], bool)
+    per_flag = {}
+    for kind in sorted(set().union(*kinds)) if kinds else ():
+        has = np.array([kind in k for k in kinds], bool)
+        alone = np.array([(k & SUSPECT) == {kind} for k in kinds], bool)
+        per_flag[kind] = {"flagged": int(has.sum()), "wrong": int((has & w).sum()),
+                          "alone": int(alone.sum()), "alone_wrong": int((alone & w).sum())}
+    return {"instances": int(len(w)), **_recall_precision(w, fl), "per_flag": per_flag,
+            "beyond_local_offset": _recall_precision(w_local, fl)}
 
 
 def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None) -> dict:

@@ -67,13 +67,17 @@ class TopologyParams:
     TILE_SIZE_M: float = 200.0  # square tiles of the world plane (the service may use its own)
     COVERAGE_RADIUS_M: float = 10.0  # a trip "passed" an instance if it has elements this close
     LOW_SUPPORT_SHARE: float = 0.34  # of the trips that passed, fewer than this saw it
-    # fewer trips than this cannot outvote one bad trip (a robust fit needs a majority of 3)
-    MIN_SUPPORT_TRIPS: int = 3
+    # fewer trips than this saw it: nobody checked it. Two trips associated within the noise gate
+    # of each other confirm each other (measured: support 2 is wrong no more often than the map as
+    # a whole; a single trip 1.5-2 x as often, hard and standard profiles)
+    MIN_SUPPORT_TRIPS: int = 2
     HIGH_VARIANCE_RATIO: float = 2.0  # trip scatter / expected sigma above this
     DISAGREE_WEIGHT_SHARE: float = 0.25  # rejected (outlier) trips hold this share of the weight
     GAP_MIN_M: float = 5.0  # unsupported run inside an instance, or break to a collinear one
     HIGH_RESIDUAL_SIGMAS: float = 3.0  # match pair residual / ALIGNMENT_SIGMA_M above this
     WIDTH_RUN_M: float = 5.0  # an implausible spacing must hold over this length
+    # two estimates of one line differ by more than this many combined sigmas: not noise
+    DUPLICATE_SIGMAS: float = 2.0
     # seen by one trip of at least this many passing trips: held back from the map (0: never)
     SUPPRESS_MIN_COVERAGE: int = 0
 

@@ -3,21 +3,30 @@ variance of noise are used to determine whether there is noise in the map").
 
 Per instance (thresholds from the noise model, see ``TopologyParams``):
 
-- ``low_support``: fewer than ``MIN_SUPPORT_TRIPS`` trips saw it (with two, a robust fit
-  cannot tell which one is off), or fewer than ``LOW_SUPPORT_SHARE`` of the trips that passed
-  it (trips with any element within ``COVERAGE_RADIUS_M``);
+- ``low_support``: fewer than ``MIN_SUPPORT_TRIPS`` trips saw it (a single trip: nobody checked
+  it), or fewer than ``LOW_SUPPORT_SHARE`` of the trips that passed it (trips with any element
+  within ``COVERAGE_RADIUS_M``);
 - ``high_variance``: the inlier trips scatter around the fused line by more than
   ``HIGH_VARIANCE_RATIO`` times their own sigma (chi-like ratio; 1 when the noise model holds);
 - ``trips_disagree``: trips the robust fit rejected hold at least ``DISAGREE_WEIGHT_SHARE`` of
   the weight (two populations: which one is right is not clear);
-- ``outlier_trip`` (informative, the fused geometry ignores it): a minority trip rejected;
-- ``gap``: an unsupported stretch of at least ``GAP_MIN_M`` inside the instance, or a break of up
-  to ``MAX_GAP_M`` to a collinear instance of its type;
-- ``implausible_lane_width``: a parallel line of its type (divider/divider, boundary/boundary)
-  closer than a plausible lane (0.7 x the data's median spacing, within 0.6 - 1 x
-  ``MIN_LANE_WIDTH_M``) but farther than the association gate, over ``WIDTH_RUN_M``;
+- ``implausible_lane_width``: a parallel line of its type (any line type) farther than two
+  estimates of one line differ by noise (``DUPLICATE_SIGMAS`` x the combined ``uncertainty_m``)
+  but closer than a plausible lane (0.7 x the data's median spacing, within 0.6 - 1 x
+  ``MIN_LANE_WIDTH_M``), at an offset that holds (varies less than that noise bound) over
+  ``WIDTH_RUN_M`` (or half the instance) and over at least half of what lies beside it: one
+  element in the map twice, one copy off;
 - ``high_residual_pair``: an alignment match pair whose residual exceeds
   ``HIGH_RESIDUAL_SIGMAS`` x ``ALIGNMENT_SIGMA_M`` involves one of its trips near it.
+
+Informative (not suspect, severity 0): ``outlier_trip`` (the fused geometry ignores a minority
+trip), ``gap`` (an unsupported stretch of at least ``GAP_MIN_M`` inside the instance, or a break
+of up to ``MAX_GAP_M`` to a collinear instance of its type).
+
+What no check here can see: an offset shared by every trip in a region (the map as a whole
+placed off there, e.g. all its trips under the same GNSS bias): it leaves no inconsistency
+between trips. ``evaluate`` reports how many really wrong instances remain once such a local
+offset is removed (``beyond_local_offset``).
 
 Per tile (square ``TILE_SIZE_M`` tiles of the world plane): a quality score in [0, 1], 1 minus
 the severity-weighted share of instance length flagged, and the list of flags.
@@ -37,9 +46,12 @@ from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
-# severity of each flag in the tile score; ``outlier_trip`` does not make an instance suspect
+# severity of each flag in the tile score; ``outlier_trip`` and ``gap`` are informative and do not
+# make an instance suspect (a gap is spanned by the fit or is a break between two pieces: on the
+# hard and standard profiles an instance flagged by it alone was really wrong less often than the
+# map's average instance)
 SEVERITY = {"low_support": 1.0, "trips_disagree": 1.0, "implausible_lane_width": 1.0, "high_variance": 0.7,
-            "high_residual_pair": 0.7, "gap": 0.5, "outlier_trip": 0.0}
+            "high_residual_pair": 0.7, "gap": 0.0, "outlier_trip": 0.0}
 SUSPECT = frozenset(k for k, v in SEVERITY.items() if v > 0)
 PAIR_RADIUS_M = 30.0  # a match pair speaks for the instances within this of its centre
 
@@ -83,15 +95,24 @@ def _samples(features: Sequence[MapFeature], spacing: float) -> tuple[np.ndarray
 
 
 def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> dict[int, float]:
-    """Feature index -> run length (m) of implausibly narrow spacing to a same-type parallel line."""
+    """Feature index -> run length (m) along which a same-type parallel line lies implausibly
+    close: farther than two estimates of one line differ by noise (``DUPLICATE_SIGMAS`` x the
+    combined ``uncertainty_m`` of the two) but closer than two distinct parallel elements of the
+    type can be (0.7 x the data's median spacing, within 0.6 - 1 x ``MIN_LANE_WIDTH_M``). One
+    element is in the map twice, one copy (or both) off. The run must hold over ``WIDTH_RUN_M``
+    or half the instance, whichever is shorter (short pieces are copies too)."""
     out: dict[int, float] = {}
     spacing = params.SAMPLE_SPACING_M
     gate = params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M
-    for etype in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY):
+    for etype in ElementType:
+        if etype.is_polygon:
+            continue
         idx = [i for i, f in enumerate(features) if f.type == etype]
         if len(idx) < 2:
             continue
         pts, tans, own = _samples([features[i] for i in idx], spacing)
+        unc = np.array([float(features[i].properties.get("uncertainty_m", params.DEFAULT_LATERAL_SIGMA_M))
+                        for i in idx])
         tree = cKDTree(pts)
         pairs = tree.query_pairs(params.MAX_LANE_WIDTH_M, output_type="ndarray")
         if not len(pairs):
@@ -109,15 +130,33 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         finite = nearest[np.isfinite(nearest) & (nearest > gate)]
         typical = float(np.median(finite)) if len(finite) >= 20 else params.MIN_LANE_WIDTH_M / 0.7
         narrow = float(np.clip(0.7 * typical, 0.6 * params.MIN_LANE_WIDTH_M, params.MIN_LANE_WIDTH_M))
-        bad = (lat > gate) & (lat < narrow)
-        # per pair of features: the narrow run; blame the clearly less supported one, else both
-        pairs_ab = np.unique(np.c_[own[a[bad]], own[b[bad]], a[bad]], axis=0)
-        runs: dict[tuple[int, int], float] = {}
-        for fa, fb, _ in pairs_ab.tolist():
-            runs[(fa, fb)] = runs.get((fa, fb), 0.0) + spacing
+        noise = params.DUPLICATE_SIGMAS * np.hypot(unc[own[a]], unc[own[b]])
+        # alongside: the samples of a with a sample of the other line beside them (either side)
+        near = lat < narrow
+        beside = np.unique(np.c_[own[a[near]], own[b[near]], a[near]], axis=0)
+        n_beside = Counter(zip(beside[:, 0].tolist(), beside[:, 1].tolist(), strict=True))
+        bad = (lat > noise) & near
+        # per pair of features: the run of narrow samples, if the offset holds along it (a copy
+        # is parallel: its offset varies less than the noise bound; branches that diverge do
+        # not); blame the clearly less supported one, else both
+        a, b, lat, noise = a[bad], b[bad], lat[bad], noise[bad]
+        if not len(a):
+            continue
+        order = np.lexsort((lat, a, own[b], own[a]))
+        a, b, lat, noise = a[order], b[order], lat[order], noise[order]
+        first = np.r_[True, (own[a][1:] != own[a][:-1]) | (own[b][1:] != own[b][:-1]) | (a[1:] != a[:-1])]
+        a, b, lat, noise = a[first], b[first], lat[first], noise[first]  # nearest partner sample only
         support = [int(features[i].properties.get("support_trips", 1)) for i in idx]
-        for (fa, fb), run in runs.items():
-            if run < params.WIDTH_RUN_M:
+        length = np.bincount(own, minlength=len(idx)) * spacing
+        key = own[a] * len(idx) + own[b]
+        for k in np.unique(key):
+            sel = key == k
+            fa, fb = divmod(int(k), len(idx))
+            run = float(sel.sum()) * spacing
+            if run < min(params.WIDTH_RUN_M, 0.5 * length[fa]) or run < 0.5 * n_beside[(fa, fb)] * spacing:
+                continue
+            lo, hi = np.percentile(lat[sel], [10, 90])
+            if hi - lo > float(np.median(noise[sel])):
                 continue
             if support[fa] <= 0.5 * support[fb] or not support[fb] <= 0.5 * support[fa]:
                 out[idx[fa]] = max(out.get(idx[fa], 0.0), run)
