@@ -29,6 +29,7 @@ from services.api.routes import (
 from services.db import repo
 from services.db.engine import make_engine, make_session_factory, migrate
 from services.settings import Settings
+from services.tiles.fastpath import TileFastPath
 
 log = logging.getLogger(__name__)
 
@@ -81,4 +82,6 @@ def create_app(settings: Settings) -> FastAPI:
     for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web, ops_jobs,
                    trip_geometry):
         app.include_router(module.router)
+    # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)
+    app.add_middleware(TileFastPath, fastapi_app=app)
     return app

@@ -7,13 +7,14 @@ For each deployment: a fresh ``csr serve``; tile versions written with
 ``services.db.versions.write_tile_version`` (what the merge job calls): ``--cold-tiles`` zoom-16
 tiles of ``--features`` elements each (lines of 8 vertices and crosswalk polygons). *Cold*: the
 first request of each of those tiles (nothing cached in the API process; the database's own cache
-is warm). *Warm*: ``--seconds`` of keep-alive requests of one tile by ``--connections`` concurrent
-connections (the tile is in the API's cache; each request still authenticates its key and checks
-the ETag's tile versions), and the same load on nginx serving that tile's bytes as a static file
-(one nginx worker, like the one API process). The load generator is one asyncio process (uvloop)
-with raw keep-alive HTTP/1.1 connections; it shares the machine with the server.
+is warm; the tiles were rendered when their versions were published, see docs/tiles.md). *Warm*:
+``--seconds`` of keep-alive requests of one tile by ``--connections`` concurrent connections (the
+tile, its ETag and the key are in the API's fast-path caches), and the same load on nginx serving
+that tile's bytes as a static file (one nginx worker, like the one API process). The load
+generator is the same for both: one asyncio process (uvloop) with raw keep-alive HTTP/1.1
+connections; it shares the machine with the server.
 
-nginx: ``apt-get install -y nginx`` (Debian); without it the nginx column says so. The PostGIS
+nginx: ``apt-get install -y nginx-light`` (Debian); without it the nginx column says so. The PostGIS
 row needs ``--database-url`` naming an empty PostGIS database, e.g.::
 
     psql -h 127.0.0.1 -U postgres -c 'DROP DATABASE IF EXISTS csr_bench_tiles' -c 'CREATE DATABASE csr_bench_tiles'
@@ -310,22 +311,24 @@ def _run(args: argparse.Namespace) -> int:
     import logging
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
+    load_before = os.getloadavg()[0]
     rows = [run_deployment("embedded (SQLite, Python encoder)", None, args)]
     if args.database_url:
         rows.append(run_deployment("PostGIS (ST_AsMVT)", args.database_url, args))
     lines = [
         f"Tiles of {args.features} elements at zoom 16 (lines of 8 vertices, 1 in 10 a crosswalk polygon); "
         f"{os.cpu_count()} cores shared by the server, nginx and the load generator; load average "
-        f"{os.getloadavg()[0]:.1f} at the end. Warm: {args.seconds:.0f} s of keep-alive GETs of one tile over "
-        f"{args.connections} connections (one asyncio/uvloop client process); the API authenticates every request "
-        "and checks the tile's versions for its ETag, then answers from its tile cache; nginx (1 worker) serves "
-        f"the same bytes as a static file. Cold: the first request of each of {args.cold_tiles} tiles, one at a time. "
+        f"{load_before:.1f} at the start, {os.getloadavg()[0]:.1f} at the end. Warm: {args.seconds:.0f} s of "
+        f"keep-alive GETs of one tile over {args.connections} connections (the same asyncio/uvloop client process "
+        "for both); the API answers from its fast path (cached key, ETag and body); nginx (1 worker) serves "
+        f"the same bytes as a static file. Cold: the first request of each of {args.cold_tiles} tiles, one at a time "
+        "(rendered when their versions were published). Write: seconds per `write_tile_version` of one tile. "
         "Reproduce: `csr bench-tiles --database-url <an empty PostGIS database>` (see `services/cli/bench_tiles.py`; "
-        "nginx from `apt-get install -y nginx`).",
+        "nginx from `apt-get install -y nginx-light`).",
         "",
         "| deployment | features / tile | tile bytes | warm req/s (live URL) | warm req/s (pinned `?v=`) "
-        "| nginx static req/s | live / nginx | cold p50 | cold p99 |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| nginx static req/s | live / nginx | cold p50 | cold p99 | write s / version |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         static = r["static"]
@@ -333,7 +336,8 @@ def _run(args: argparse.Namespace) -> int:
         ratio = f"{r['warm']['rps'] / static['rps']:.2f}" if static else "-"
         lines.append(
             f"| {r['name']} | {r['features']} | {r['bytes']:,} | {r['warm']['rps']:.0f} | {r['pinned']['rps']:.0f} "
-            f"| {nginx} | {ratio} | {r['cold_p50']:.1f} ms | {r['cold_p99']:.1f} ms |"
+            f"| {nginx} | {ratio} | {r['cold_p50']:.1f} ms | {r['cold_p99']:.1f} ms "
+            f"| {r['write_s'] / (args.cold_tiles + 1):.2f} |"
         )
     lines.append("")
     verdicts = []

@@ -361,3 +361,38 @@ def ewkt_linestring(lonlat_deg) -> str:
     """``(N, 2)`` lon, lat degrees -> ``SRID=4326;LINESTRING(...)`` (what the track column takes)."""
     coords = ",".join(f"{lon!r} {lat!r}" for lon, lat in lonlat_deg.tolist())
     return f"SRID=4326;LINESTRING({coords})"
+
+
+class TileVersionExtent(Base):
+    """The lon/lat bounding box of a tile version's features (all ``None``: it has none). A served
+    tile's content depends only on the live versions whose extent meets its buffered bounds, so
+    their ids are its identity (the ETag and the key of :class:`TileRender`). A version without a
+    row (written before this table) counts as reaching everywhere near its tile."""
+
+    __tablename__ = "tile_version_extents"
+
+    tile_version_id: Mapped[int] = mapped_column(
+        ForeignKey("tile_versions.id", ondelete="CASCADE"), primary_key=True
+    )
+    west: Mapped[float | None] = mapped_column(Float)
+    south: Mapped[float | None] = mapped_column(Float)
+    east: Mapped[float | None] = mapped_column(Float)
+    north: Mapped[float | None] = mapped_column(Float)
+
+
+class TileRender(Base):
+    """A served tile's body, stored once per content: ``etag`` (the strong ETag, which hashes the
+    format, the encoder and the contributing versions) -> ``body`` (``None``: an empty tile, 204).
+    Written when a version is published (the pipeline-zoom tiles it changes, in the same
+    transaction) and on the first read of any other tile; never updated."""
+
+    __tablename__ = "tile_renders"
+    __table_args__ = (Index("ix_tile_renders_zxy", "z", "x", "y"),)
+
+    etag: Mapped[str] = mapped_column(String(40), primary_key=True)
+    kind: Mapped[str] = mapped_column(String(8))  # mvt | geojson
+    z: Mapped[int] = mapped_column(Integer)
+    x: Mapped[int] = mapped_column(Integer)
+    y: Mapped[int] = mapped_column(Integer)
+    body: Mapped[bytes | None] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -291,6 +291,7 @@ def write_tile_version(
             ],
         )
     now = utcnow()
+    old_live_id = head.live_version_id if head is not None else None
     if head is None:
         head = TileHead(z=z, x=x, y=y, latest_version=number, updated_at=now)
         session.add(head)
@@ -298,6 +299,14 @@ def write_tile_version(
     if publish:
         head.live_version, head.live_version_id = number, version.id
     session.flush()
+    # The version's extent and, when it went live, the rendered tiles it changed: in this
+    # transaction, so a version and its tile bytes appear together (docs/tiles.md).
+    from services.tiles import signals, store  # they import this module
+
+    store.after_write(session, version=version, features=features, old_live_id=old_live_id, published=publish)
+    signals.tiles_written(session)
+    if _is_postgres(session):  # the API processes drop their cached ETags at the commit
+        session.execute(text("SELECT pg_notify('csr_tiles', :tile)"), {"tile": f"{z}/{x}/{y}"})
     return version
 
 

@@ -1,10 +1,11 @@
 """Tiles, GeoJSON and TileJSON from the version store, with their ETags and an in-process cache.
 
-A tile's content is fixed by the tile versions that contribute to it (``versions.
-contributing_versions`` of its buffered bounds), so its strong ETag is a hash of those
-``(z, x, y, version, id)`` tuples, the format, the encoder (PostGIS or Python) and
-:data:`mvt.ENCODING_VERSION`. Answering a warm request or a 304 costs one indexed query on
-``tile_heads`` (or ``tile_versions`` for a pinned map version) and a cache lookup.
+A tile's content is fixed by the tile versions that reach it (``store.reaching_versions``: the
+live or pinned versions near it whose feature extent meets its buffered bounds), so its strong ETag
+is a hash of those ``(z, x, y, version, id)`` tuples, the format, the encoder (PostGIS or Python)
+and :data:`mvt.ENCODING_VERSION`. The body is looked up by ETag in the in-process LRU, then in
+``tile_renders`` (rendered at publish time, or at the first read), and only then encoded (and
+stored). The HTTP fast path in front of FastAPI (``services.tiles.fastpath``) caches the ETag itself.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from sqlalchemy.orm import Session
 
 from services.db import versions as vs
 from services.db.models import MapFeatureRow, TileHead
-from services.tiles import mvt
+from services.tiles import mvt, store
 from services.tiles.mercator import MAX_ZOOM, buffered_bounds_lonlat
 
 CACHE_MAX_BYTES = 64 * 1024 * 1024
@@ -78,20 +79,21 @@ def make_etag(kind: str, z: int, x: int, y: int, versions: Sequence[tuple], back
     return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
 
 
-def _backend(session: Session) -> str:
+def backend_of(session: Session) -> str:
+    """The encoder of the deployment: ``postgis`` (ST_AsMVT) on PostgreSQL, ``python`` otherwise."""
     return "postgis" if session.get_bind().dialect.name == "postgresql" else "python"
 
 
 def tile_versions_for(session: Session, *, z: int, x: int, y: int, map_version: int | None) -> list[tuple]:
-    bounds = buffered_bounds_lonlat(z, x, y, buffer_frac=mvt.BUFFER_FRAC)
-    return vs.contributing_versions(session, bbox_lonlat=bounds, map_version=map_version)
+    """The versions that make tile z/x/y (live, or at ``map_version``): its content's identity."""
+    return store.reaching_versions(session, z=z, x=x, y=y, map_version=map_version)
 
 
 def tile_etag(
     session: Session, *, kind: str, z: int, x: int, y: int, map_version: int | None
 ) -> tuple[str, list]:
     versions = tile_versions_for(session, z=z, x=x, y=y, map_version=map_version)
-    return make_etag(kind, z, x, y, versions, _backend(session)), versions
+    return make_etag(kind, z, x, y, versions, backend_of(session)), versions
 
 
 def encode_tile(
@@ -99,7 +101,7 @@ def encode_tile(
 ) -> bytes | None:
     """MVT bytes of the tile from ``versions`` (PostGIS on PostgreSQL, Python otherwise, or as
     ``backend`` says: ``postgis`` | ``python``)."""
-    backend = backend or _backend(session)
+    backend = backend or backend_of(session)
     if backend == "postgis":
         return mvt.encode_sql(session, z=z, x=x, y=y, tile_version_ids=[v[-1] for v in versions])
     bounds = buffered_bounds_lonlat(z, x, y, buffer_frac=mvt.BUFFER_FRAC)
@@ -144,9 +146,11 @@ def render(
     map_version: int | None,
     if_none_match: str | None = None,
     pinned_etags: TileCache | None = None,
+    store_renders: bool = True,
 ) -> tuple[Tile, bool]:
     """The tile (``kind``: ``mvt`` | ``geojson``) and whether ``if_none_match`` matched (304).
-    ``pinned_etags`` remembers the ETag of a pinned tile (it never changes)."""
+    ``pinned_etags`` remembers the ETag of a pinned tile (it never changes); a body that had to be
+    encoded is kept in ``tile_renders`` (``store_renders``, in the caller's transaction)."""
     media = "application/vnd.mapbox-vector-tile" if kind == "mvt" else "application/geo+json"
     pin_key = f"{kind}|{z}/{x}/{y}|{map_version}"
     versions: list | None = None
@@ -162,6 +166,8 @@ def render(
         return Tile(None, etag, media), True
     hit, body = cache.get(etag)
     if not hit:
+        hit, body = store.lookup(session, etag)
+    if not hit:
         if versions is None:
             versions = tile_versions_for(session, z=z, x=x, y=y, map_version=map_version)
         if kind == "mvt":
@@ -174,7 +180,9 @@ def render(
                 if features
                 else None
             )
-        cache.put(etag, body)
+        if store_renders:
+            store.store(session, etag=etag, kind=kind, z=z, x=x, y=y, body=body)
+    cache.put(etag, body)
     return Tile(body, etag, media), False
 
 

@@ -30,6 +30,8 @@ TABLES = {
     "tile_heads",
     "map_features",
     "corrections",
+    "tile_renders",
+    "tile_version_extents",
 }
 
 

@@ -1,7 +1,11 @@
 """Tiles (contract section 3): ``GET /v1/tiles/{z}/{x}/{y}.mvt`` and ``.geojson``, ``GET
 /v1/tiles.json`` (TileJSON 3.0.0). Live tiles: short ``Cache-Control`` and a strong ETag from the
 contributing tile versions (304 on ``If-None-Match``); ``?v=<map version>`` pins a tile to a map
-version and is cached for a year (immutable). 204 for an empty tile. See docs/tiles.md."""
+version and is cached for a year (immutable). 204 for an empty tile. See docs/tiles.md.
+
+Most tile GETs never reach these routes: ``services.tiles.fastpath`` answers them from its caches
+in front of FastAPI and hands over only what it cannot answer exactly as they would (errors,
+other parameters, misses of the key cache that turn out 401/403)."""
 
 from __future__ import annotations
 
