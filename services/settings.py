@@ -41,6 +41,11 @@ class Settings(BaseSettings):
     tile_halo_m: float = Field(
         75.0, gt=0, description="a tile job also aligns the trips' frames this close to the tile (seams)"
     )
+    tile_checkerboard: bool = Field(
+        True,
+        description="a tile's first alignment waits for its edge neighbours of the other colour (x + y even "
+        "first), so that every seam is aligned once against a map",
+    )
     publish_min_quality: float = Field(
         0.8, ge=0, le=1,
         description="a merged tile version is a candidate for review, not live, when the share of its elements "

@@ -17,6 +17,11 @@ def tile_frame(z: int, x: int, y: int) -> LocalFrame:
     return region_frame_for(((west + east) / 2, (south + north) / 2))
 
 
+def tile_subject(z: int, x: int, y: int) -> str:
+    """A tile job's subject (``parse_tile`` reads it back)."""
+    return f"{z}/{x}/{y}"
+
+
 def parse_tile(subject: str) -> tuple[int, int, int]:
     z, x, y = (int(v) for v in subject.split("/"))
     return z, x, y

@@ -96,21 +96,25 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
         raise JobFailed(f"unknown job kind {kind!r}")
     except OperationalError:  # the database is unreachable: transient, the runner retries the job
         raise
-    except tile_jobs.RetryJob as exc:  # another job wrote the tile first: run again on its result
+    except tile_jobs.RetryJob as exc:  # another job wrote the tile first (or a neighbour's comes first)
         log.info("job %s (%s %s) is queued again: %s", job_id, kind, subject, exc)
-        return requeue_job(session_factory, job_id, exc)
+        return requeue_job(session_factory, job_id, exc, attempt_counts=not isinstance(exc, tile_jobs.WaitForNeighbours))
     except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
         log.exception("job %s (%s %s) failed", job_id, kind, subject)
         return mark_job_failed(session_factory, job_id, exc, started=started)
 
 
-def requeue_job(session_factory: sessionmaker[Session], job_id: str, exc: BaseException) -> str:
-    """Queue a running job again (the outbox hands it to a runner anew)."""
+def requeue_job(session_factory: sessionmaker[Session], job_id: str, exc: BaseException,
+                attempt_counts: bool = True) -> str:
+    """Queue a running job again (the outbox hands it to a runner anew); ``attempt_counts``
+    False: it did no work (it waits for another job), its attempt is given back."""
     with session_factory.begin() as session:
         job = repo.get_job(session, job_id=job_id, for_update=True)
         if job is None or job.state != "running":
             return job.state if job else "missing"
         job.state, job.dispatched_at, job.error = "queued", None, f"retrying: {exc}"
+        if not attempt_counts:
+            job.attempts = max(job.attempts - 1, 0)
     return "queued"
 
 

@@ -28,6 +28,7 @@ import gzip
 import io
 import logging
 import pickle
+import time
 import zlib
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -36,7 +37,7 @@ from typing import Any
 import numpy as np
 import orjson
 import shapely
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from csr_core.alignment import AlignmentResult, MatchCorrections, PairConstraint, PriorMap, align_trips
@@ -88,7 +89,7 @@ from services.reconstructions import (
     noise_json,
 )
 from services.settings import Settings
-from services.tile_frames import Side, tile_frame
+from services.tile_frames import Side, tile_frame, tile_subject
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,33 @@ GATE_FLAGS = SUSPECT - {"low_support", "gap"}
 
 class RetryJob(Exception):
     """A transient conflict (another job wrote the tile first): the job is queued again."""
+
+
+class WaitForNeighbours(RetryJob):
+    """A tile's first alignment waits for a neighbour's first version (queued again, the attempt
+    not counted)."""
+
+
+NEIGHBOUR_WAIT_S = 0.5  # pause before a waiting job goes back to the queue (no busy loop)
+
+
+def neighbours_to_wait_for(session: Session, z: int, x: int, y: int) -> list[str]:
+    """The edge neighbours a tile's first alignment waits for: checkerboard order, so that every
+    seam is aligned once against a map. Tiles with x + y even align first, side by side (they
+    touch only at corners); a tile with x + y odd waits while an edge neighbour has no version
+    yet and a job of its own queued or running, and then aligns with the neighbours' maps in
+    its halo as the prior (``P_sub-pre``). Aligned at the same time, two neighbours would each
+    settle on their own consensus and meet with a step in the halo."""
+    if (x + y) % 2 == 0 or versions.latest_version(session, z=z, x=x, y=y) is not None:
+        return []
+    out = []
+    for nx, ny in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
+        subject = tile_subject(z, nx, ny)
+        pending = session.scalar(select(func.count()).select_from(Job).where(
+            Job.subject == subject, Job.kind.in_(("align_tile", "merge_tile")), Job.state.in_(("queued", "running"))))
+        if pending and versions.latest_version(session, z=z, x=nx, y=ny) is None:
+            out.append(subject)
+    return out
 
 
 # --- align_tile -----------------------------------------------------------------------------------
@@ -135,6 +163,12 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     """``full``: re-align every trip of the tile with the map team's corrections (a ``correct_tile``
     job), against the neighbouring tiles' map only (the tile's own map is what is being redone)."""
     frame = tile_frame(z, x, y)
+    if not full and settings.tile_checkerboard:
+        with session_factory() as session:
+            waiting = neighbours_to_wait_for(session, z, x, y)
+        if waiting:
+            time.sleep(NEIGHBOUR_WAIT_S)
+            raise WaitForNeighbours(f"first alignment waits for the first version of {', '.join(waiting)}")
     with session_factory() as session:
         has_version = versions.latest_version(session, z=z, x=x, y=y) is not None and not full
         rows = session.execute(

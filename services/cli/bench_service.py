@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="world of the scale-out part (highway: 10 x 1.5 km trips make about a dozen dirty tiles)")
     p.add_argument("--pg-admin-url", default=PG_ADMIN_URL, help="PostgreSQL admin URL (scratch databases)")
     p.add_argument("--redis-url", default=os.environ.get("CSR_BENCH_REDIS_URL", "redis://127.0.0.1:6379/12"))
+    p.add_argument("--env", action="append", default=[], metavar="CSR_NAME=VALUE",
+                   help="a setting for the deployments' processes (repeatable), e.g. CSR_TILE_HALO_M=150 "
+                        "(the deployments do not inherit CSR_* from this shell)")
     p.add_argument("--write", type=Path, default=None, help="update this BENCHMARKS.md between the service markers")
     p.set_defaults(func=_run)
 
@@ -45,6 +48,16 @@ def _simulate(world: str, trips: int, length_m: float, seed: int, out: Path) -> 
     args = build_parser().parse_args(["simulate", "--world", world, "--trips", str(trips), "--profile", "standard",
                                       "--seed", str(seed), "--trip-length-m", str(length_m), "--out", str(out)])
     args.func(args)
+    return out
+
+
+def _extra_env(args) -> dict[str, str]:
+    out = {}
+    for item in args.env:
+        name, sep, value = item.partition("=")
+        if not sep or not name.startswith("CSR_"):
+            raise SystemExit(f"--env {item!r}: expected CSR_NAME=VALUE")
+        out[name] = value
     return out
 
 
@@ -94,7 +107,7 @@ def part_accuracy(scenario: Path, work: Path, args) -> list[str]:
     rows = [("csr reconstruct (one process)", _scores(scenario, work / "reconstruct"), cpu, None)]
     for kind in ("embedded", "distributed"):
         url = scratch_postgis(args.pg_admin_url, "csr_bench_service") if kind == "distributed" else None
-        with LocalDeployment(kind, database_url=url, redis_url=args.redis_url) as dep:
+        with LocalDeployment(kind, database_url=url, redis_url=args.redis_url, extra_env=_extra_env(args)) as dep:
             run = _through_service(dep, scenario, work / kind)
         rows.append((f"service, {kind}", _scores(scenario, work / kind), run["job_s"], run["wall_s"]))
     base = rows[0][1]
@@ -122,7 +135,7 @@ def part_incremental(work: Path, args) -> list[str]:
     for n in (5, 50):
         base = _subset(full, keys[:n], work / f"inc-{n}")
         extra = _subset(full, keys[50:51], work / f"inc-{n}-new")
-        with LocalDeployment("embedded") as dep:
+        with LocalDeployment("embedded", extra_env=_extra_env(args)) as dep:
             _through_service(dep, base, work / f"inc-{n}-out")
             with fleet.client_for(dep.base_url, dep.admin_key) as http:
                 ids = fleet.upload_scenario(http, extra, progress=False)
@@ -148,7 +161,8 @@ def part_scaleout(work: Path, args) -> list[str]:
     walls = {}
     for workers in (1, 2):
         url = scratch_postgis(args.pg_admin_url, "csr_bench_service")
-        with LocalDeployment("distributed", database_url=url, redis_url=args.redis_url, workers=workers) as dep:
+        with LocalDeployment("distributed", database_url=url, redis_url=args.redis_url, workers=workers,
+                             extra_env=_extra_env(args)) as dep:
             from services import fleet
 
             with fleet.client_for(dep.base_url, dep.admin_key) as http:

@@ -26,6 +26,7 @@ from services.db.models import (
     TripUpload,
     utcnow,
 )
+from services.tile_frames import tile_subject
 
 ROLES = ("vehicle", "reader", "admin")
 BOOTSTRAP_ADMIN_ID = "admin-bootstrap"
@@ -332,7 +333,8 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     ``last_marked_before`` (``None``: every dirty tile, now). Safe against concurrent schedulers.
 
     The biggest tiles (most trips waiting) are queued first: with several workers the batch ends
-    when its longest job does, so that one must not start last (longest processing time first)."""
+    when its longest job does, so that one must not start last (longest processing time first),
+    after the checkerboard colour (even x + y first)."""
     waiting = (select(func.count()).select_from(TripTile)
                .where(TripTile.z == DirtyTile.z, TripTile.x == DirtyTile.x, TripTile.y == DirtyTile.y,
                       TripTile.processed_job_id.is_(None))
@@ -340,10 +342,12 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     stmt = select(DirtyTile).where(DirtyTile.job_id.is_(None))
     if last_marked_before is not None:
         stmt = stmt.where(DirtyTile.last_marked_at <= last_marked_before)
-    stmt = stmt.order_by(waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y)
+    # checkerboard: the tiles with x + y even first (the odd ones wait for their first versions,
+    # ``tile_jobs.neighbours_to_wait_for``), each colour biggest first
+    stmt = stmt.order_by((DirtyTile.x + DirtyTile.y) % 2, waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y)
     jobs = []
     for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
-        job = add_job(session, kind="align_tile", subject=f"{tile.z}/{tile.x}/{tile.y}")
+        job = add_job(session, kind="align_tile", subject=tile_subject(tile.z, tile.x, tile.y))
         taken = session.execute(
             update(DirtyTile)
             .where(

@@ -88,7 +88,7 @@ def test_process_queues_the_busiest_tiles_first(deployment: Deployment):
         return deployment.upload(doc).json()["id"]
 
     # the quiet tile is uploaded first and sorts first by z/x/y: only the trip count puts it last
-    quiet = drive(47.5101, 9.4101)
+    quiet = drive(47.5101, 9.4301)  # both tiles have x + y odd (the checkerboard colour comes first)
     busy = [drive(47.6101, 9.6101) for _ in range(3)]
     deployment.wait_idle()
     tiles = {pk: _trip(deployment, pk)["tiles"] for pk in (*busy, quiet)}
@@ -98,6 +98,47 @@ def test_process_queues_the_busiest_tiles_first(deployment: Deployment):
     assert busy_tile in order and quiet_tile in order, (order, tiles)
     assert order.index(busy_tile) < order.index(quiet_tile), order
     deployment.wait_idle()
+
+
+def test_a_tiles_first_alignment_waits_for_its_neighbours_first_version(deployment: Deployment):
+    """Checkerboard: of two edge neighbours both new, the one with x + y odd aligns only once the
+    even one has its first version (its map is then the prior in the halo), even with two job
+    threads free; its wait does not count as an attempt."""
+    from csr_core.geo import tile_bounds_lonlat
+    from services.cli.bench_ingest import straight_trip
+
+    z, x_even, y = 16, 34489, 22921  # x + y even; its east neighbour is odd
+    assert (x_even + y) % 2 == 0
+
+    def drive(x: int) -> str:
+        west, south, east, north = tile_bounds_lonlat(z, x, y)
+        doc = straight_trip(vehicle_id="veh-chk", trip_id="chk-" + secrets.token_hex(4), length_m=120.0,
+                            origin_lat=(south + north) / 2, origin_lon=(west + east) / 2, heading_deg=0.0)
+        return deployment.upload(doc).json()["id"]
+
+    # the odd tile's trips come first and outnumber the even one's: only the checkerboard puts it after
+    for _ in range(2):
+        drive(x_even + 1)
+    drive(x_even)
+    deployment.wait_idle()
+    with deployment.admin() as http:
+        http.post("/v1/process").raise_for_status()
+    deployment.wait_idle(timeout_s=180)
+    even_version_at = deployment.scalar(
+        "SELECT min(created_at) FROM tile_versions WHERE z = :z AND x = :x AND y = :y", z=z, x=x_even, y=y)
+    odd = deployment.rows("SELECT state, attempts, started_at FROM jobs WHERE kind = 'align_tile' AND subject = :s",
+                          s=f"{z}/{x_even + 1}/{y}")
+    assert even_version_at is not None and len(odd) == 1, odd
+    state, attempts, started_at = odd[0]
+    assert state == "done" and attempts == 1
+
+    def as_utc(t):
+        from datetime import UTC, datetime
+
+        t = datetime.fromisoformat(t) if isinstance(t, str) else t
+        return t if t.tzinfo else t.replace(tzinfo=UTC)
+
+    assert as_utc(started_at) >= as_utc(even_version_at), (started_at, even_version_at)
 
 
 def test_process_with_nothing_dirty_schedules_nothing(deployment: Deployment):
