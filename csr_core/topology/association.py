@@ -37,7 +37,6 @@ from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, TripInstance
 
-
 MAP_MEMBER_KEY = "<map>"  # trip key of a map instance standing for its members (incremental update)
 
 

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--start", type=int, default=5, help="trips fused in a batch before the one-by-one updates")
     ap.add_argument("--cache", help="pickle of the trips' aligned instances (written if missing)")
     args = ap.parse_args(argv)
-    print(json.dumps(compare(args.scenario, args.start, args.cache), indent=2))
+    print(json.dumps(compare(args.scenario, args.start, args.cache), indent=2))  # noqa: T201
     return 0
 
 
