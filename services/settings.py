@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     )
     tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
     tile_halo_m: float = Field(
-        75.0, gt=0, description="a tile job also aligns the trips' frames this close to the tile (seams)"
+        150.0, gt=0, description="a tile job also aligns the trips' frames this close to the tile (seams)"
     )
     tile_checkerboard: bool = Field(
         True,
