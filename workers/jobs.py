@@ -98,7 +98,7 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
         raise
     except tile_jobs.RetryJob as exc:  # another job wrote the tile first (or a neighbour's comes first)
         log.info("job %s (%s %s) is queued again: %s", job_id, kind, subject, exc)
-        return requeue_job(session_factory, job_id, exc, attempt_counts=not isinstance(exc, tile_jobs.WaitForNeighbours))
+        return requeue_job(session_factory, job_id, exc, attempt_counts=exc.counts_as_attempt)
     except Exception as exc:  # recorded on the job: a failed job is visible in /v1/jobs/summary
         log.exception("job %s (%s %s) failed", job_id, kind, subject)
         return mark_job_failed(session_factory, job_id, exc, started=started)

@@ -104,10 +104,14 @@ GATE_FLAGS = SUSPECT - {"low_support", "gap"}
 class RetryJob(Exception):
     """A transient conflict (another job wrote the tile first): the job is queued again."""
 
+    counts_as_attempt = True
+
 
 class WaitForNeighbours(RetryJob):
-    """A tile's first alignment waits for a neighbour's first version (queued again, the attempt
-    not counted)."""
+    """A tile's first alignment waits for a neighbour's first version (queued again; it did no
+    work, so the attempt is not counted)."""
+
+    counts_as_attempt = False
 
 
 NEIGHBOUR_WAIT_S = 0.5  # pause before a waiting job goes back to the queue (no busy loop)
@@ -120,14 +124,14 @@ def neighbours_to_wait_for(session: Session, z: int, x: int, y: int) -> list[str
     yet and a job of its own queued or running, and then aligns with the neighbours' maps in
     its halo as the prior (``P_sub-pre``). Aligned at the same time, two neighbours would each
     settle on their own consensus and meet with a step in the halo."""
-    if (x + y) % 2 == 0 or versions.latest_version(session, z=z, x=x, y=y) is not None:
+    if (x + y) % 2 == 0 or versions.has_version(session, z=z, x=x, y=y):
         return []
     out = []
     for nx, ny in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
         subject = tile_subject(z, nx, ny)
         pending = session.scalar(select(func.count()).select_from(Job).where(
             Job.subject == subject, Job.kind.in_(("align_tile", "merge_tile")), Job.state.in_(("queued", "running"))))
-        if pending and versions.latest_version(session, z=z, x=nx, y=ny) is None:
+        if pending and not versions.has_version(session, z=z, x=nx, y=ny):
             out.append(subject)
     return out
 
@@ -163,14 +167,13 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     """``full``: re-align every trip of the tile with the map team's corrections (a ``correct_tile``
     job), against the neighbouring tiles' map only (the tile's own map is what is being redone)."""
     frame = tile_frame(z, x, y)
-    if not full and settings.tile_checkerboard:
-        with session_factory() as session:
-            waiting = neighbours_to_wait_for(session, z, x, y)
+    with session_factory() as session:
+        waiting = neighbours_to_wait_for(session, z, x, y) if not full and settings.tile_checkerboard else []
         if waiting:
+            session.close()
             time.sleep(NEIGHBOUR_WAIT_S)
             raise WaitForNeighbours(f"first alignment waits for the first version of {', '.join(waiting)}")
-    with session_factory() as session:
-        has_version = versions.latest_version(session, z=z, x=x, y=y) is not None and not full
+        has_version = versions.has_version(session, z=z, x=x, y=y) and not full
         rows = session.execute(
             select(TripTile.trip_pk, TripTile.processed_job_id)
             .join(Trip, Trip.id == TripTile.trip_pk)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +44,6 @@ from csr_core.topology.instances import (
 from csr_core.topology.params import DEFAULT, TopologyParams
 from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 
-MAP_KEY = MAP_MEMBER_KEY
 MIN_ANCHOR_SIGMA_M = 0.02  # a map instance never weighs more than one of 2 cm standard error
 
 
@@ -94,9 +94,9 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
         kept.extend(f for k, f in enumerate(old) if k not in touched)
         touched_old.extend(old[k] for k in sorted(touched))
         for fused, mem in fuse_type(touched_members, etype, params):
-            anchors = [old[m.index] for m in mem if m.trip_key == MAP_KEY]
+            anchors = [old[m.index] for m in mem if m.trip_key == MAP_MEMBER_KEY]
             if anchors:
-                real = tuple(m for m in mem if m.trip_key != MAP_KEY)
+                real = tuple(m for m in mem if m.trip_key != MAP_MEMBER_KEY)
                 refit.append(_continued_feature(fused, mem, anchors, times))
                 refit_members.append(tuple(m for a in anchors for m in previous.members.get(a.feature_id, ()))
                                      + real)
@@ -130,7 +130,7 @@ def _anchor(k: int, f: MapFeature) -> Member:
     """The map's instance ``k`` as a pseudo-member: its line, weighing as its standard error."""
     sigma = max(float(f.properties.get("uncertainty_m", 0.05)), MIN_ANCHOR_SIGMA_M)
     n_obs = int(f.properties.get("support_observations", 1))
-    return Member(MAP_KEY, k, TripInstance(f.type, f.points_xy_world, f.style, n_obs), sigma)
+    return Member(MAP_MEMBER_KEY, k, TripInstance(f.type, f.points_xy_world, f.style, n_obs), sigma)
 
 
 def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors: Sequence[MapFeature],
@@ -139,11 +139,11 @@ def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors:
     the anchors' members and the new ones together): supports add up, the scatter and the
     rejected share are the trip-weighted means of the map's and the new members', times
     span both."""
-    real = [(k, m) for k, m in enumerate(members) if m.trip_key != MAP_KEY]
+    real = [(k, m) for k, m in enumerate(members) if m.trip_key != MAP_MEMBER_KEY]
     old_trips = {t for a in anchors for t in a.properties.get("trips", ())}
     trips = sorted(old_trips | {m.trip_key for _, m in real})
     outliers = {members[k].trip_key for k in fused.outlier_members
-                if k < len(members) and members[k].trip_key != MAP_KEY}
+                if k < len(members) and members[k].trip_key != MAP_MEMBER_KEY}
     z2_old = sum(float(a.properties.get("scatter_ratio", 1.0)) ** 2 * int(a.properties.get("support_trips", 1))
                  for a in anchors)
     n_z_old = sum(int(a.properties.get("support_trips", 1)) for a in anchors)
@@ -154,10 +154,10 @@ def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors:
     rejected_old = sum(float(a.properties.get("rejected_weight_share", 0.0)) * int(a.properties.get(
         "support_trips", 1)) for a in anchors)
     rejected = (rejected_old + len(outliers)) / max(n_z_old + len(real), 1)
-    seen = [a.properties.get("first_seen") for a in anchors] + [trip_times.get(m.trip_key) for _, m in real]
-    confirmed = [a.properties.get("last_confirmed") for a in anchors] + [trip_times.get(m.trip_key) for _, m in real]
-    seen = [t for t in seen if t is not None]
-    confirmed = [t for t in confirmed if t is not None]
+    new_times = [trip_times.get(m.trip_key) for _, m in real]
+    seen: list[Any] = [t for t in [a.properties.get("first_seen") for a in anchors] + new_times if t is not None]
+    confirmed: list[Any] = [t for t in [a.properties.get("last_confirmed") for a in anchors] + new_times
+                            if t is not None]
     first = min(anchors, key=lambda a: (a.properties.get("first_seen") is None, str(a.properties.get("first_seen"))))
     props = {
         "support_trips": len(trips),
