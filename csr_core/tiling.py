@@ -57,6 +57,13 @@ def owned_tiles(poses_xyyaw: np.ndarray, frame: LocalFrame, zoom: int) -> list[t
     return tiles_touched(frame.to_lonlat(np.asarray(poses_xyyaw, float)[:, :2]), zoom=zoom)
 
 
+def owned_frame_counts(poses_xyyaw: np.ndarray, frame: LocalFrame, zoom: int) -> dict[tuple[int, int, int], int]:
+    """``{(z, x, y): frames}``: how many frames each tile owns (sorted by tile); a tile job's cost
+    grows with the frames it aligns, so the scheduler reads it from this."""
+    tiles, counts = np.unique(frame_tiles(poses_xyyaw, frame, zoom), axis=0, return_counts=True)
+    return {(zoom, int(x), int(y)): int(n) for (x, y), n in zip(tiles, counts, strict=True)}
+
+
 def signed_distance_m(points_xy: np.ndarray, polygon: shapely.Polygon) -> np.ndarray:
     """Distance of each point to the polygon's outline, positive inside, negative outside."""
     pts = shapely.points(np.asarray(points_xy, float))

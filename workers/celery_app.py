@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from services.db.engine import make_engine, make_session_factory
 from services.db.repo import QUEUES
 from services.settings import Settings, get_settings
+from workers.dispatch import PRIORITY_STEPS
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,8 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             "unacked_restore_throttle": 1,
             "socket_connect_timeout": 2,
             "socket_timeout": 10,
+            # message priorities (workers.dispatch): BRPOP takes the lowest step first across the queues
+            "priority_steps": list(PRIORITY_STEPS),
         },
         "broker_connection_retry_on_startup": True,
         "task_queues": tuple(Queue(name, Exchange(name, type="direct"), routing_key=name) for name in QUEUES),

@@ -1,11 +1,14 @@
 """The embedded default's job runner: the same job functions as the Celery tasks, run in-process
-on a thread pool. A dispatcher thread takes outbox rows (jobs not yet dispatched) and submits
-them; nothing is lost across a restart, because jobs left running are queued again at start.
-This is not Celery's eager mode: uploads return before their jobs run."""
+on a thread pool. A dispatcher thread takes outbox rows (jobs not yet dispatched) whenever a
+thread is free, in ``workers.dispatch``'s order (merges first, then the biggest tiles; held-back
+tiles stay in the outbox), and submits them; nothing is lost across a restart, because jobs left
+running are queued again at start. This is not Celery's eager mode: uploads return before their
+jobs run."""
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -16,12 +19,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from services.db import repo
 from services.db.models import Job, utcnow
 from services.settings import Settings
+from workers import dispatch
 from workers.jobs import run_job
 from workers.loop import BackgroundLoop
 
 log = logging.getLogger(__name__)
 
-BATCH = 100  # outbox rows taken per round
+BATCH = 100  # outbox rows read per page
 RETRY_AFTER_S = 5.0  # a job that met a database outage is queued again after this
 
 
@@ -30,7 +34,10 @@ class EmbeddedRunner(BackgroundLoop):
 
     def __init__(self, settings: Settings, session_factory: sessionmaker[Session]) -> None:
         super().__init__(settings, session_factory)
-        self._pool = ThreadPoolExecutor(max(1, settings.embedded_workers), thread_name_prefix="csr-job")
+        self._threads = max(1, settings.embedded_workers)
+        self._pool = ThreadPoolExecutor(self._threads, thread_name_prefix="csr-job")
+        self._in_flight = 0  # jobs submitted and not yet ended
+        self._lock = threading.Lock()
 
     def start(self) -> None:
         with self.session_factory.begin() as session:
@@ -46,16 +53,21 @@ class EmbeddedRunner(BackgroundLoop):
     def tick(self) -> None:
         if self.settings.embedded_workers == 0:  # jobs wait in the database for a process that runs them
             return
+        with self._lock:
+            free = self._threads - self._in_flight
+        if free <= 0:  # a job's end wakes this loop again
+            return
         with self.session_factory.begin() as session:
-            jobs = repo.jobs_to_dispatch(session, limit=BATCH, redispatch_before=None)
+            plan = dispatch.take_dispatchable(session, limit=free, redispatch_before=None,
+                                              checkerboard=self.settings.tile_checkerboard, page=BATCH)
             now = utcnow()
-            for job in jobs:
-                job.dispatched_at = now
-            ids = [job.id for job in jobs]
+            for d in plan:
+                d.job.dispatched_at = now
+            ids = [d.job.id for d in plan]
+        with self._lock:
+            self._in_flight += len(ids)
         for job_id in ids:
             self._pool.submit(self._run_one, job_id)
-        if len(ids) == BATCH:
-            self.wake()
 
     def _run_one(self, job_id: str) -> None:
         try:
@@ -64,6 +76,8 @@ class EmbeddedRunner(BackgroundLoop):
             log.warning("job %s: database unavailable; it runs again later", job_id, exc_info=True)
             self._requeue_later(job_id)
         finally:
+            with self._lock:
+                self._in_flight -= 1
             self.wake()
 
     def _requeue_later(self, job_id: str) -> None:

@@ -32,7 +32,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for
 from csr_core.single_trip import reconstruct_trip
-from csr_core.tiling import owned_tiles
+from csr_core.tiling import owned_frame_counts
 from csr_core.upload import decode_trip
 from services.db import repo
 from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
@@ -52,7 +52,7 @@ class JobFailed(Exception):
 class IngestResult:
     length_km: float
     track_ewkt: str
-    tiles: list[tuple[int, int, int]]
+    frames_of_tile: dict[tuple[int, int, int], int]  # the tiles owning the trip's frames, and how many
     reconstruction: dict[str, Any]  # trip_reconstructions columns (services.reconstructions)
 
 
@@ -179,7 +179,7 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
     return IngestResult(
         length_km=length_m / 1000.0,
         track_ewkt=ewkt_linestring(lonlat_deg),
-        tiles=owned_tiles(reconstruction.poses_xyyaw_world, region, zoom),
+        frames_of_tile=owned_frame_counts(reconstruction.poses_xyyaw_world, region, zoom),
         reconstruction=row_values(reconstruction, region),
     )
 
@@ -191,10 +191,10 @@ def _persist_ingest(session: Session, trip_pk: str, result: IngestResult) -> Non
     trip.length_km, trip.track, trip.updated_at = result.length_km, result.track_ewkt, utcnow()
     if trip.status in ("received", "failed", "aligned"):  # failed / aligned: reprocessed
         trip.status, trip.error = "processing", None
-    kept = [(z, x, y) for z, x, y in result.tiles]
+    kept = list(result.frames_of_tile)
     for old in session.scalars(select(TripTileAlignment).where(TripTileAlignment.trip_pk == trip_pk)):
         if (old.z, old.x, old.y) not in kept:  # a tile the trip no longer crosses
             session.delete(old)
     repo.upsert_reconstruction(session, trip_pk=trip_pk, values=result.reconstruction)
-    repo.set_trip_tiles(session, trip_pk=trip_pk, tiles=result.tiles)
-    repo.mark_tiles_dirty(session, tiles=result.tiles)
+    repo.set_trip_tiles(session, trip_pk=trip_pk, frames_of_tile=result.frames_of_tile)
+    repo.mark_tiles_dirty(session, tiles=kept)

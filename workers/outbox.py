@@ -11,9 +11,9 @@ from datetime import timedelta
 from celery import Celery
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.db import repo
 from services.db.models import utcnow
 from services.settings import Settings
+from workers import dispatch
 from workers.loop import BackgroundLoop
 
 log = logging.getLogger(__name__)
@@ -28,18 +28,23 @@ TASK_OF_KIND = {
 
 
 def relay_once(
-    session_factory: sessionmaker[Session], celery_app: Celery, *, redispatch_after_s: float
+    session_factory: sessionmaker[Session], celery_app: Celery, *, redispatch_after_s: float,
+    checkerboard: bool = True,
 ) -> int:
-    """Publish up to ``BATCH`` outbox rows; returns how many were sent. Raises when the broker is down
-    (rows published before the failure are recorded as dispatched)."""
+    """Publish up to ``BATCH`` outbox rows, each with its priority (``workers.dispatch``: held-back
+    tiles stay in the outbox); returns how many were sent. Raises when the broker is down (rows
+    published before the failure are recorded as dispatched)."""
     sent, error = 0, None
     with session_factory.begin() as session:
-        jobs = repo.jobs_to_dispatch(
-            session, limit=BATCH, redispatch_before=utcnow() - timedelta(seconds=redispatch_after_s)
+        plan = dispatch.take_dispatchable(
+            session, limit=BATCH, redispatch_before=utcnow() - timedelta(seconds=redispatch_after_s),
+            checkerboard=checkerboard,
         )
-        for job in jobs:
+        for d in plan:
+            job = d.job
             try:
-                celery_app.send_task(TASK_OF_KIND[job.kind], args=[job.id], queue=job.queue, task_id=job.id)
+                celery_app.send_task(TASK_OF_KIND[job.kind], args=[job.id], queue=job.queue, task_id=job.id,
+                                     priority=d.priority)
             except Exception as exc:  # broker down: keep what was sent, the rest stays in the outbox
                 error = exc
                 break
@@ -63,7 +68,8 @@ class OutboxRelay(BackgroundLoop):
     def tick(self) -> None:
         try:
             sent = relay_once(
-                self.session_factory, self.celery_app, redispatch_after_s=self.settings.redispatch_after_s
+                self.session_factory, self.celery_app, redispatch_after_s=self.settings.redispatch_after_s,
+                checkerboard=self.settings.tile_checkerboard,
             )
         except Exception as exc:
             if not self._broker_down:

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import orjson
 import shapely
-from sqlalchemy import func, select, update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from csr_core.alignment import AlignmentResult, MatchCorrections, PairConstraint, PriorMap, align_trips
@@ -89,7 +89,8 @@ from services.reconstructions import (
     noise_json,
 )
 from services.settings import Settings
-from services.tile_frames import Side, tile_frame, tile_subject
+from services.tile_frames import Side, tile_frame
+from workers.dispatch import neighbours_to_wait_for
 
 log = logging.getLogger(__name__)
 
@@ -115,25 +116,6 @@ class WaitForNeighbours(RetryJob):
 
 
 NEIGHBOUR_WAIT_S = 0.5  # pause before a waiting job goes back to the queue (no busy loop)
-
-
-def neighbours_to_wait_for(session: Session, z: int, x: int, y: int) -> list[str]:
-    """The edge neighbours a tile's first alignment waits for: checkerboard order, so that every
-    seam is aligned once against a map. Tiles with x + y even align first, side by side (they
-    touch only at corners); a tile with x + y odd waits while an edge neighbour has no version
-    yet and a job of its own queued or running, and then aligns with the neighbours' maps in
-    its halo as the prior (``P_sub-pre``). Aligned at the same time, two neighbours would each
-    settle on their own consensus and meet with a step in the halo."""
-    if (x + y) % 2 == 0 or versions.has_version(session, z=z, x=x, y=y):
-        return []
-    out = []
-    for nx, ny in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
-        subject = tile_subject(z, nx, ny)
-        pending = session.scalar(select(func.count()).select_from(Job).where(
-            Job.subject == subject, Job.kind.in_(("align_tile", "merge_tile")), Job.state.in_(("queued", "running"))))
-        if pending and not versions.has_version(session, z=z, x=nx, y=ny):
-            out.append(subject)
-    return out
 
 
 # --- align_tile -----------------------------------------------------------------------------------
@@ -212,10 +194,12 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         residuals = alignment.frame_residuals_m.get(piece.trip.key, np.full(len(poses), np.nan))
         failed = reason if reason is not None and not reason.startswith(NO_OVERLAP) else None
         weights = blend_weight(signed, settings.tile_halo_m)
-        if failed:  # a piece that could not be aligned speaks for nothing: neither poses nor map
-            moved, weights = (), np.zeros_like(weights)
-        else:
-            moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
+        if failed:  # a piece no registration ties to the others here: its frames follow the aligned
+            weights = np.zeros_like(weights)  # ones (the trip's other pieces and tiles, ``assemble_poses``)
+        # and its elements stay in the map where they are, like a piece with no overlap: this tile
+        # cannot tell whether the trip is aligned elsewhere (``csr reconstruct`` leaves out only a
+        # trip that fails everywhere); the fusion's robust fit and the validator judge them
+        moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
         per_trip[pk].append((start, poses, weights, residuals, moved, failed))
     for pk, parts in per_trip.items():
         if not parts:
@@ -473,8 +457,8 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         rows = session.scalars(stmt.order_by(TripTileAlignment.created_at)).all()
         started = dict(session.execute(select(Trip.id, Trip.started_at).where(
             Trip.id.in_([r.trip_pk for r in rows]))).all()) if rows else {}
-        new = [r for r in rows if r.merged_version_id is None and not r.failed_reason]
-        everything = [r for r in rows if not r.failed_reason]
+        new = [r for r in rows if r.merged_version_id is None]
+        everything = list(rows)
         inputs_new = {r.trip_pk: _alignment_inputs(r, frame) for r in new}
         inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything} if state is None else {}
         pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
@@ -500,8 +484,7 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         if state is not None:
             with session_factory() as session:
                 everything = session.scalars(select(TripTileAlignment).where(
-                    TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
-                    TripTileAlignment.failed_reason.is_(None))).all()
+                    TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y)).all()
                 inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything}
                 started = dict(session.execute(select(Trip.id, Trip.started_at).where(
                     Trip.id.in_(list(inputs_all)))).all())

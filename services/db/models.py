@@ -154,7 +154,8 @@ class TripReconstructionRecord(Base):
 
 
 class TripTile(Base):
-    """A web-mercator XYZ tile touched by a trip's GNSS track; ``processed_job_id`` once a tile job took it."""
+    """A web-mercator XYZ tile owning some of a trip's frames (``frames``: how many; NULL on rows
+    from before migration 0005); ``processed_job_id`` once a tile job took it."""
 
     __tablename__ = "trip_tiles"
     __table_args__ = (Index("ix_trip_tiles_zxy", "z", "x", "y"),)
@@ -164,6 +165,7 @@ class TripTile(Base):
     x: Mapped[int] = mapped_column(Integer, primary_key=True)
     y: Mapped[int] = mapped_column(Integer, primary_key=True)
     processed_job_id: Mapped[str | None] = mapped_column(String(36))
+    frames: Mapped[int | None] = mapped_column(Integer)
 
 
 class DirtyTile(Base):

@@ -7,7 +7,7 @@ import hashlib
 import hmac
 import secrets
 import uuid
-from collections.abc import Iterable, Sequence
+from collections.abc import Mapping, Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -150,10 +150,11 @@ def tiles_of_trip(session: Session, *, trip_pk: str) -> list[TripTile]:
     )
 
 
-def set_trip_tiles(session: Session, *, trip_pk: str, tiles: Iterable[tuple[int, int, int]]) -> None:
-    """Replace the trip's tiles (idempotent: a re-run writes the same rows)."""
+def set_trip_tiles(session: Session, *, trip_pk: str, frames_of_tile: Mapping[tuple[int, int, int], int]) -> None:
+    """Replace the trip's tiles, each with the frames it owns (idempotent: a re-run writes the
+    same rows)."""
     session.execute(delete(TripTile).where(TripTile.trip_pk == trip_pk))
-    rows = [{"trip_pk": trip_pk, "z": z, "x": x, "y": y} for z, x, y in tiles]
+    rows = [{"trip_pk": trip_pk, "z": z, "x": x, "y": y, "frames": n} for (z, x, y), n in frames_of_tile.items()]
     if rows:
         session.execute(_insert(session)(TripTile), rows)
 
@@ -261,10 +262,12 @@ def jobs_for_subject(session: Session, *, subject: str) -> list[Job]:
     return list(session.scalars(select(Job).where(Job.subject == subject).order_by(Job.created_at)))
 
 
-def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetime | None) -> list[Job]:
+def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetime | None,
+                     offset: int = 0) -> list[Job]:
     """Outbox rows to hand to a runner: never dispatched, or (with ``redispatch_before``) queued so
-    long that the broker may have lost the message. Rows are locked (``SKIP LOCKED`` on PostgreSQL)
-    so that concurrent relays split them."""
+    long that the broker may have lost the message; tile alignments after the other kinds, then
+    oldest first. Rows are locked (``SKIP LOCKED`` on PostgreSQL) so that concurrent relays split
+    them. ``workers.dispatch`` decides which of them go and in what order."""
     pending = Job.dispatched_at.is_(None)
     if redispatch_before is not None:
         pending = or_(pending, (Job.state == "queued") & (Job.dispatched_at < redispatch_before))
@@ -272,7 +275,8 @@ def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetim
         select(Job)
         .where(pending)
         .where(Job.state.in_(("queued", "running")))
-        .order_by(Job.created_at)
+        .order_by(case((Job.kind == "align_tile", 1), else_=0), Job.created_at, Job.id)
+        .offset(offset)
         .limit(limit)
         .with_for_update(skip_locked=True)
     )
@@ -332,10 +336,11 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     """Create a tile job for each dirty tile without one whose last new trip is older than
     ``last_marked_before`` (``None``: every dirty tile, now). Safe against concurrent schedulers.
 
-    The biggest tiles (most trips waiting) are queued first: with several workers the batch ends
-    when its longest job does, so that one must not start last (longest processing time first),
-    after the checkerboard colour (even x + y first)."""
-    waiting = (select(func.count()).select_from(TripTile)
+    The biggest tiles (most frames of trips waiting) are queued first: with several workers the
+    batch ends when its longest job does, so that one must not start last (longest processing
+    time first), after the checkerboard colour (even x + y first). The runners take them in
+    ``workers.dispatch``'s order, which also weighs the neighbours waiting for a tile."""
+    waiting = (select(func.coalesce(func.sum(func.coalesce(TripTile.frames, 1)), 0)).select_from(TripTile)
                .where(TripTile.z == DirtyTile.z, TripTile.x == DirtyTile.x, TripTile.y == DirtyTile.y,
                       TripTile.processed_job_id.is_(None))
                .scalar_subquery())
@@ -343,7 +348,7 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     if last_marked_before is not None:
         stmt = stmt.where(DirtyTile.last_marked_at <= last_marked_before)
     # checkerboard: the tiles with x + y even first (the odd ones wait for their first versions,
-    # ``tile_jobs.neighbours_to_wait_for``), each colour biggest first
+    # ``workers.dispatch.neighbours_to_wait_for``), each colour biggest first
     stmt = stmt.order_by((DirtyTile.x + DirtyTile.y) % 2, waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y)
     jobs = []
     for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
