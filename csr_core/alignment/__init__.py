@@ -27,6 +27,7 @@ import numpy as np
 from csr_core.alignment.association import PairMatch, associate
 from csr_core.alignment.corrections import MatchCorrections, PairConstraint, apply_corrections
 from csr_core.alignment.fine import dash_ends, frame_points, frame_residuals, refine_frames
+from csr_core.alignment.observability import own_gnss_error_m, unobservable_reason
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
 from csr_core.alignment.submaps import Submap, prior_patches, reduce_prior_map, split_submaps, submap_pairs
@@ -107,6 +108,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     pairs: list[tuple[int, int]] = []
     inlier = np.zeros(0, bool)
     prior_shifts: list[float] = []
+    own_error: dict = {}
     if params.coarse:
         # 1. sub-map splitting, and matching pairs with other trips and the pre-built map (Fig. 4)
         circles, submaps = split_submaps(trips, params, dashes)
@@ -124,6 +126,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         inlier = graph.registration_inlier
         prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
                         for s in submaps if s.is_prior]
+        own_error = own_gnss_error_m(trips, submaps, graph.own_gnss_gain, {s for p in pairs for s in p})
         # 4. sub-map poses -> pose of every frame
         for k, t in enumerate(trips):
             poses[t.trip.key] = frame_poses_from_submaps(t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw)
@@ -136,6 +139,9 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     # 6. per-frame residuals, failed trips, and the match pairs kept for validation
     residuals = frame_residuals(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
     failed = _failed_trips(trips, submaps, pairs, matches, inlier, prior_map is not None) if params.coarse else {}
+    for k, err in own_error.items():  # held by nothing but its own GNSS: not an alignment
+        if params.mark_unobservable and err.rms_m > params.max_own_gnss_error_m and trips[k].trip.key not in failed:
+            failed[trips[k].trip.key] = unobservable_reason(err, params.max_own_gnss_error_m)
     records = tuple(_record(m, submaps, trips, bool(ok)) for m, ok in zip(matches, inlier, strict=False))
     timings["total_s"] = time.perf_counter() - clock
     return AlignmentResult(
@@ -143,6 +149,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         {"timings": timings, "n_submaps": len(submaps), "n_candidate_pairs": len(pairs),
          "n_matches": len(matches), "n_pose_graph_inliers": int(inlier.sum()),
          "prior_patch_shifts_m": prior_shifts,
+         "own_gnss_error_m": {trips[k].trip.key: e for k, e in own_error.items()},
          "unaligned_poses": {k: poses[k] for k in failed}},
     )
 

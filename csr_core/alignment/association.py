@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -55,6 +55,9 @@ class PairMatch:
     residual_rms_m: float
     objective: float  # Eq. 4 value of the chosen association
     human: bool = False  # added by a human correction: a known inlier with a large weight
+    # (3, 3) share of the start (GNSS relative) pose kept by the registration, local frame
+    # (``Registration.prior_sensitivity``): what it does not measure, it repeats from GNSS
+    prior_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     def relative_pose(self, world_T_i: np.ndarray, world_T_j: np.ndarray) -> np.ndarray:
         """``T_reg^{i,j} = i_T_j`` implied by the registration (initial poses of i and j)."""
@@ -136,7 +139,7 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
         si.submap_id, sj.submap_id, si.trip_index, sj.trip_index, circle.circle_id,
         circle.centre_xy_world.copy(), reg.delta_xyyaw, reg.information_xyyaw, tuple(kept),
         tuple((si.elements[k].instance_index, sj.elements[kp].instance_index) for k, kp in kept),
-        conf, float(np.mean(conf)), reg.residual_rms_m, float(objective),
+        conf, float(np.mean(conf)), reg.residual_rms_m, float(objective), prior_sensitivity=reg.prior_sensitivity,
     )
 
 

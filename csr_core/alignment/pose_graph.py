@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -52,6 +52,9 @@ class PoseGraphResult:
     poses_xyyaw: dict[int, np.ndarray]  # sub-map id -> optimised world_T_submap
     registration_inlier: np.ndarray  # (P,) per accepted PairMatch
     gnss_weight: dict[int, float]  # Eq. 11 weight per trip sub-map
+    # own-GNSS gain per trip sub-map: (2, 2) d(optimised position) / d(common shift of its trip's
+    # GNSS priors), world axes (see :func:`own_gnss_gain`); identity = held by nothing but its GNSS
+    own_gnss_gain: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def gnss_odometry_deviation_m(trip: TripReconstruction) -> np.ndarray:
@@ -179,9 +182,82 @@ def optimize_submap_poses(
             result = gtsam.LevenbergMarquardtOptimizer(keep, result, lm).optimize()
     else:
         result = warm
+    # a dense (3 x sub-maps)^2 solve: only when it decides something (``mark_unobservable``)
+    gains = own_gnss_gain(g, result, submaps, matches, reg_idx, inlier) if params.mark_unobservable else {}
     poses = {s.submap_id: np.array([result.atPose2(S(s.submap_id)).x(), result.atPose2(S(s.submap_id)).y(),
                                     result.atPose2(S(s.submap_id)).theta()]) for s in submaps}
-    return PoseGraphResult(poses, inlier, weights)
+    return PoseGraphResult(poses, inlier, weights, gains)
+
+
+def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, submaps: Sequence[Submap],
+                  matches: Sequence[PairMatch], reg_idx: Sequence[int], inlier: np.ndarray) -> dict[int, np.ndarray]:
+    """How much of a trip's own GNSS error stays in its optimised sub-map positions.
+
+    The GNSS error of a trip is dominated by a slowly varying bias (per axis, minutes of
+    correlation time): close to a common offset ``u`` (world, metres) of all its fixes. It
+    enters the graph twice: every ``e^g`` prior of the trip moves by ``u``, and every
+    registration of one of its sub-maps keeps the share ``L u`` of it that its start-pose prior
+    kept (``PairMatch.prior_sensitivity``: a registration repeats the GNSS relative pose in the
+    directions its elements do not observe). To first order the solution moves by
+    ``dx = H^-1 sum_f A_f^T R_f xi_f(u)`` (``H`` the Gauss-Newton information of the inlier
+    factors at ``values``, ``A_f`` the whitened Jacobian, ``R_f`` the square-root information,
+    ``xi_f`` the factor's measurement perturbation). Returned per trip sub-map: the ``(2, 2)``
+    world gain ``G_s`` with ``dx_s = G_s u``. ``G = I`` where nothing but the trip's own GNSS
+    holds the sub-map (along a straight road without landmarks), ``G ~ 1/n`` where registrations
+    to ``n`` trips of equal weight do. ``graph`` is ``build_factor_graph``'s (priors first, one
+    per sub-map in ``submaps`` order; ``reg_idx`` the registration factors, ``inlier`` kept).
+    """
+    n = len(submaps)
+    if n == 0:
+        return {}
+    ordering = gtsam.Ordering()
+    for s in submaps:
+        ordering.push_back(S(s.submap_id))
+    column = {S(s.submap_id): 3 * m for m, s in enumerate(submaps)}
+    trips = sorted({int(s.trip_index) for s in submaps if not s.is_prior})
+    pose = np.array([[values.atPose2(S(s.submap_id)).x(), values.atPose2(S(s.submap_id)).y(),
+                      values.atPose2(S(s.submap_id)).theta()] for s in submaps])
+    world_to_body = lambda m: _rot(-pose[m, 2])  # noqa: E731
+    B = np.zeros((3 * n, 2 * len(trips)))
+
+    def add(factor_index: int, col: int, xi: np.ndarray) -> None:
+        """RHS of a measurement perturbation ``xi (3, 2)`` (columns: unit east, north shift)."""
+        f = graph.at(factor_index)
+        A, _ = f.linearize(values).jacobian()  # whitened, columns in f.keys() order
+        rhs = A.T @ f.noiseModel().whiten(xi) if xi.ndim == 1 else A.T @ np.column_stack(
+            [f.noiseModel().whiten(xi[:, c]) for c in range(xi.shape[1])])
+        for b, key in enumerate(f.keys()):
+            B[column[key] : column[key] + 3, col : col + 2] += rhs[3 * b : 3 * b + 3]
+
+    for m, s in enumerate(submaps):  # e^g: the trip's priors move with u (body frame of s)
+        if not s.is_prior:
+            add(m, 2 * trips.index(int(s.trip_index)), np.vstack([world_to_body(m), np.zeros((1, 2))]))
+    for match, idx, ok in zip(matches, reg_idx, inlier, strict=True):
+        L = np.asarray(match.prior_sensitivity)
+        if not ok or not L.any():
+            continue
+        jm = match.j  # sub-map ids are their index in ``submaps``
+        v = L[:, :2]  # (3, 2): local left perturbation of delta per unit world shift of j's trip
+        arm = pose[jm, :2] - np.asarray(match.centre_xy_world)
+        v_at_j = v[:2] + np.outer(np.array([-arm[1], arm[0]]), v[2])  # translation of j's anchor
+        xi = np.vstack([world_to_body(jm) @ v_at_j, v[2:3]])  # right perturbation of i_T_j
+        for sub, sign in ((submaps[match.j], 1.0), (submaps[match.i], -1.0)):
+            if not sub.is_prior:
+                add(idx, 2 * trips.index(int(sub.trip_index)), sign * xi)
+    kept = gtsam.NonlinearFactorGraph()
+    rejected = {idx for idx, ok in zip(reg_idx, inlier, strict=True) if not ok}
+    for k in range(graph.size()):
+        if k not in rejected:
+            kept.add(graph.at(k))
+    H, _ = kept.linearize(values).hessian(ordering)
+    X = np.linalg.solve(H + 1e-12 * np.eye(3 * n), B)
+    return {s.submap_id: _rot(pose[m, 2]) @ X[3 * m : 3 * m + 2, 2 * trips.index(int(s.trip_index)) :][:, :2]
+            for m, s in enumerate(submaps) if not s.is_prior}
+
+
+def _rot(yaw: float) -> np.ndarray:
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s_], [s_, c]])
 
 
 def frame_poses_from_submaps(trip: TripReconstruction, trip_submaps: Sequence[Submap],

@@ -16,7 +16,7 @@ project beyond the target's ends are left out (clipped pieces differ in extent).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +41,9 @@ class Registration:
     element_inlier: np.ndarray  # (N_m,) bool per match
     residual_rms_m: float
     n_points: int
+    # (3, 3) d delta / d initial pose: how much of the start pose (the GNSS relative pose) the
+    # estimate keeps through the start-pose prior (I in a direction the elements do not observe)
+    prior_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,6 +176,7 @@ def register_elements(
         dev = np.r_[delta[:2] - delta0[:2], se2.wrap_angle(delta[2] - delta0[2])]
         g = wj.T @ r + H_prior @ dev
         step = -np.linalg.solve(H, g)
+        sensitivity = np.linalg.solve(H, H_prior)  # of the solution on delta0, at this step's weights
         delta = se2.compose(step, delta)
         if outer == params.gnc_max_outer or (mu >= 1e2 and np.linalg.norm(step) < 1e-4):
             break
@@ -195,7 +199,7 @@ def register_elements(
         J_lm = J_all[n_line:][lm_in]
         info += (J_lm / sig[n_line:][lm_in, None] ** 2).T @ J_lm
     info += np.diag([1 / UNOBSERVED_SIGMA_XY_M**2] * 2 + [1 / UNOBSERVED_SIGMA_YAW_RAD**2])  # invertible only
-    return Registration(delta, info, element_inlier, rms, int(sel.sum()))
+    return Registration(delta, info, element_inlier, rms, int(sel.sum()), sensitivity)
 
 
 def match_confidence(target: ElementSet, source_aligned: ElementSet, matches: Sequence[tuple[int, int]],
