@@ -184,22 +184,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     per_trip: dict[str, list] = {pk: [] for pk in recons}
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
-        reason = alignment.failed.get(piece.trip.key)
-        if reason is not None and not reason.startswith(NO_OVERLAP):
-            poses = alignment.diagnostics.get("unaligned_poses", {}).get(piece.trip.key, piece.poses_xyyaw_world)
-        elif reason is not None:
-            poses = piece.poses_xyyaw_world
-        else:
-            poses = alignment.poses_xyyaw_world[piece.trip.key]
-        residuals = alignment.frame_residuals_m.get(piece.trip.key, np.full(len(poses), np.nan))
-        failed = reason if reason is not None and not reason.startswith(NO_OVERLAP) else None
-        weights = blend_weight(signed, settings.tile_halo_m)
-        if failed:  # a piece no registration ties to the others here: its frames follow the aligned
-            weights = np.zeros_like(weights)  # ones (the trip's other pieces and tiles, ``assemble_poses``)
-        # and its elements stay in the map where they are, like a piece with no overlap: this tile
-        # cannot tell whether the trip is aligned elsewhere (``csr reconstruct`` leaves out only a
-        # trip that fails everywhere); the fusion's robust fit and the validator judge them
-        moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
+        poses, weights, residuals, moved, failed = piece_outcome(piece, alignment, signed, settings.tile_halo_m)
         per_trip[pk].append((start, poses, weights, residuals, moved, failed))
     for pk, parts in per_trip.items():
         if not parts:
@@ -232,6 +217,31 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     result.diagnostics = {"pieces": len(pieces), "prior_features": len(prior.features) if prior else 0,
                           "timings": alignment.diagnostics.get("timings", {})}
     return result
+
+
+def piece_outcome(piece: TripReconstruction, alignment: AlignmentResult, signed_m: np.ndarray, halo_m: float):
+    """What a tile keeps of one aligned piece: ``(poses, blend weights, residuals, instances moved
+    with the poses, failure reason or None)``.
+
+    A piece with nothing to align with (``no_overlap``) keeps its own poses. A piece that no
+    consistent registration ties to the others here gets no weight: its frames follow the trip's
+    aligned pieces and tiles (``assemble_poses``). Either way its elements stay in the map where
+    its poses put them: this tile cannot tell whether the trip is aligned elsewhere (``csr
+    reconstruct`` leaves out only a trip that fails everywhere), and the fusion's robust fit and
+    the validator judge them."""
+    key = piece.trip.key
+    reason = alignment.failed.get(key)
+    failed = reason if reason is not None and not reason.startswith(NO_OVERLAP) else None
+    if failed:
+        poses = alignment.diagnostics.get("unaligned_poses", {}).get(key, piece.poses_xyyaw_world)
+    elif reason is not None:
+        poses = piece.poses_xyyaw_world
+    else:
+        poses = alignment.poses_xyyaw_world[key]
+    residuals = alignment.frame_residuals_m.get(key, np.full(len(poses), np.nan))
+    weights = np.zeros(len(poses)) if failed else blend_weight(signed_m, halo_m)
+    moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
+    return poses, weights, residuals, moved, failed
 
 
 def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None,
