@@ -3,11 +3,16 @@ outage is retried with backoff; everything else is recorded on the job by ``run_
 
 from __future__ import annotations
 
+import logging
+
 from celery import Task
 from sqlalchemy.exc import OperationalError
 
 from workers.celery_app import app, runtime
 from workers.jobs import mark_job_failed, run_job
+from workers.outbox import relay_once
+
+log = logging.getLogger(__name__)
 
 
 class JobTask(Task):
@@ -23,12 +28,26 @@ class JobTask(Task):
         mark_job_failed(runtime().session_factory, args[0], exc)
 
 
+def _publish_follow_ups(rt) -> None:
+    """Hand the jobs this one queued (an alignment's merge) to Redis before the worker takes its
+    next message, so that it takes the merge (priority 0, ``workers.dispatch``) and not another
+    alignment; otherwise they wait for the outbox relay's next round and then for a free worker.
+    A broker error leaves them to the relay."""
+    try:
+        relay_once(rt.session_factory, app, redispatch_after_s=rt.settings.redispatch_after_s,
+                   checkerboard=rt.settings.tile_checkerboard)
+    except Exception:  # the relay sends them
+        log.warning("could not publish the jobs that followed; the outbox relay will", exc_info=True)
+
+
 def _job_task(kind: str) -> JobTask:
     """The Celery task of one job kind (``csr.<kind>``): it runs the job by id."""
 
     def run(job_id: str) -> str:
         rt = runtime()
-        return run_job(rt.session_factory, rt.settings, job_id)
+        state = run_job(rt.session_factory, rt.settings, job_id)
+        _publish_follow_ups(rt)
+        return state
 
     run.__name__ = kind
     return app.task(name=f"csr.{kind}", base=JobTask)(run)

@@ -352,7 +352,10 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
 def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool:
     """Once every tile of a trip has aligned it: its final poses and status. The trip row is locked
     first, so of two tile jobs finishing at once the later one sees both tiles done."""
-    trip = session.scalars(select(Trip).where(Trip.id == trip_pk).with_for_update()).one_or_none()
+    # FOR NO KEY UPDATE: serialises the finishers of one trip but not the KEY SHARE locks that the
+    # foreign keys of other jobs' rows take on it (FOR UPDATE deadlocked two tile jobs that had
+    # each written a row of the other's trip)
+    trip = session.scalars(select(Trip).where(Trip.id == trip_pk).with_for_update(key_share=True)).one_or_none()
     if trip is None or trip.status not in ("processing", "aligned"):
         return False
     pending = session.scalar(
