@@ -100,7 +100,7 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
         detached: list[Member] = []
         for g in groups:
             gm = [pending[k] for k in g]
-            fused = [fuse_polygons(gm, element_type)] if element_type.is_polygon else fuse_lines(gm, element_type, params)
+            fused = [fuse_polygons(gm, element_type, params)] if element_type.is_polygon else fuse_lines(gm, element_type, params)
             for f in fused:
                 out.append((f, tuple(gm[k] for k in f.members)))
             if last:

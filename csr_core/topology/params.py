@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from csr_core.types import ElementNoise
+from csr_core.types import ElementNoise, ElementType
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,6 +54,9 @@ class TopologyParams:
     OUTPUT_SPACING_M: float = 1.0
     MAX_FUSION_ROUNDS: int = 12  # rounds of associate -> fuse -> peel off the unsupported
     DETACH_CLOSE_SHARE: float = 0.6  # a member with less of its overlap near the fused line leaves
+    # short straight elements (a trip's instance is a view of the whole or of a part of one): fused
+    # on a robust straight axis; an inconsistent member is an outlier (``fusion._straight_axis``)
+    WHOLE_ELEMENT_TYPES: tuple[ElementType, ...] = (ElementType.STOP_LINE,)
 
     # --- identity -----------------------------------------------------------------------------------
     ID_MIN_OVERLAP_SHARE: float = 0.5  # a new instance inherits an id when this share overlaps it
