@@ -7,7 +7,13 @@ Factors (Eq. 9/10):
   deviation term scaled by the status weight so that ``omega`` means the same for every status
   -- the paper adds it; with an inverse-variance M_table an additive term would vanish for RTK
   and dominate for single fixes; ``omega < 0``: a GNSS step that disagrees with odometry lowers
-  the weight, to 0 at ``1/|omega|`` metres; the mean is floored at ``gnss_min_weight``);
+  the weight, to 0 at ``1/|omega|`` metres; the mean is floored at ``gnss_min_weight``).
+  The GNSS error is mostly a bias with minutes of correlation time, so the priors of one trip's
+  sub-maps are not independent: with ``gnss_bias_tau_s > 0`` each prior holds ``B(i)^-1 S(i)``
+  at ``g_i`` with only the white share of its variance, and the trip's biases ``B(i)`` form a
+  Gauss-Markov chain (:func:`add_gnss_bias_chain`). A trip's GNSS offset is then one unknown,
+  learnt where the trip overlaps others and carried along the stretches it drives alone,
+  instead of each sub-map being pulled back to its own fixes;
 - ``e^pre`` the pre-built map: each patch is a variable held by a ``PriorFactorPose2`` at its
   stored pose with the map's own sigma, and a sub-map registered to it gets a between factor,
   so the map moves only as far as its weight allows (a fixed map is the limit sigma -> 0);
@@ -33,7 +39,7 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import S
+from gtsam.symbol_shorthand import B, S
 
 from csr_core import se2
 from csr_core.alignment.association import PairMatch
@@ -107,13 +113,22 @@ def build_factor_graph(
             weights[s.submap_id] = w
             sig = np.array([params.gnss_sigma_base_xy_m] * 2 + [params.gnss_sigma_base_yaw_rad]) / np.sqrt(w)
         known.append(g.size())
-        g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
-                                     gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        if s.is_prior or params.gnss_bias_tau_s <= 0:
+            g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
+                                         gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        else:  # e^g through the trip's bias: B^-1 S = g (B a pure shift), white part only
+            white = sig * np.array([np.sqrt(1.0 - params.gnss_bias_share)] * 2 + [1.0])
+            init.insert(B(s.submap_id), gtsam.Pose2())
+            g.add(gtsam.BetweenFactorPose2(B(s.submap_id), S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
+                                           gtsam.noiseModel.Diagonal.Sigmas(white)))
     # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
     by_trip: dict[int, list[Submap]] = {}
     for s in submaps:
         if not s.is_prior:
             by_trip.setdefault(s.trip_index, []).append(s)
+    if params.gnss_bias_tau_s > 0:
+        for k, group in by_trip.items():
+            known.extend(add_gnss_bias_chain(g, trips[k], sorted(group, key=lambda s: s.anchor_frame), weights, params))
     for k, group in by_trip.items():
         group.sort(key=lambda s: s.anchor_frame)
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
@@ -138,6 +153,39 @@ def build_factor_graph(
         reg_idx.append(g.size())
         g.add(gtsam.BetweenFactorPose2(S(m.i), S(m.j), gtsam.Pose2(*T), gtsam.noiseModel.Gaussian.Information(info)))
     return g, init, reg_idx, known, weights
+
+
+#: the bias has no heading: its yaw is held at zero
+_BIAS_YAW_SIGMA_RAD = 1e-4
+
+
+def add_gnss_bias_chain(g: gtsam.NonlinearFactorGraph, trip: TripReconstruction, group: Sequence[Submap],
+                        weights: Mapping[int, float], params: AlignmentParams) -> list[int]:
+    """The GNSS bias of one trip's sub-maps (in anchor order) as a Gauss-Markov chain; returns the
+    indices of the factors added.
+
+    The bias at sub-map ``i`` has std ``sigma_i = sqrt(rho) sigma_base / sqrt(w_i)`` (Eq. 11's
+    weight, ``rho`` = ``gnss_bias_share``); the first bias gets that prior, each next one a
+    between factor with the variance of the difference of a first-order Gauss-Markov process
+    scaled by ``sigma``: ``sigma_a^2 + sigma_b^2 - 2 phi sigma_a sigma_b``, ``phi = exp(-dt /
+    tau)``. A status change (``sigma`` jumps) frees the bias by itself; fixes minutes apart are
+    independent again."""
+    t = trip.trip.timestamps_s
+    sigma = {s.submap_id: np.sqrt(params.gnss_bias_share) * params.gnss_sigma_base_xy_m / np.sqrt(weights[s.submap_id])
+             for s in group}
+    added = []
+    first = group[0].submap_id
+    added.append(g.size())
+    g.add(gtsam.PriorFactorPose2(B(first), gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([sigma[first], sigma[first], _BIAS_YAW_SIGMA_RAD]))))
+    for a, b in zip(group[:-1], group[1:], strict=False):
+        phi = np.exp(-abs(float(t[b.anchor_frame] - t[a.anchor_frame])) / params.gnss_bias_tau_s)
+        sa, sb = sigma[a.submap_id], sigma[b.submap_id]
+        step = np.sqrt(max(sa**2 + sb**2 - 2.0 * phi * sa * sb, 1e-8))
+        added.append(g.size())
+        g.add(gtsam.BetweenFactorPose2(B(a.submap_id), B(b.submap_id), gtsam.Pose2(),
+                                       gtsam.noiseModel.Diagonal.Sigmas(np.array([step, step, _BIAS_YAW_SIGMA_RAD]))))
+    return added
 
 
 def _huber_copy(g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
@@ -211,14 +259,15 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
     if n == 0:
         return {}
     ordering = gtsam.Ordering()
-    for s in submaps:
-        ordering.push_back(S(s.submap_id))
-    column = {S(s.submap_id): 3 * m for m, s in enumerate(submaps)}
+    keys = [S(s.submap_id) for s in submaps] + [B(s.submap_id) for s in submaps if values.exists(B(s.submap_id))]
+    for key in keys:  # sub-map poses first, then the GNSS biases (when modelled)
+        ordering.push_back(key)
+    column = {key: 3 * m for m, key in enumerate(keys)}
     trips = sorted({int(s.trip_index) for s in submaps if not s.is_prior})
     pose = np.array([[values.atPose2(S(s.submap_id)).x(), values.atPose2(S(s.submap_id)).y(),
                       values.atPose2(S(s.submap_id)).theta()] for s in submaps])
     world_to_body = lambda m: _rot(-pose[m, 2])  # noqa: E731
-    B = np.zeros((3 * n, 2 * len(trips)))
+    rhs_by_trip = np.zeros((3 * len(keys), 2 * len(trips)))
 
     def add(factor_index: int, col: int, xi: np.ndarray) -> None:
         """RHS of a measurement perturbation ``xi (3, 2)`` (columns: unit east, north shift)."""
@@ -227,7 +276,7 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
         rhs = A.T @ f.noiseModel().whiten(xi) if xi.ndim == 1 else A.T @ np.column_stack(
             [f.noiseModel().whiten(xi[:, c]) for c in range(xi.shape[1])])
         for b, key in enumerate(f.keys()):
-            B[column[key] : column[key] + 3, col : col + 2] += rhs[3 * b : 3 * b + 3]
+            rhs_by_trip[column[key] : column[key] + 3, col : col + 2] += rhs[3 * b : 3 * b + 3]
 
     for m, s in enumerate(submaps):  # e^g: the trip's priors move with u (body frame of s)
         if not s.is_prior:
@@ -250,7 +299,7 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
         if k not in rejected:
             kept.add(graph.at(k))
     H, _ = kept.linearize(values).hessian(ordering)
-    X = np.linalg.solve(H + 1e-12 * np.eye(3 * n), B)
+    X = np.linalg.solve(H + 1e-12 * np.eye(3 * len(keys)), rhs_by_trip)
     return {s.submap_id: _rot(pose[m, 2]) @ X[3 * m : 3 * m + 2, 2 * trips.index(int(s.trip_index)) :][:, :2]
             for m, s in enumerate(submaps) if not s.is_prior}
 

@@ -1,0 +1,98 @@
+"""GNSS bias chain of the pose graph (Eq. 9 e^g with the trip's GNSS error as a Gauss-Markov bias)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+
+from csr_core import se2
+from csr_core.alignment.association import PairMatch
+from csr_core.alignment.params import AlignmentParams
+from csr_core.alignment.pose_graph import add_gnss_bias_chain, optimize_submap_poses
+from csr_core.alignment.submaps import Submap
+from tests.unit.test_alignment_synthetic import make_scenario, make_trip, truth_elements, truth_trajectory
+
+pytestmark = pytest.mark.unit
+
+FULL = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.002**2])
+BIAS = AlignmentParams(gnss_bias_tau_s=300.0)
+INDEPENDENT = replace(BIAS, gnss_bias_tau_s=0.0)
+
+
+def _two_trips_registered_only_at_the_start(n_registered: int = 3):
+    """Two trips on the same 400 m road (both lanes), one sub-map every 20 m, each trip with its
+    own constant GNSS offset; their sub-maps registered (true relative pose, full information) only over the
+    first ``n_registered`` pairs: the rest of the road each drives 'alone'."""
+    rng = np.random.default_rng(0)
+    elements = truth_elements(400.0)
+    truths = [truth_trajectory(lane, False, rng, 400.0) for lane in (0, 1)]
+    trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
+             for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))]
+    subs, by_trip = [], {}
+    for k, t in enumerate(trips):
+        for a in range(10, t.trip.n_frames - 10, 20):
+            s = Submap(len(subs), a, k, t.trip.key, a, a - 10, a + 10, t.poses_xyyaw_world[a].copy(), ())
+            subs.append(s)
+            by_trip.setdefault(k, []).append(s)
+    matches = []
+    for n in range(n_registered):
+        si, sj = by_trip[0][n], by_trip[1][n]
+        c = np.array([*si.world_T_submap[:2], 0.0])
+        gi, gj = si.world_T_submap - c, sj.world_T_submap - c
+        ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
+        # delta such that between(gi, delta o gj) is the true relative pose between(ti, tj)
+        delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
+        matches.append(PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, FULL,
+                                 ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0))
+    return trips, truths, subs, by_trip, matches
+
+
+def _relative_error_m(res, truths, by_trip, which: slice) -> float:
+    """Mean |error of trip 1 - error of trip 0| over the sub-map pairs ``which`` (the offset a
+    trip keeps against the other: what no global transform removes)."""
+    out = []
+    for s0, s1 in list(zip(by_trip[0], by_trip[1], strict=False))[which]:
+        e0 = res.poses_xyyaw[s0.submap_id][:2] - truths[0][s0.anchor_frame][:2]
+        e1 = res.poses_xyyaw[s1.submap_id][:2] - truths[1][s1.anchor_frame][:2]
+        out.append(np.linalg.norm(e1 - e0))
+    return float(np.mean(out))
+
+
+def test_a_gnss_offset_learnt_where_trips_overlap_carries_along_the_stretch_driven_alone():
+    trips, truths, subs, by_trip, matches = _two_trips_registered_only_at_the_start()
+    offset = np.linalg.norm((trips[1].poses_xyyaw_world[100] - truths[1][100])[:2]
+                            - (trips[0].poses_xyyaw_world[100] - truths[0][100])[:2])
+    assert offset > 1.0  # the two trips' GNSS disagree by more than a metre
+    far = slice(-5, None)  # the last 100 m, 200+ m past the last registration
+    biased = optimize_submap_poses(trips, subs, matches, BIAS)
+    independent = optimize_submap_poses(trips, subs, matches, INDEPENDENT)
+    assert _relative_error_m(biased, truths, by_trip, slice(0, 3)) < 0.05 * offset  # registered: together
+    assert _relative_error_m(independent, truths, by_trip, slice(0, 3)) < 0.05 * offset
+    # far from the overlap, independent per-sub-map priors pull each trip back to its own GNSS;
+    # the bias chain keeps the correction (bias correlated over minutes, the stretch is 30 s)
+    assert _relative_error_m(independent, truths, by_trip, far) > 0.5 * offset
+    assert _relative_error_m(biased, truths, by_trip, far) < 0.15 * offset
+
+
+def test_bias_chain_step_is_the_gauss_markov_difference_and_a_status_change_frees_it():
+    trips, _ = make_scenario(1, seed=1, length_m=200.0, perception=False)
+    t = trips[0]
+    subs = [Submap(n, n, 0, t.trip.key, a, a - 5, a + 5, t.poses_xyyaw_world[a].copy(), ())
+            for n, a in enumerate((10, 30, 50))]
+    g = gtsam.NonlinearFactorGraph()
+    weights = {0: 2.0, 1: 2.0, 2: 400.0}  # DGPS, DGPS, then RTK fixed (Eq. 11 weights)
+    added = add_gnss_bias_chain(g, t, subs, weights, BIAS)
+    assert added == [0, 1, 2]
+    sigma = lambda w: np.sqrt(BIAS.gnss_bias_share) * BIAS.gnss_sigma_base_xy_m / np.sqrt(w)  # noqa: E731
+    first = np.asarray(g.at(0).noiseModel().sigmas())
+    assert first[0] == pytest.approx(sigma(2.0))
+    dt = t.trip.timestamps_s[30] - t.trip.timestamps_s[10]
+    phi = np.exp(-dt / BIAS.gnss_bias_tau_s)
+    same = np.asarray(g.at(1).noiseModel().sigmas())[0]
+    assert same == pytest.approx(np.sqrt(2 * sigma(2.0) ** 2 * (1 - phi)))
+    assert same < 0.15 * sigma(2.0)  # two seconds apart: almost the same bias
+    changed = np.asarray(g.at(2).noiseModel().sigmas())[0]
+    assert changed > 0.8 * sigma(2.0)  # to RTK fixed: the old bias does not constrain the new one
