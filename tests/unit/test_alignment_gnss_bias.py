@@ -13,7 +13,13 @@ from csr_core.alignment.association import PairMatch
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import add_gnss_bias_chain, optimize_submap_poses
 from csr_core.alignment.submaps import Submap
-from tests.unit.test_alignment_synthetic import make_scenario, make_trip, truth_elements, truth_trajectory
+from tests.unit.test_alignment_synthetic import (
+    make_scenario,
+    make_trip,
+    submaps_every_20_frames,
+    truth_elements,
+    truth_trajectory,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -31,12 +37,7 @@ def _two_trips_registered_only_at_the_start(n_registered: int = 3):
     truths = [truth_trajectory(lane, False, rng, 400.0) for lane in (0, 1)]
     trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
              for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))]
-    subs, by_trip = [], {}
-    for k, t in enumerate(trips):
-        for a in range(10, t.trip.n_frames - 10, 20):
-            s = Submap(len(subs), a, k, t.trip.key, a, a - 10, a + 10, t.poses_xyyaw_world[a].copy(), ())
-            subs.append(s)
-            by_trip.setdefault(k, []).append(s)
+    subs, by_trip = submaps_every_20_frames(trips)
     matches = []
     for n in range(n_registered):
         si, sj = by_trip[0][n], by_trip[1][n]

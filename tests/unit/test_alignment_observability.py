@@ -15,9 +15,8 @@ from csr_core.alignment.observability import UNOBSERVABLE, own_gnss_error_m, uno
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import optimize_submap_poses
 from csr_core.alignment.registration import register_elements
-from csr_core.alignment.submaps import Submap
 from csr_core.types import ElementType
-from tests.unit.test_alignment_synthetic import make_scenario
+from tests.unit.test_alignment_synthetic import make_scenario, submaps_every_20_frames
 
 pytestmark = pytest.mark.unit
 
@@ -31,12 +30,7 @@ def _graph(along_info_for_trip2: np.ndarray, leak_along: float = 0.0):
     trip 2 to both with ``along_info_for_trip2``; ``leak_along``: share of the start pose the
     trip-2 registrations keep along the road (``PairMatch.prior_sensitivity``)."""
     trips, _ = make_scenario(3, seed=3, length_m=150.0, perception=False)
-    subs, by_trip = [], {}
-    for k, t in enumerate(trips):
-        for a in range(10, t.trip.n_frames - 10, 20):
-            s = Submap(len(subs), a, k, t.trip.key, a, a - 10, a + 10, t.poses_xyyaw_world[a].copy(), ())
-            subs.append(s)
-            by_trip.setdefault(k, []).append(s)
+    subs, by_trip = submaps_every_20_frames(trips)
     matches = []
     for n in range(min(len(v) for v in by_trip.values())):
         for i, j, info in ((0, 1, FULL), (0, 2, along_info_for_trip2), (1, 2, along_info_for_trip2)):

@@ -162,6 +162,20 @@ def make_scenario(n_trips: int = 6, seed: int = 0, *, error_m: float = 1.5, ghos
     return trips, truths
 
 
+def submaps_every_20_frames(trips) -> tuple[list, dict[int, list]]:
+    """Bare sub-maps (no elements) every 20 frames of each trip, anchored at their smoothed poses:
+    ``(sub-maps, sub-maps by trip index)``, sub-map ids = their index (for pose-graph tests)."""
+    from csr_core.alignment.submaps import Submap
+
+    subs, by_trip = [], {}
+    for k, t in enumerate(trips):
+        for a in range(10, t.trip.n_frames - 10, 20):
+            s = Submap(len(subs), a, k, t.trip.key, a, a - 10, a + 10, t.poses_xyyaw_world[a].copy(), ())
+            subs.append(s)
+            by_trip.setdefault(k, []).append(s)
+    return subs, by_trip
+
+
 def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]:
     """Aligned ATE RMSE, RPE(10 m) RMSE and per-trip aligned ATE (one rigid SE(2) over all)."""
     keys = [t.trip.key for t in trips]
