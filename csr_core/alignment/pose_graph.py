@@ -10,7 +10,7 @@ Factors (Eq. 9/10):
   the weight, to 0 at ``1/|omega|`` metres; the mean is floored at ``gnss_min_weight``).
   The GNSS error is mostly a bias with minutes of correlation time, so the priors of one trip's
   sub-maps are not independent: with ``gnss_bias_tau_s > 0`` each prior holds ``B(i)^-1 S(i)``
-  at ``g_i`` with only the white share of its variance, and the trip's biases ``B(i)`` form a
+  at ``g_i`` with only the independent share of its variance, and the trip's biases ``B(i)`` form a
   Gauss-Markov chain (:func:`add_gnss_bias_chain`). A trip's GNSS offset is then one unknown,
   learnt where the trip overlaps others and carried along the stretches it drives alone,
   instead of each sub-map being pulled back to its own fixes;
@@ -116,21 +116,20 @@ def build_factor_graph(
         if s.is_prior or params.gnss_bias_tau_s <= 0:
             g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
                                          gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        else:  # e^g through the trip's bias: B^-1 S = g (B a pure shift), white part only
-            white = sig * np.array([np.sqrt(1.0 - params.gnss_bias_share)] * 2 + [1.0])
+        else:  # e^g through the trip's bias: B^-1 S = g (B a pure shift), the independent share only
+            independent = sig * np.array([np.sqrt(1.0 - params.gnss_bias_share)] * 2 + [1.0])
             init.insert(B(s.submap_id), gtsam.Pose2())
             g.add(gtsam.BetweenFactorPose2(B(s.submap_id), S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
-                                           gtsam.noiseModel.Diagonal.Sigmas(white)))
+                                           gtsam.noiseModel.Diagonal.Sigmas(independent)))
     # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
     by_trip: dict[int, list[Submap]] = {}
     for s in submaps:
         if not s.is_prior:
             by_trip.setdefault(s.trip_index, []).append(s)
-    if params.gnss_bias_tau_s > 0:
-        for k, group in by_trip.items():
-            known.extend(add_gnss_bias_chain(g, trips[k], sorted(group, key=lambda s: s.anchor_frame), weights, params))
     for k, group in by_trip.items():
         group.sort(key=lambda s: s.anchor_frame)
+        if params.gnss_bias_tau_s > 0:
+            known.extend(add_gnss_bias_chain(g, trips[k], group, weights, params))
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
         for a, b in zip(group[:-1], group[1:], strict=False):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
