@@ -109,6 +109,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     inlier = np.zeros(0, bool)
     prior_shifts: list[float] = []
     own_error: dict = {}
+    scale_correction: dict[str, float] = {}
     if params.coarse:
         # 1. sub-map splitting, and matching pairs with other trips and the pre-built map (Fig. 4)
         circles, submaps = split_submaps(trips, params, dashes)
@@ -126,6 +127,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         inlier = graph.registration_inlier
         prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
                         for s in submaps if s.is_prior]
+        scale_correction = {trips[k].trip.key: v for k, v in graph.odom_scale_correction.items()}
         own_error = own_gnss_error_m(trips, submaps, graph.own_gnss_gain, {s for p in pairs for s in p})
         # 4. sub-map poses -> pose of every frame
         for k, t in enumerate(trips):
@@ -149,6 +151,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         {"timings": timings, "n_submaps": len(submaps), "n_candidate_pairs": len(pairs),
          "n_matches": len(matches), "n_pose_graph_inliers": int(inlier.sum()),
          "prior_patch_shifts_m": prior_shifts,
+         "odom_scale_correction": scale_correction,
          "own_gnss_error_m": {trips[k].trip.key: e for k, e in own_error.items()},
          "unaligned_poses": {k: poses[k] for k in failed}},
     )

@@ -190,42 +190,58 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
     return lat, float(scale[k])
 
 
-def calibrate_odometry(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, smoothed_xyyaw: np.ndarray,
-                       gnss_xy_world: np.ndarray, gnss_sigma_m: np.ndarray, inlier: np.ndarray,
-                       params: SingleTripParams) -> tuple[float, float]:
-    """Per-trip odometry scale (1 + e) and yaw-rate bias (rad/s) against GNSS.
+def calibrate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
+                            gnss_sigma_m: np.ndarray, inlier: np.ndarray, params: SingleTripParams) -> float:
+    """The trip's odometry yaw-rate bias (rad/s, :func:`estimate_yaw_rate_bias`), 0 for a trip
+    shorter than ``CAL_MIN_DURATION_S`` or ``2 CAL_WINDOW_M``, clipped to the physical bound."""
+    travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1))]
+    if timestamps_s[-1] - timestamps_s[0] < params.CAL_MIN_DURATION_S or travel[-1] < 2 * params.CAL_WINDOW_M:
+        return 0.0
+    bias = estimate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, gnss_sigma_m, inlier, params.CAL_WINDOW_M)
+    return float(np.clip(bias, -params.CAL_MAX_YAW_RATE_BIAS_RAD_S, params.CAL_MAX_YAW_RATE_BIAS_RAD_S))
 
-    Scale: weighted median over pairs of GNSS inlier fixes at least ``CAL_WINDOW_M`` of travel
-    apart of |GNSS displacement| / |odometry displacement| (independent of the smoother).
-    Yaw-rate bias: slope of (smoothed yaw - odometry yaw) over time; the smoothed yaw is set by
-    the GNSS positions at long range. (1.0, 0.0) when the trip is too short to tell.
-    """
-    scale, bias = 1.0, 0.0
-    incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
-    travel = np.r_[0.0, np.cumsum(np.linalg.norm(incr[:, :2], axis=1))]
+
+def estimate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
+                           gnss_sigma_m: np.ndarray, inlier: np.ndarray, window_m: float) -> float:
+    """Constant odometry yaw-rate bias (rad/s) from chords: over each pair of GNSS inlier fixes
+    ``window_m`` of travel apart, the odometry chord is the true chord turned by the odometry
+    heading error of the stretch, ``c + b t`` (``t`` the time at mid-travel); the angle between
+    the odometry and GNSS chords, fitted linearly in ``t`` (weighted by chord length over GNSS
+    sigma, two rounds of 3-sigma trimming), gives ``b``. Independent of the smoother, so the
+    odometry factors do not shrink it (a slope of smoothed-minus-odometry yaw does: the smoother
+    keeps part of the odometry's drift). 0 when fewer than six chords."""
+    travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1))]
     idx = np.flatnonzero(inlier)
-    if travel[-1] >= 2 * params.CAL_WINDOW_M and len(idx) > 10:
-        j = np.searchsorted(travel[idx], travel[idx] + params.CAL_WINDOW_M)
-        ok = j < len(idx)
-        a, b = idx[ok], idx[j[ok]]
-        d_odo = np.linalg.norm(odom_xyyaw[b, :2] - odom_xyyaw[a, :2], axis=1)
-        d_gnss = np.linalg.norm(gnss_xy_world[b] - gnss_xy_world[a], axis=1)
-        good = d_odo > 0.5 * params.CAL_WINDOW_M
-        if good.sum() > 5:
-            ratio = d_gnss[good] / d_odo[good]
-            w = np.square(d_odo[good]) / (np.square(gnss_sigma_m[a[good]]) + np.square(gnss_sigma_m[b[good]]))
-            order = np.argsort(ratio)
-            cw = np.cumsum(w[order])
-            scale = float(ratio[order][np.searchsorted(cw, 0.5 * cw[-1])])
-            scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
-    duration = timestamps_s[-1] - timestamps_s[0]
-    if duration >= params.CAL_MIN_DURATION_S and travel[-1] >= 2 * params.CAL_WINDOW_M:
-        e = np.unwrap(smoothed_xyyaw[:, 2] - odom_xyyaw[:, 2])
-        t = timestamps_s - timestamps_s[0]
-        A = np.column_stack([np.ones_like(t), t])
-        coef, *_ = np.linalg.lstsq(A, e, rcond=None)
-        bias = float(np.clip(-coef[1], -params.CAL_MAX_YAW_RATE_BIAS_RAD_S, params.CAL_MAX_YAW_RATE_BIAS_RAD_S))
-    return scale, bias
+    if len(idx) < 10:
+        return 0.0
+    j = np.searchsorted(travel[idx], travel[idx] + window_m)
+    ok = j < len(idx)
+    a, b = idx[ok], idx[j[ok]]
+    d_odo = odom_xyyaw[b, :2] - odom_xyyaw[a, :2]
+    d_gnss = gnss_xy_world[b] - gnss_xy_world[a]
+    length = np.linalg.norm(d_odo, axis=1)
+    good = length > 0.5 * window_m
+    if good.sum() < 6:
+        return 0.0
+    a, b, d_odo, d_gnss, length = a[good], b[good], d_odo[good], d_gnss[good], length[good]
+    angle = np.arctan2(d_odo[:, 1], d_odo[:, 0]) - np.arctan2(d_gnss[:, 1], d_gnss[:, 0])
+    w = np.square(length) / (np.square(gnss_sigma_m[a]) + np.square(gnss_sigma_m[b]))
+    mean = np.angle(np.sum(w * np.exp(1j * angle)))
+    angle = se2.wrap_angle(angle - mean)
+    t_mid = np.interp(0.5 * (travel[a] + travel[b]), travel, timestamps_s)
+    t_mid = t_mid - t_mid.mean()
+    keep = np.ones(len(angle), bool)
+    coef = np.zeros(2)
+    for _ in range(3):
+        A = np.column_stack([np.ones(keep.sum()), t_mid[keep]]) * np.sqrt(w[keep])[:, None]
+        coef, *_ = np.linalg.lstsq(A, angle[keep] * np.sqrt(w[keep]), rcond=None)
+        r = angle - coef[0] - coef[1] * t_mid
+        sigma = 1.4826 * np.median(np.abs(r[keep]))
+        new_keep = np.abs(r) <= 3.0 * max(sigma, 1e-6)
+        if new_keep.sum() < 6 or (new_keep == keep).all():
+            break
+        keep = new_keep
+    return float(coef[1])
 
 
 def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_status: np.ndarray,
@@ -280,12 +296,11 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
     node_poses = graph.solve("huber", fix_idx, node_poses)
     inlier, _ = graph.reject(node_poses, has_fix, has_fix)
-    # odometry calibration against the kept fixes: yaw-rate bias from the smoothed yaw, then
+    # odometry calibration against the kept fixes: yaw-rate bias from GNSS/odometry chords, then
     # GNSS latency and odometry scale jointly from windowed fits; the graph on the result
     scale, yaw_bias, latency = 1.0, 0.0, 0.0
     if params.CAL_ENABLED:
-        _, yaw_bias = calibrate_odometry(timestamps_s, odom_xyyaw, graph.frame_poses(node_poses),
-                                         gnss_xy_world, sigma, inlier, params)
+        yaw_bias = calibrate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, sigma, inlier, params)
         incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
         incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
         corrected = integrate_increments(odom_xyyaw[0], incr)

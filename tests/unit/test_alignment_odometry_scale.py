@@ -1,0 +1,96 @@
+"""Each trip's odometry scale as a variable of the pose graph (e^sm scaled by 1 + k)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import K, S
+
+from csr_core import se2
+from csr_core.alignment.association import PairMatch
+from csr_core.alignment.params import AlignmentParams
+from csr_core.alignment.pose_graph import optimize_submap_poses, scaled_chain_factor
+from tests.unit.test_alignment_synthetic import make_trip, submaps_every_20_frames, truth_elements, truth_trajectory
+
+pytestmark = pytest.mark.unit
+
+FULL = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.002**2])
+SCALED = AlignmentParams(odom_scale_sigma=0.003)
+FIXED_SCALE = replace(SCALED, odom_scale_sigma=0.0)
+
+
+def test_scaled_chain_jacobians_match_numerical_derivatives():
+    factor = scaled_chain_factor(S(0), S(1), K(0), np.array([20.0, 3.0, 0.3]), gtsam.noiseModel.Unit.Create(3))
+    values = gtsam.Values()
+    values.insert(S(0), gtsam.Pose2(1.0, 2.0, 0.4))
+    values.insert(S(1), gtsam.Pose2(15.0, 14.0, 0.8))
+    values.insert(K(0), np.array([0.01]))
+    analytic, _ = factor.linearize(values).jacobian()
+    dims = ((S(0), 3), (S(1), 3), (K(0), 1))
+    numeric = []
+    for key, dim in dims:
+        for d in range(dim):
+            delta = gtsam.VectorValues()
+            for other, n in dims:
+                step = np.zeros(n)
+                if other == key:
+                    step[d] = 1e-6
+                delta.insert(other, step)
+            numeric.append((factor.unwhitenedError(values.retract(delta)) - factor.unwhitenedError(values)) / 1e-6)
+    np.testing.assert_allclose(analytic, np.array(numeric).T, atol=1e-4)
+
+
+def _two_trips_one_stretched(scale_error: float):
+    """Two trips along the same 400 m road, registered (true relative pose) at every sub-map; the
+    second trip's smoothed trajectory is stretched by ``1 + scale_error`` about its start (its
+    odometry scale off, as its single-trip calibration left it)."""
+    rng = np.random.default_rng(2)
+    elements = truth_elements(400.0)
+    truths = [truth_trajectory(lane, False, rng, 400.0) for lane in (0, 1)]
+    trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, perception=False) for k in range(2)]
+    poses = trips[1].poses_xyyaw_world.copy()
+    poses[:, :2] = poses[0, :2] + (1.0 + scale_error) * (poses[:, :2] - poses[0, :2])
+    trips[1] = replace(trips[1], poses_xyyaw_world=poses)
+    subs, by_trip = submaps_every_20_frames(trips)
+    matches = []
+    for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False)):
+        c = np.array([*si.world_T_submap[:2], 0.0])
+        gi, gj = si.world_T_submap - c, sj.world_T_submap - c
+        ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
+        delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
+        matches.append(PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, FULL,
+                                 ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0))
+    return trips, truths, subs, by_trip, matches
+
+
+def _spread_m(res, truths, by_trip) -> float:
+    """RMS over trip 1's sub-maps of its error relative to trip 0's nearest one (what a stretch
+    leaves: the trips disagree more and more along the road)."""
+    out = []
+    for s0, s1 in zip(by_trip[0], by_trip[1], strict=False):
+        e0 = res.poses_xyyaw[s0.submap_id][:2] - truths[0][s0.anchor_frame][:2]
+        e1 = res.poses_xyyaw[s1.submap_id][:2] - truths[1][s1.anchor_frame][:2]
+        out.append(np.sum(np.square(e1 - e0)))
+    return float(np.sqrt(np.mean(out)))
+
+
+def test_a_trip_stretched_by_its_odometry_scale_is_brought_back_by_the_registrations():
+    trips, truths, subs, by_trip, matches = _two_trips_one_stretched(0.004)  # 1.5 m over the road
+    scaled = optimize_submap_poses(trips, subs, matches, SCALED)
+    fixed = optimize_submap_poses(trips, subs, matches, FIXED_SCALE)
+    # the registrations say trip 1 is 0.4 % too long; its scale variable takes it (shared with
+    # trip 0, whose own scale may move the other way: the GNSS priors fix the sum)
+    k0, k1 = scaled.odom_scale_correction[0], scaled.odom_scale_correction[1]
+    assert (1.0 + k1) * 1.004 / (1.0 + k0) == pytest.approx(1.0, abs=5e-4)
+    assert _spread_m(scaled, truths, by_trip) < 0.01
+    # with the scale fixed, the stiff e^sm chain holds the stretch against the registrations
+    assert _spread_m(fixed, truths, by_trip) > 0.02
+
+
+def test_without_registrations_the_scale_stays_at_its_prior():
+    trips, _, subs, _, _ = _two_trips_one_stretched(0.004)
+    res = optimize_submap_poses(trips, subs, [], SCALED)
+    assert abs(res.odom_scale_correction[0]) < 1e-3 and abs(res.odom_scale_correction[1]) < 1e-3
