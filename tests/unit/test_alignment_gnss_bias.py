@@ -8,8 +8,6 @@ import gtsam
 import numpy as np
 import pytest
 
-from csr_core import se2
-from csr_core.alignment.association import PairMatch
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import add_gnss_bias_chain, optimize_submap_poses
 from csr_core.alignment.submaps import Submap
@@ -17,6 +15,7 @@ from tests.unit.test_alignment_synthetic import (
     make_scenario,
     make_trip,
     submaps_every_20_frames,
+    true_registration,
     truth_elements,
     truth_trajectory,
 )
@@ -38,16 +37,7 @@ def _two_trips_registered_only_at_the_start(n_registered: int = 3):
     trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
              for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))]
     subs, by_trip = submaps_every_20_frames(trips)
-    matches = []
-    for n in range(n_registered):
-        si, sj = by_trip[0][n], by_trip[1][n]
-        c = np.array([*si.world_T_submap[:2], 0.0])
-        gi, gj = si.world_T_submap - c, sj.world_T_submap - c
-        ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
-        # delta such that between(gi, delta o gj) is the true relative pose between(ti, tj)
-        delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
-        matches.append(PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, FULL,
-                                 ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0))
+    matches = [true_registration(by_trip[0][n], by_trip[1][n], truths, n, FULL) for n in range(n_registered)]
     return trips, truths, subs, by_trip, matches
 
 

@@ -9,11 +9,15 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import K, S
 
-from csr_core import se2
-from csr_core.alignment.association import PairMatch
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import optimize_submap_poses, scaled_chain_factor
-from tests.unit.test_alignment_synthetic import make_trip, submaps_every_20_frames, truth_elements, truth_trajectory
+from tests.unit.test_alignment_synthetic import (
+    make_trip,
+    submaps_every_20_frames,
+    true_registration,
+    truth_elements,
+    truth_trajectory,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -55,14 +59,8 @@ def _two_trips_one_stretched(scale_error: float):
     poses[:, :2] = poses[0, :2] + (1.0 + scale_error) * (poses[:, :2] - poses[0, :2])
     trips[1] = replace(trips[1], poses_xyyaw_world=poses)
     subs, by_trip = submaps_every_20_frames(trips)
-    matches = []
-    for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False)):
-        c = np.array([*si.world_T_submap[:2], 0.0])
-        gi, gj = si.world_T_submap - c, sj.world_T_submap - c
-        ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
-        delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
-        matches.append(PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, FULL,
-                                 ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0))
+    matches = [true_registration(si, sj, truths, n, FULL)
+               for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False))]
     return trips, truths, subs, by_trip, matches
 
 

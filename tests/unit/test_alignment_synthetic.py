@@ -176,6 +176,20 @@ def submaps_every_20_frames(trips) -> tuple[list, dict[int, list]]:
     return subs, by_trip
 
 
+def true_registration(si, sj, truths, n: int, information: np.ndarray):
+    """A ``PairMatch`` between bare sub-maps ``si`` (trip 0) and ``sj`` (trip 1) carrying their
+    true relative pose: ``delta`` such that between(gi, delta o gj) = between(ti, tj), about the
+    centre of ``si``, with the given information and confidence 0.9."""
+    from csr_core.alignment.association import PairMatch
+
+    c = np.array([*si.world_T_submap[:2], 0.0])
+    gi, gj = si.world_T_submap - c, sj.world_T_submap - c
+    ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
+    delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
+    return PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, information,
+                     ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0)
+
+
 def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]:
     """Aligned ATE RMSE, RPE(10 m) RMSE and per-trip aligned ATE (one rigid SE(2) over all)."""
     keys = [t.trip.key for t in trips]

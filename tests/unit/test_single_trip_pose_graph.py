@@ -78,14 +78,18 @@ def test_trip_without_fix_raises():
         reconstruct_trip(trip, frame)
 
 
+def _winding_drive(t: np.ndarray, speed_mps: np.ndarray, yaw_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(true poses (N, 3), body-frame increments (N-1, 3))`` of a drive at 10 Hz with the given
+    speed and heading profiles."""
+    incr = np.column_stack([speed_mps * 0.1, np.zeros_like(t), np.r_[np.diff(yaw_rad), 0.0]])[:-1]
+    return integrate_increments(np.zeros(3), incr), incr
+
+
 def test_latency_and_odometry_scale_are_recovered():
     rng = np.random.default_rng(7)
     t = np.arange(0.0, 200.0, 0.1)
     # a winding drive with speed changes: latency is visible where the velocity changes
-    speed = 8.0 + 4.0 * np.sin(t / 15.0)
-    yaw = 0.6 * np.sin(t / 20.0)
-    incr = np.column_stack([speed * 0.1, np.zeros_like(t), np.r_[np.diff(yaw), 0.0]])[:-1]
-    true = integrate_increments(np.zeros(3), incr)
+    true, incr = _winding_drive(t, 8.0 + 4.0 * np.sin(t / 15.0), 0.6 * np.sin(t / 20.0))
     latency = 0.12
     gnss = np.column_stack([np.interp(t - latency, t, true[:, 0]), np.interp(t - latency, t, true[:, 1])])
     gnss += rng.normal(scale=0.05, size=gnss.shape)
@@ -112,10 +116,7 @@ def test_yaw_rate_bias_is_recovered_in_full():
     yaw was (the odometry factors keep part of the drift; 15-25 % short on simulated trips)."""
     rng = np.random.default_rng(11)
     t = np.arange(0.0, 150.0, 0.1)
-    speed = 10.0 + 3.0 * np.sin(t / 17.0)
-    yaw = 0.8 * np.sin(t / 25.0)
-    incr = np.column_stack([speed * 0.1, np.zeros_like(t), np.r_[np.diff(yaw), 0.0]])[:-1]
-    true = integrate_increments(np.zeros(3), incr)
+    true, incr = _winding_drive(t, 10.0 + 3.0 * np.sin(t / 17.0), 0.8 * np.sin(t / 25.0))
     bias_rad_s = np.radians(0.04)
     biased = incr.copy()
     biased[:, 2] += bias_rad_s * 0.1
