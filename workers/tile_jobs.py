@@ -95,7 +95,7 @@ from workers.dispatch import neighbours_to_wait_for
 log = logging.getLogger(__name__)
 
 NO_OVERLAP = "no_overlap"  # nothing else in the tile to align with: the trip keeps its own poses
-TOPOLOGY_STATE_VERSION = "topology-1"  # bump when TopologyResult's pickled form changes
+TOPOLOGY_STATE_VERSION = "topology-2"  # bump when TopologyResult's pickled form changes
 
 
 # flags that hold a merge back for review (``SUSPECT`` but low support and gaps: see tile_quality)

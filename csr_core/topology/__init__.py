@@ -62,7 +62,8 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     ``previous``: an earlier map whose ids continue (rebuild with more or re-aligned trips);
     ``trip_times``: trip key -> time (first_seen / last_confirmed); ``match_pairs``: the
     alignment's match pairs (``MatchPairRecord``) for the residual check;
-    ``paths_xy_per_trip``: trip key -> aligned positions ``(N, 2)`` (directions of centrelines).
+    ``paths_xy_per_trip``: trip key -> aligned positions ``(N, 2)`` (directions of centrelines;
+    the trips that drove alongside a line without seeing it, against ghosts).
     """
     t0 = time.perf_counter()
     # 1. members: every trip instance with its lateral sigma (noise + alignment); zig-zags out
@@ -76,14 +77,15 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
             member_lists.append(mem)
     t1 = time.perf_counter()
     # 4. centreline directions from the trips that drove them, stable ids
-    features = orient_centerlines(features, path_probes(paths_xy_per_trip), params)
+    paths = path_probes(paths_xy_per_trip)
+    features = orient_centerlines(features, paths, params)
     features = assign_ids(features, (*previous.features, *previous.suppressed) if previous is not None else (),
                           params)
     members = {f.feature_id: m for f, m in zip(features, member_lists, strict=True)}
     t2 = time.perf_counter()
     # 5.-6. lane graph, validation
     result = finish(features, members, trip_probe_points(instances_per_trip), params, match_pairs,
-                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected)
+                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected, paths)
     log.info("topology: %d trips, %d features, %d flags in %.2f s", len(instances_per_trip),
              len(result.features), len(result.flags), time.perf_counter() - t0)
     return result

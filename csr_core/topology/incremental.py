@@ -105,7 +105,8 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
                 refit_members.append(mem)
     t1 = time.perf_counter()
     # 3. directions, then ids: refitted instances continue the touched ones
-    refit = orient_centerlines(refit, path_probes(paths_xy_per_trip), params)
+    trip_paths = {**previous.trip_paths, **path_probes(paths_xy_per_trip)}
+    refit = orient_centerlines(refit, trip_paths, params)
     refit = assign_ids(refit, touched_old, params)
     taken = {f.feature_id for f in kept}
     for i, f in enumerate(refit):
@@ -117,12 +118,12 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     features = [_strip(f) for f in kept] + refit
     return finish(features, members, trip_points, params, match_pairs,
                   {"fuse": t1 - t0, "refit_features": float(len(refit))}, times,
-                  (*previous.rejected_members, *rejected))
+                  (*previous.rejected_members, *rejected), trip_paths)
 
 
 def _strip(f: MapFeature) -> MapFeature:
     """An untouched instance: its validation fields are recomputed."""
-    props = {k: v for k, v in f.properties.items() if k not in ("flags", "coverage_trips")}
+    props = {k: v for k, v in f.properties.items() if k not in ("flags", "coverage_trips", "passed_trips")}
     return MapFeature(f.type, f.points_xy_world, f.style, f.feature_id, props)
 
 

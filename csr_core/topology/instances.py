@@ -18,7 +18,7 @@ from csr_core.topology.fusion import FusedInstance, fuse_lines, fuse_polygons
 from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
-from csr_core.topology.validation import TileQuality, ValidationFlag, coverage_counts, validate
+from csr_core.topology.validation import TileQuality, ValidationFlag, coverage_counts, passing_counts, validate
 from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 
 
@@ -26,10 +26,11 @@ from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 class TopologyResult:
     """The fused map and its checks.
 
-    ``suppressed``: instances held back from the map (one trip saw them, several passed); they
-    keep their ids and flags and are published once more trips confirm them.
-    ``members`` (feature id -> the trip instances supporting it) and ``trip_points`` (each
-    trip's element points, for coverage) are the state ``update_topology`` continues from.
+    ``suppressed``: lines held back from the map (few of the trips that drove alongside them saw
+    them: ghosts); they keep their ids and flags and are published once more trips confirm them.
+    ``members`` (feature id -> the trip instances supporting it), ``trip_points`` (each trip's
+    element points, for coverage) and ``trip_paths`` (each trip's driven path, for the trips that
+    passed a line) are the state ``update_topology`` continues from.
     """
 
     features: tuple[MapFeature, ...]
@@ -42,6 +43,7 @@ class TopologyResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     suppressed: tuple[MapFeature, ...] = ()
     rejected_members: tuple[Member, ...] = ()  # trip instances left out of fusion (zig-zag lines)
+    trip_paths: dict[str, np.ndarray] = field(default_factory=dict)  # (P, 4) x, y, unit direction
 
     def flags_of(self, feature_id: str) -> list[ValidationFlag]:
         return [f for f in self.flags if f.feature_id == feature_id]
@@ -219,22 +221,24 @@ def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
 def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]],
            trip_points: dict[str, np.ndarray], params: TopologyParams, match_pairs: Sequence,
            timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None,
-           rejected_members: Sequence[Member] = ()) -> TopologyResult:
-    """Validation over the whole map, flags copied into each feature; instances that a single
-    trip of at least ``SUPPRESS_MIN_COVERAGE`` passing trips saw are held back (``suppressed``);
-    the lane graph of the published ones."""
+           rejected_members: Sequence[Member] = (), trip_paths: Mapping[str, np.ndarray] | None = None
+           ) -> TopologyResult:
+    """Validation over the whole map, flags copied into each feature; lines that at least
+    ``SUPPRESS_MIN_PASSING`` trips drove alongside without seeing them, and that fewer than
+    ``LOW_SUPPORT_SHARE`` of the trips with them in view saw, are held back (``suppressed``);
+    the lane graph of the published ones. ``trip_paths``: see :func:`path_probes`."""
     t0 = time.perf_counter()
     cover = coverage_counts(features, trip_points, params.COVERAGE_RADIUS_M)
+    passed = passing_counts(features, trip_paths or {}, params)
     flags, quality = validate(features, cover, params, match_pairs)
     by_feature: dict[str, list[str]] = {}
     for fl in flags:
         if fl.feature_id is not None:
             by_feature.setdefault(fl.feature_id, []).append(fl.kind)
-    final = [replace(f, properties={**f.properties, "coverage_trips": c,
+    final = [replace(f, properties={**f.properties, "coverage_trips": c, "passed_trips": n,
                                     "flags": sorted(set(by_feature.get(f.feature_id, [])))})
-             for f, c in zip(features, cover, strict=True)]
-    held = [params.SUPPRESS_MIN_COVERAGE > 0 and f.properties["support_trips"] <= 1
-            and f.properties["coverage_trips"] >= params.SUPPRESS_MIN_COVERAGE for f in final]
+             for f, c, n in zip(features, cover, passed, strict=True)]
+    held = [_ghost(int(f.properties["support_trips"]), n, params) for f, n in zip(final, passed, strict=True)]
     published = tuple(f for f, h in zip(final, held, strict=True) if not h)
     suppressed = tuple(f for f, h in zip(final, held, strict=True) if h)
     t1 = time.perf_counter()
@@ -242,7 +246,16 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     t2 = time.perf_counter()
     return TopologyResult(published, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
                           {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed,
-                          tuple(rejected_members))
+                          tuple(rejected_members), dict(trip_paths or {}))
+
+
+def _ghost(support_trips: int, passed_trips: int, params: TopologyParams) -> bool:
+    """Held back: enough trips drove alongside without seeing it (``SUPPRESS_MIN_PASSING``) and
+    fewer than ``LOW_SUPPORT_SHARE`` of all the trips that had it in view saw it. A real line is
+    seen on nearly every pass (tens of frames in view), so this is what ghosts and one trip's
+    mis-spliced lines look like."""
+    return (params.SUPPRESS_MIN_PASSING > 0 and passed_trips >= params.SUPPRESS_MIN_PASSING
+            and support_trips < params.LOW_SUPPORT_SHARE * (support_trips + passed_trips))
 
 
 def reposition_instances(instances: Sequence[TripInstance], from_xyyaw: np.ndarray, to_xyyaw: np.ndarray

@@ -81,8 +81,18 @@ class TopologyParams:
     WIDTH_RUN_M: float = 5.0  # an implausible spacing must hold over this length
     # two estimates of one line differ by more than this many combined sigmas: not noise
     DUPLICATE_SIGMAS: float = 2.0
-    # seen by one trip of at least this many passing trips: held back from the map (0: never)
-    SUPPRESS_MIN_COVERAGE: int = 0
+    # --- negative evidence: trips that drove alongside a line and did not see it -------------------
+    # A trip "drove alongside" a line when, over at least PASS_MIN_SHARE of the line's length, its
+    # path ran within PASS_LATERAL_M of it (inside the usual +-15 m lateral BEV range, away from its
+    # edge where detections thin out) in a direction within PASS_MAX_ANGLE_RAD of the line's (either
+    # way): it had the line in view for tens of frames. Crossing it at a junction does not count.
+    PASS_LATERAL_M: float = 10.0
+    PASS_MAX_ANGLE_RAD: float = math.radians(30.0)
+    PASS_MIN_SHARE: float = 0.5
+    # a line that at least this many trips drove alongside without seeing it, and that fewer than
+    # LOW_SUPPORT_SHARE of all the trips that had it in view saw, is held back from the map
+    # (``TopologyResult.suppressed``) until more trips confirm it (0: never held back)
+    SUPPRESS_MIN_PASSING: int = 3
 
     def trip_sigma_m(self, noise: ElementNoise | None) -> float:
         """Lateral 1-sigma of one trip's instance in the world: its perception noise plus the

@@ -286,3 +286,42 @@ def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np
         idx = np.fromiter((i for h in hits for i in h), dtype=np.int64)
         out.append(int(len(np.unique(label[idx]))))
     return out
+
+
+PASS_PROBE_SPACING_M = 5.0  # a line is checked every this many metres
+
+
+def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.ndarray],
+                   params: TopologyParams) -> list[int]:
+    """For each line feature, how many trips that did not see it drove alongside it: the
+    negative evidence against a ghost (``PASS_LATERAL_M``, ``PASS_MAX_ANGLE_RAD``,
+    ``PASS_MIN_SHARE``). ``trip_paths``: each trip's driven path as ``(P, 4)`` rows x, y, unit
+    direction x, y a few metres apart (``instances.path_probes``); ``properties["trips"]`` of a
+    feature names the trips that saw it. Polygons and stop lines (crossed, not driven along): 0."""
+    keys = [k for k, p in trip_paths.items() if len(p)]
+    if not keys or not features:
+        return [0] * len(features)
+    rows = np.concatenate([trip_paths[k] for k in keys])
+    label = np.concatenate([np.full(len(trip_paths[k]), i) for i, k in enumerate(keys)])
+    tree = cKDTree(rows[:, :2])
+    cos_max = math.cos(params.PASS_MAX_ANGLE_RAD)
+    out = []
+    for f in features:
+        p = np.asarray(f.points_xy_world, float)
+        if f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 2:
+            out.append(0)
+            continue
+        probe = resample_polyline(p, PASS_PROBE_SPACING_M)
+        tangent = np.gradient(probe, axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        hits = tree.query_ball_point(probe, params.PASS_LATERAL_M)
+        counts = np.fromiter((len(h) for h in hits), np.int64, len(probe))
+        idx = np.fromiter((i for h in hits for i in h), np.int64, int(counts.sum()))
+        at = np.repeat(np.arange(len(probe)), counts)
+        along = np.abs(np.einsum("ij,ij->i", rows[idx, 2:], tangent[at])) >= cos_max
+        probe_trip = np.unique(at[along] * len(keys) + label[idx[along]])  # (probe, trip) with a pass
+        per_trip = np.bincount(probe_trip % len(keys), minlength=len(keys))
+        seen_by = set(f.properties.get("trips", ()))
+        out.append(sum(1 for i, k in enumerate(keys)
+                       if per_trip[i] >= params.PASS_MIN_SHARE * len(probe) and k not in seen_by))
+    return out
