@@ -508,7 +508,8 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
     features = clip_to_tile(topology.features, frame, z, x, y)
     with session_factory() as session:
         seams = check_seams(session, features, frame, z, x, y)
-    quality = {**tile_quality(features), "seams": seams}
+    quality = {**tile_quality(features), "seams": seams,
+               "held_back": held_back_counts(clip_to_tile(topology.suppressed, frame, z, x, y))}
     return MergeTileResult(
         expected_latest=expected,
         features=features,
@@ -646,6 +647,16 @@ def tile_quality(features: Sequence[versions.VersionFeature]) -> dict[str, Any]:
             counts[kind] = counts.get(kind, 0) + 1
     n = len(features)
     return {"score": 1.0 - flagged / n if n else 1.0, "n_features": n, "n_flagged": flagged, "flags": counts}
+
+
+def held_back_counts(held: Sequence[versions.VersionFeature]) -> dict[str, int]:
+    """Lines of the tile held back from the version, by type (``TopologyResult.suppressed``: trips
+    drove alongside them and did not see them); they stay in the topology state and are published
+    once more trips confirm them."""
+    counts: dict[str, int] = {}
+    for f in held:
+        counts[str(f.type)] = counts.get(str(f.type), 0) + 1
+    return counts
 
 
 def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult) -> None:

@@ -91,6 +91,8 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(k
     seams = [q["seams"] for q in qualities if q.get("seams", {}).get("checked")]
     assert seams, "no element crossing a tile edge was checked against its neighbour"
     assert max(s["median_gap_m"] for s in seams) < 0.15, seams
+    # lines held back from a version (trips drove alongside them without seeing them) are counted
+    assert all(isinstance(q["held_back"], dict) for q in qualities), qualities
     busiest = max(tiles, key=lambda t: t.n_features)
     with dep.admin() as http:
         mvt = http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}.mvt")
