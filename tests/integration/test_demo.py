@@ -137,9 +137,11 @@ def test_demo_serves_until_ctrl_c(tmp_path):
     data = tmp_path / "serving"
     port = free_port()
     log = (tmp_path / "demo.out").open("w+")
+    # Ctrl-C must reach the demo even when the test runner itself ignores SIGINT (a background job of
+    # a non-interactive shell does, and a child inherits that): the child starts with the default
     proc = subprocess.Popen([str(BIN / "csr"), "demo", *SMALL, "--trips", "2", "--no-baseline", "--data-dir",
                              str(data), "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, env=_env(),
-                            cwd=REPO)
+                            cwd=REPO, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         def serving() -> bool:
             output = Path(log.name).read_text()
