@@ -30,6 +30,7 @@ import logging
 import pickle
 import time
 import zlib
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -653,10 +654,7 @@ def held_back_counts(held: Sequence[versions.VersionFeature]) -> dict[str, int]:
     """Lines of the tile held back from the version, by type (``TopologyResult.suppressed``: trips
     drove alongside them and did not see them); they stay in the topology state and are published
     once more trips confirm them."""
-    counts: dict[str, int] = {}
-    for f in held:
-        counts[str(f.type)] = counts.get(str(f.type), 0) + 1
-    return counts
+    return dict(Counter(str(f.type) for f in held))
 
 
 def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult) -> None:

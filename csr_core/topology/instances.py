@@ -18,7 +18,13 @@ from csr_core.topology.fusion import FusedInstance, fuse_lines, fuse_polygons
 from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
-from csr_core.topology.validation import TileQuality, ValidationFlag, coverage_counts, passing_counts, validate
+from csr_core.topology.validation import (
+    TileQuality,
+    ValidationFlag,
+    coverage_counts,
+    passing_counts,
+    validate,
+)
 from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 
 

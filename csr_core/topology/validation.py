@@ -268,16 +268,24 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
     return tuple(flags), quality
 
 
+def _labelled_tree(per_trip: Mapping[str, np.ndarray]):
+    """The trips with rows, all their rows stacked, each row's trip (index into the keys) and a
+    KD-tree over the rows' first two columns (x, y)."""
+    keys = [k for k, p in per_trip.items() if len(p)]
+    if not keys:
+        return keys, None, None, None
+    rows = np.concatenate([per_trip[k] for k in keys])
+    label = np.concatenate([np.full(len(per_trip[k]), i) for i, k in enumerate(keys)])
+    return keys, rows, label, cKDTree(rows[:, :2])
+
+
 def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np.ndarray],
                     radius_m: float) -> list[int]:
     """For each feature, how many trips have some element point within ``radius_m`` of it
     (``trip_points``: each trip's element points, a few metres apart)."""
-    keys = [k for k, p in trip_points.items() if len(p)]
+    keys, _, label, tree = _labelled_tree(trip_points)
     if not keys or not features:
         return [0] * len(features)
-    pts = np.concatenate([trip_points[k] for k in keys])
-    label = np.concatenate([np.full(len(trip_points[k]), i) for i, k in enumerate(keys)])
-    tree = cKDTree(pts)
     out = []
     for f in features:
         p = np.asarray(f.points_xy_world, float)
@@ -298,12 +306,9 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     ``PASS_MIN_SHARE``). ``trip_paths``: each trip's driven path as ``(P, 4)`` rows x, y, unit
     direction x, y a few metres apart (``instances.path_probes``); ``properties["trips"]`` of a
     feature names the trips that saw it. Polygons and stop lines (crossed, not driven along): 0."""
-    keys = [k for k, p in trip_paths.items() if len(p)]
+    keys, rows, label, tree = _labelled_tree(trip_paths)
     if not keys or not features:
         return [0] * len(features)
-    rows = np.concatenate([trip_paths[k] for k in keys])
-    label = np.concatenate([np.full(len(trip_paths[k]), i) for i, k in enumerate(keys)])
-    tree = cKDTree(rows[:, :2])
     cos_max = math.cos(params.PASS_MAX_ANGLE_RAD)
     out = []
     for f in features:

@@ -22,7 +22,6 @@ from tests.unit.test_alignment_synthetic import (
 
 pytestmark = pytest.mark.unit
 
-FULL = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.002**2])
 BIAS = AlignmentParams(gnss_bias_tau_s=300.0)
 INDEPENDENT = replace(BIAS, gnss_bias_tau_s=0.0)
 
@@ -37,7 +36,7 @@ def _two_trips_registered_only_at_the_start(n_registered: int = 3):
     trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
              for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))]
     subs, by_trip = submaps_every_20_frames(trips)
-    matches = [true_registration(by_trip[0][n], by_trip[1][n], truths, n, FULL) for n in range(n_registered)]
+    matches = [true_registration(by_trip[0][n], by_trip[1][n], truths, n) for n in range(n_registered)]
     return trips, truths, subs, by_trip, matches
 
 

@@ -21,7 +21,6 @@ from tests.unit.test_alignment_synthetic import (
 
 pytestmark = pytest.mark.unit
 
-FULL = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.002**2])
 SCALED = AlignmentParams(odom_scale_sigma=0.003)
 FIXED_SCALE = replace(SCALED, odom_scale_sigma=0.0)
 
@@ -59,7 +58,7 @@ def _two_trips_one_stretched(scale_error: float):
     poses[:, :2] = poses[0, :2] + (1.0 + scale_error) * (poses[:, :2] - poses[0, :2])
     trips[1] = replace(trips[1], poses_xyyaw_world=poses)
     subs, by_trip = submaps_every_20_frames(trips)
-    matches = [true_registration(si, sj, truths, n, FULL)
+    matches = [true_registration(si, sj, truths, n)
                for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False))]
     return trips, truths, subs, by_trip, matches
 
