@@ -26,7 +26,7 @@ import numpy as np
 
 from csr_core.alignment.association import PairMatch, associate
 from csr_core.alignment.corrections import MatchCorrections, PairConstraint, apply_corrections
-from csr_core.alignment.fine import dash_ends, frame_points, frame_residuals, refine_frames
+from csr_core.alignment.fine import dash_ends, detections, frame_points, frame_residuals, refine_frames
 from csr_core.alignment.observability import own_gnss_error_m, unobservable_reason
 from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
 from csr_core.alignment.pose_graph import frame_poses_from_submaps, optimize_submap_poses
@@ -102,7 +102,9 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     noise = noise_scales(trips, params)
     poses = {t.trip.key: t.poses_xyyaw_world.copy() for t in trips}
     # dash-end sightings (along-road landmarks of the coarse and the fine stage), read once
-    dashes = [dash_ends(t) for t in trips] if (params.landmarks and params.coarse) or params.fine_dashes else None
+    dets = [detections(t) for t in trips]
+    dashes = ([dash_ends(t, dets=d) for t, d in zip(trips, dets, strict=True)]
+              if (params.landmarks and params.coarse) or params.fine_dashes else None)
     submaps: list[Submap] = []
     matches: list[PairMatch] = []
     pairs: list[tuple[int, int]] = []
@@ -133,7 +135,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         for k, t in enumerate(trips):
             poses[t.trip.key] = frame_poses_from_submaps(t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw)
         timings["pose_graph_s"] = time.perf_counter() - clock - sum(timings.values())
-    fps = [frame_points(t) for t in trips]
+    fps = [frame_points(t, d) for t, d in zip(trips, dets, strict=True)]
     if params.fine:
         # 5. fine alignment: the same flow with single-frame perception as the primitive
         poses = refine_frames(trips, fps, poses, prior_map.features if prior_map else (), noise, params, dashes)
