@@ -270,20 +270,22 @@ def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping,
         k = min(K_CANDIDATES, len(m.a))
         _, cand = m.tree.query(q, k=k)
         cand = cand.reshape(len(sel), k)
-        a, d = m.a[cand], m.b[cand] - m.a[cand]  # (n, k, 2)
-        rel = q[:, None, :] - a
-        L2 = np.maximum((d * d).sum(-1), 1e-12)
-        u = (rel * d).sum(-1) / L2
+        # (n, k) arrays per coordinate (no trailing axis of 2: reductions over it are slow)
+        ax, ay = m.a[cand, 0], m.a[cand, 1]
+        dx, dy = m.b[cand, 0] - ax, m.b[cand, 1] - ay
+        rx, ry = q[:, 0, None] - ax, q[:, 1, None] - ay
+        L2 = np.maximum(dx * dx + dy * dy, 1e-12)
+        u = (rx * dx + ry * dy) / L2
         uc = np.clip(u, 0.0, 1.0)
-        dist2 = ((rel - uc[..., None] * d) ** 2).sum(-1)
+        dist2 = (rx - uc * dx) ** 2 + (ry - uc * dy) ** 2
         bad = (m.owner[cand] == exclude_owner) | (m.open_start[cand] & (u < 0)) | (m.open_end[cand] & (u > 1))
         dist2[bad] = np.inf
         best = np.argmin(dist2, axis=1)
         rows = np.arange(len(sel))
         db = dist2[rows, best]
-        dd = d[rows, best]
+        dd = np.column_stack([dx[rows, best], dy[rows, best]])
         nrm = np.column_stack([-dd[:, 1], dd[:, 0]]) / np.sqrt(L2[rows, best])[:, None]
-        f = a[rows, best] + uc[rows, best][:, None] * dd
+        f = np.column_stack([ax[rows, best], ay[rows, best]]) + uc[rows, best][:, None] * dd
         foot[sel], normal[sel] = f, nrm
         resid[sel] = np.einsum("ij,ij->i", nrm, q - f)
         valid[sel] = np.isfinite(db) & (db <= gate_m[sel] ** 2)

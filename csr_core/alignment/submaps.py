@@ -161,18 +161,28 @@ def _prepared_instances(trip: TripReconstruction, params: AlignmentParams) -> li
     return out
 
 
+def element_bounds(prepared: Sequence[tuple[np.ndarray, bool]]) -> np.ndarray:
+    """``(K, 4)`` bounding boxes ``(x_lo, y_lo, x_hi, y_hi)`` of prepared elements; an element of
+    fewer than two points gets an empty box (``lo = +inf``, ``hi = -inf``) that no disk meets."""
+    bounds = np.tile([np.inf, np.inf, -np.inf, -np.inf], (len(prepared), 1))
+    for i, (pts, _) in enumerate(prepared):
+        if len(pts) >= 2:
+            bounds[i] = np.r_[pts.min(axis=0), pts.max(axis=0)]
+    return bounds
+
+
 def clip_elements_to_disk(
     prepared: Sequence[tuple[np.ndarray, bool]], types: Sequence[ElementType], centre_xy: np.ndarray,
-    radius_m: float, min_length_m: float,
+    radius_m: float, min_length_m: float, bounds: np.ndarray | None = None,
 ) -> list[tuple[int, np.ndarray, bool]]:
-    """Pieces of (resampled) elements inside a disk: ``(element index, points, closed)``."""
+    """Pieces of (resampled) elements inside a disk: ``(element index, points, closed)``.
+    ``bounds``: :func:`element_bounds` of ``prepared`` (computed here when not given)."""
+    bounds = element_bounds(prepared) if bounds is None else bounds
+    # cheap reject by bounding box
+    near = ~(np.any(bounds[:, :2] > centre_xy + radius_m, axis=1) | np.any(bounds[:, 2:] < centre_xy - radius_m, axis=1))
     out = []
-    for i, ((pts, closed), etype) in enumerate(zip(prepared, types, strict=False)):
-        if len(pts) < 2:
-            continue
-        lo, hi = pts.min(axis=0), pts.max(axis=0)  # cheap reject by bounding box
-        if np.any(lo > centre_xy + radius_m) or np.any(hi < centre_xy - radius_m):
-            continue
+    for i in map(int, np.flatnonzero(near)):
+        (pts, closed), etype = prepared[i], types[i]
         inside = np.linalg.norm(pts - centre_xy, axis=1) <= radius_m
         if not inside.any():
             continue
@@ -206,6 +216,7 @@ def split_submaps(
     graph = build_frame_graph(trips, params)
     circles, members = split_circles(graph, params)
     prepared = [_prepared_instances(t, params) for t in trips]
+    bounds = [element_bounds(p) for p in prepared]
     types = [[inst.type for inst in t.instances] for t in trips]
     marks = [trip_landmarks(t, dash_sightings[k] if dash_sightings else None) if params.landmarks
              else Landmarks.empty() for k, t in enumerate(trips)]
@@ -226,7 +237,8 @@ def split_submaps(
                 inv = se2.inverse(pose)
                 elems = []
                 for i, pts, closed in clip_elements_to_disk(
-                    prepared[k], types[k], circle.centre_xy_world, circle.radius_m, params.min_element_length_m
+                    prepared[k], types[k], circle.centre_xy_world, circle.radius_m, params.min_element_length_m,
+                    bounds[k],
                 ):
                     inst = tr.instances[i]
                     if inst.last_frame > inst.first_frame and (inst.last_frame < lo or inst.first_frame > hi):
@@ -289,13 +301,14 @@ def prior_patches(
     prepared = [(resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
                  f.type.is_polygon) for f in features]
     types = [f.type for f in features]
+    bounds = element_bounds(prepared)
     out = []
     for c in circles:
         pose = np.array([c.centre_xy_world[0], c.centre_xy_world[1], c.heading_rad])
         inv = se2.inverse(pose)
         elems = [SubmapElement(types[i], se2.transform_points(inv, pts), i, closed)
                  for i, pts, closed in clip_elements_to_disk(prepared, types, c.centre_xy_world, c.radius_m,
-                                                             params.min_element_length_m)]
+                                                             params.min_element_length_m, bounds)]
         if len(elems) >= 2:
             out.append(Submap(first_id + len(out), c.circle_id, -1, "<prior>", -1, -1, -1, pose,
                               _limit(elems, params.max_elements_per_submap)))
