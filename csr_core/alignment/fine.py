@@ -243,8 +243,10 @@ def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, d
         ok = (own != exclude_owner) & (dist <= gate_m)
         # the foot is the mean over the other trips (each trip weighted equally), not the nearest
         # copy: the nearest copy is biased towards trips that share this trip's error
-        same = (own[:, :, None] == own[:, None, :]) & ok[:, None, :]
-        w = np.where(ok, 1.0 / np.maximum(same.sum(axis=2), 1), 0.0)
+        n_owners = int(dmap.owner.max()) + 1
+        cell = np.arange(len(sel))[:, None] * n_owners + own  # (query, candidate's trip)
+        per_trip = np.bincount(cell[ok], minlength=len(sel) * n_owners)[cell]
+        w = np.where(ok, 1.0 / np.maximum(per_trip, 1), 0.0)
         wsum = w.sum(axis=1)
         pts = dmap.points_xy[cand]
         foot[sel] = (w[:, :, None] * pts).sum(axis=1) / np.maximum(wsum, 1e-12)[:, None]

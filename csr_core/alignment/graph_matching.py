@@ -49,8 +49,8 @@ def rrwm(K: np.ndarray, n1: int, n2: int, max_iter: int = 30, sk_iter: int = 6, 
         s = np.exp(beta * (s / max(s.max(), 1e-300) - 1.0))
         ax_full, ax_part = (1, 0) if n1 <= n2 else (0, 1)
         for _ in range(sk_iter):  # Sinkhorn: the smaller side sums to 1, the other to at most 1
-            s = s / np.maximum(s.sum(axis=ax_full, keepdims=True), 1e-300)
-            s = s / np.maximum(s.sum(axis=ax_part, keepdims=True), 1.0)
+            s /= np.maximum(np.add.reduce(s, axis=ax_full, keepdims=True), 1e-300)
+            s /= np.maximum(np.add.reduce(s, axis=ax_part, keepdims=True), 1.0)
         v = alpha * s.T.reshape(-1) + (1 - alpha) * v
         v = v / v.sum()
         if np.linalg.norm(v - last) < 1e-5:
@@ -93,18 +93,22 @@ def chamfer_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
 def overlap_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
     """``(n_a, n_b)`` overlap ratio o_in/(o_in+o_out) along each ``a`` element's direction."""
     out = np.zeros((len(a), len(b)))
+    if len(a) == 0 or len(b) == 0:
+        return out
+    pb, sb, _ = _concat(b.points)
+    same = same_type(a, b)
     for k, pk in enumerate(a.points):
+        if not same[k].any():
+            continue
         d = principal_direction(pk)
         sk = pk @ d
         lo_k, hi_k = sk.min(), sk.max()
-        for j, pl in enumerate(b.points):
-            if a.types[k] != b.types[j]:
-                continue
-            sl = pl @ d
-            lo_l, hi_l = sl.min(), sl.max()
-            inter = max(0.0, min(hi_k, hi_l) - max(lo_k, lo_l))
-            total = (hi_k - lo_k) + (hi_l - lo_l)
-            out[k, j] = 2.0 * inter / total if total > 1e-9 else 1.0
+        sl = pb @ d
+        lo_l, hi_l = np.minimum.reduceat(sl, sb), np.maximum.reduceat(sl, sb)
+        inter = np.maximum(0.0, np.minimum(hi_k, hi_l) - np.maximum(lo_k, lo_l))
+        total = (hi_k - lo_k) + (hi_l - lo_l)
+        ratio = np.where(total > 1e-9, 2.0 * inter / np.where(total > 1e-9, total, 1.0), 1.0)
+        out[k] = np.where(same[k], ratio, 0.0)
     return out
 
 

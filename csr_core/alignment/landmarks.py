@@ -62,7 +62,8 @@ def trip_landmarks(trip: TripReconstruction, sightings: DashEnds | None = None) 
                          s * d.direction_vehicle[:, 0] + c * d.direction_vehicle[:, 1]])
     pairs = cKDTree(pts).query_pairs(MERGE_RADIUS_M, output_type="ndarray")
     if len(pairs):
-        pairs = pairs[np.einsum("ij,ij->i", u[pairs[:, 0]], u[pairs[:, 1]]) > SAME_END_COS]
+        a, b = pairs[:, 0], pairs[:, 1]
+        pairs = pairs[u[a, 0] * u[b, 0] + u[a, 1] * u[b, 1] > SAME_END_COS]
     n = len(pts)
     adj = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])) if len(pairs) else
                             (np.zeros(0), (np.zeros(0, int), np.zeros(0, int))), shape=(n, n))
