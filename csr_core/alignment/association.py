@@ -97,17 +97,29 @@ def _point_sigma(noise: NoiseScales) -> float:
     return float(np.sqrt(2.0) * np.sqrt(np.mean(np.square(lat))))
 
 
+def _element_distances(submap: Submap, circle: Circle, elements: ElementSet,
+                       cache: dict[tuple[int, int], np.ndarray] | None) -> np.ndarray:
+    if cache is None:
+        return element_distances(elements)
+    key = (submap.submap_id, circle.circle_id)
+    if key not in cache:
+        cache[key] = element_distances(elements)
+    return cache[key]
+
+
 def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, params: AlignmentParams,
                forced_matches: Sequence[tuple[int, int]] | None = None,
-               initial_xyyaw: np.ndarray | None = None) -> PairMatch | None:
+               initial_xyyaw: np.ndarray | None = None,
+               distance_cache: dict[tuple[int, int], np.ndarray] | None = None) -> PairMatch | None:
     """Step 2 for one pair: pre-align by the road boundaries, match elements (Eq. 4-6, RRWM),
     register by GNC-TLS, confidence by Eq. 7. ``forced_matches`` skips the matching (Step 3
-    re-registration). None when the pair cannot be registered."""
+    re-registration). None when the pair cannot be registered. ``distance_cache``: element
+    distances (Eq. 6) of sub-maps already seen in this circle, filled as pairs are matched."""
     a = element_set(si, circle.centre_xy_world)
     b = element_set(sj, circle.centre_xy_world)
     if len(a) < params.min_matched_elements or len(b) < params.min_matched_elements:
         return None
-    e_a, e_b = element_distances(a), element_distances(b)
+    e_a, e_b = (_element_distances(s, circle, e, distance_cache) for s, e in ((si, a), (sj, b)))
     direction = np.array([np.cos(circle.heading_rad), np.sin(circle.heading_rad)])
     if forced_matches is None:
         # hypotheses: the GNSS initial pose, and the road-boundary pre-alignment
@@ -134,7 +146,7 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
         return None
     kept = [m for m, ok in zip(matches, reg.element_inlier, strict=False) if ok]
     b_aligned = ElementSet(b.types, tuple(se2.transform_points(reg.delta_xyyaw, p) for p in b.points))
-    conf = match_confidence(a, b_aligned, kept, noise, params)
+    conf = match_confidence(a, b_aligned, kept, noise, params, target_distances=e_a)
     return PairMatch(
         si.submap_id, sj.submap_id, si.trip_index, sj.trip_index, circle.circle_id,
         circle.centre_xy_world.copy(), reg.delta_xyyaw, reg.information_xyyaw, tuple(kept),
@@ -154,8 +166,10 @@ def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Seque
     keep = topology_filter(pairs, submaps, circles, trips, noise, params)
     candidates = [p for p, ok in zip(pairs, keep, strict=False) if ok]
     # 3-4: multi-order graph matching (Eq. 4-6), GNC relative pose, confidence (Eq. 7)
+    distances: dict[tuple[int, int], np.ndarray] = {}
     matched = [m for i, j in candidates
-               if (m := match_pair(submaps[i], submaps[j], circles[submaps[i].circle_id], noise, params)) is not None]
+               if (m := match_pair(submaps[i], submaps[j], circles[submaps[i].circle_id], noise, params,
+                                   distance_cache=distances)) is not None]
     # 5: intra-trip temporal consistency (Eq. 8)
     matched = temporal_consistency(matched, submaps, circles, noise, params)
     # 6: inter-trip consistency: maximum clique of consistent pairs

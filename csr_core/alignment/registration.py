@@ -73,18 +73,21 @@ def _landmark_rows(delta: np.ndarray, lm: LandmarkSets, gate_m: float):
     return lm.source_xy, lm.target_xy[idx], lm.target_dir[idx], ok, sigma
 
 
-def _nearest_on_polylines(points: np.ndarray, owner: np.ndarray, padded: np.ndarray, lengths: np.ndarray):
-    """For each point, its nearest segment on polyline ``owner`` of ``padded (K, L, 2)`` (NaN
-    padded, ``lengths (K,)`` vertices each, ~1-2 m apart; the two segments around the nearest
-    vertex are compared): foot, normal, and validity (False beyond the polyline's ends)."""
-    tgt = padded[owner]  # (P, L, 2)
-    d2 = np.nan_to_num(((points[:, None, :] - tgt) ** 2).sum(-1), nan=np.inf)
+def _nearest_on_polylines(points: np.ndarray, target_x: np.ndarray, target_y: np.ndarray, n_vertices: np.ndarray):
+    """For each point, its nearest segment on its own target polyline (row ``p`` of
+    ``target_x, target_y (P, L)``, NaN padded, ``n_vertices (P,)`` each, ~1-2 m apart; the two
+    segments around the nearest vertex are compared): foot, normal, and validity (False beyond
+    the polyline's ends). Coordinates are kept in separate arrays (reductions over a trailing
+    axis of 2 are slow)."""
+    d2 = np.nan_to_num((points[:, 0, None] - target_x) ** 2 + (points[:, 1, None] - target_y) ** 2, nan=np.inf)
     v = np.argmin(d2, axis=1)
-    n = lengths[owner]
+    n = n_vertices
     P = len(points)
     seg = np.stack([np.clip(v - 1, 0, n - 2), np.clip(v, 0, n - 2)], axis=1).ravel()
     rows = np.repeat(np.arange(P), 2)
-    foot, normal, u_raw, dist = point_to_segments(np.repeat(points, 2, axis=0), tgt[rows, seg], tgt[rows, seg + 1])
+    seg_a = np.column_stack([target_x[rows, seg], target_y[rows, seg]])
+    seg_b = np.column_stack([target_x[rows, seg + 1], target_y[rows, seg + 1]])
+    foot, normal, u_raw, dist = point_to_segments(np.repeat(points, 2, axis=0), seg_a, seg_b)
     pick = np.argmin(dist.reshape(P, 2), axis=1)
     sel = np.arange(P) * 2 + pick
     best = seg[sel]
@@ -148,11 +151,12 @@ def register_elements(
     c_bar = params.gnc_inlier_k  # in units of each row's sigma
     n_line = len(src_pts)
     gate = landmark_gate_m(landmarks.target_xy, landmarks.target_dir, landmarks.gate_max_m) if landmarks else 0.0
+    target_x, target_y, n_vertices = padded[owner, :, 0], padded[owner, :, 1], lengths[owner]  # per source point
     mu = None
     w = np.ones(n_line)
     for outer in range(params.gnc_max_outer + 1):
         moved = se2.transform_points(delta, src_pts)
-        foot, normal, valid = _nearest_on_polylines(moved, owner, padded, lengths)
+        foot, normal, valid = _nearest_on_polylines(moved, target_x, target_y, n_vertices)
         foot[is_fixed], normal[is_fixed], valid[is_fixed] = fixed_foot[is_fixed], fixed_normal[is_fixed], True
         sig = np.full(n_line, point_sigma_m)
         if landmarks is not None:
@@ -203,8 +207,10 @@ def register_elements(
 
 
 def match_confidence(target: ElementSet, source_aligned: ElementSet, matches: Sequence[tuple[int, int]],
-                     noise: NoiseScales, params: AlignmentParams) -> np.ndarray:
-    """Eq. 7 per match: ``c = w s_kk' + (1-w) mean_l' s_kl,k'l'`` after alignment."""
+                     noise: NoiseScales, params: AlignmentParams,
+                     target_distances: np.ndarray | None = None) -> np.ndarray:
+    """Eq. 7 per match: ``c = w s_kk' + (1-w) mean_l' s_kl,k'l'`` after alignment
+    (``target_distances``: ``element_distances(target)`` when already known)."""
     if not matches:
         return np.zeros(0)
     s = node_similarity(target, source_aligned, noise, params)
@@ -212,7 +218,8 @@ def match_confidence(target: ElementSet, source_aligned: ElementSet, matches: Se
     kp = np.array([m[1] for m in matches])
     node = s[k, kp]
     if len(matches) > 1:
-        e_t, e_s = element_distances(target), element_distances(source_aligned)
+        e_t = element_distances(target) if target_distances is None else target_distances
+        e_s = element_distances(source_aligned)
         pair = np.exp(-0.5 * ((e_t[np.ix_(k, k)] - e_s[np.ix_(kp, kp)]) / noise.sigma_e_m) ** 2)  # Eq. 6
         np.fill_diagonal(pair, 0.0)
         edge = pair.sum(axis=1) / (len(matches) - 1)
