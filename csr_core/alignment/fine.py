@@ -353,8 +353,11 @@ def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, 
         # points of one detection share its offset error: about 2 independent samples each
         used_per_element = np.bincount(el, weights=w, minlength=int(el.max()) + 1)
         wt = w * np.minimum(2.0 / np.maximum(used_per_element[el], 1.0), 1.0) / sigma**2
-        H = _sum_per_slot(slot, (J[:, :, None] * J[:, None, :] * wt[:, None, None]).reshape(-1, 9), F).reshape(F, 3, 3)
-        g = _sum_per_slot(slot, J * (wt * r)[:, None], F)
+        H, g = np.empty((F, 3, 3)), np.empty((F, 3))
+        for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):  # symmetric: the upper triangle
+            H[:, i, j] = H[:, j, i] = np.bincount(slot, weights=J[:, i] * J[:, j] * wt, minlength=F)
+        for i in range(3):
+            g[:, i] = np.bincount(slot, weights=J[:, i] * (wt * r), minlength=F)
         n_pts = np.bincount(slot, weights=w, minlength=F)
         step = -np.linalg.solve(H + reg, g[:, :, None])[:, :, 0]
         ok = n_pts >= params.fine_min_points
@@ -362,12 +365,6 @@ def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, 
         info = np.where(ok[:, None, None], H + reg, 0.0)
         n_in = np.where(ok, n_pts, 0).astype(int)
     return xi, info, n_in
-
-
-def _sum_per_slot(slot: np.ndarray, values: np.ndarray, n_slots: int) -> np.ndarray:
-    """``(n_slots, C)`` sums of the rows of ``values (P, C)`` per ``slot (P,)`` (``np.add.at``,
-    column by column through ``bincount``: the same additions in the same order, much faster)."""
-    return np.column_stack([np.bincount(slot, weights=values[:, c], minlength=n_slots) for c in range(values.shape[1])])
 
 
 def _keyframes(poses: np.ndarray, spacing_m: float) -> np.ndarray:
