@@ -64,51 +64,78 @@ class LineSamples:
 
 
 def sample_members(members: Sequence[Member], spacing_m: float) -> LineSamples:
-    pts, tans, owner = [], [], []
-    for k, m in enumerate(members):
-        p = resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing_m)
-        if len(p) < 2:
-            t = np.array([[1.0, 0.0]])
-        else:
-            t = np.gradient(p, axis=0)
-            t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-        pts.append(p)
-        tans.append(t)
-        owner.append(np.full(len(p), k))
+    pts = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing_m) for m in members]
     if not pts:
         z = np.zeros((0, 2))
         return LineSamples(z, z, np.zeros(0, int), np.zeros(0, bool), np.zeros(0, bool))
-    own = np.concatenate(owner)
+    own = np.repeat(np.arange(len(pts)), [len(p) for p in pts])
     first = np.r_[True, own[1:] != own[:-1]]
     last = np.r_[own[1:] != own[:-1], True]
-    return LineSamples(np.concatenate(pts), np.concatenate(tans), own, first, last)
+    points = np.concatenate(pts)
+    return LineSamples(points, _unit_tangents(points, first, last), own, first, last)
+
+
+def _unit_tangents(points: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Unit tangents ``(N, 2)`` of polylines stacked in ``points (N, 2)`` (``first``/``last``:
+    their end rows), for all at once as ``np.gradient`` gives them for each: central
+    differences, one-sided at the ends; (1, 0) for a single point."""
+    row = np.arange(len(points))
+    after = np.where(last, row, row + 1)
+    before = np.where(first, row, row - 1)
+    tan = points[after] - points[before]
+    inner = ~first & ~last
+    tan[inner] /= 2.0
+    tan[first & last] = (1.0, 0.0)
+    return tan / np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+
+
+def _first_min_per_group(group: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Index of the smallest ``value`` in each group (the first one on ties), groups in
+    ascending order. ``group (K,)`` non-negative integer keys.
+
+    One sort of a single integer key, ``group`` in the high bits and the index in the low bits
+    (each group's rows stay in index order), instead of a lexsort over (group, value): the
+    group's minimum by ``np.minimum.reduceat``, then its first row reaching it."""
+    index_bits = max(int(len(group)).bit_length(), 1)
+    group = np.asarray(group, dtype=np.int64)
+    if int(group.max()) < 1 << (62 - index_bits):
+        # timsort ("stable"): the keys come in runs (pairs by KD-tree leaf), about twice as fast here
+        packed = np.sort((group << index_bits) | np.arange(len(group), dtype=np.int64), kind="stable")
+        index = packed & ((1 << index_bits) - 1)
+    else:  # keys too large to pack with the index
+        index = np.argsort(group, kind="stable")
+    group_sorted = group[index]
+    value_sorted = value[index]
+    starts = np.flatnonzero(np.r_[True, group_sorted[1:] != group_sorted[:-1]])
+    group_min = np.minimum.reduceat(value_sorted, starts)
+    at_min = np.flatnonzero(value_sorted == np.repeat(group_min, np.diff(np.r_[starts, len(index)])))
+    first = np.r_[True, group_sorted[at_min][1:] != group_sorted[at_min][:-1]]
+    return index[at_min[first]]
 
 
 def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, directed: bool,
                     max_angle_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For every sample ``a`` and every other member with a sample within ``reach_m``: that
     member, the lateral distance of ``a`` to it (along its nearest sample's tangent) and whether
-    ``a`` lies inside its extent and is parallel to it. Returns ``(a, member, lateral_m, inside)``."""
+    ``a`` lies inside its extent and is parallel to it. Returns ``(a, member, lateral_m, inside)``,
+    ordered by ``a``, then member."""
     tree = cKDTree(samples.points_xy)
     pairs = tree.query_pairs(reach_m, output_type="ndarray")
+    own = samples.owner
+    # pairs within one member never count: dropped before they are doubled (both directions)
+    pairs = pairs[own[pairs[:, 0]] != own[pairs[:, 1]]]
     if len(pairs) == 0:
         e = np.zeros(0, int)
         return e, e, np.zeros(0), np.zeros(0, bool)
+    rel = samples.points_xy[pairs[:, 0]] - samples.points_xy[pairs[:, 1]]
+    dist = np.hypot(rel[:, 0], rel[:, 1])  # once per pair: the same both ways
     a = np.r_[pairs[:, 0], pairs[:, 1]]
     b = np.r_[pairs[:, 1], pairs[:, 0]]
-    own = samples.owner
-    keep = own[a] != own[b]
-    a, b = a[keep], b[keep]
-    if len(a) == 0:
-        e = np.zeros(0, int)
-        return e, e, np.zeros(0), np.zeros(0, bool)
-    rel = samples.points_xy[a] - samples.points_xy[b]
-    dist = np.hypot(rel[:, 0], rel[:, 1])
     # nearest sample of each other member, per sample a
-    order = np.lexsort((dist, own[b], a))
-    a, b, rel = a[order], b[order], rel[order]
-    first = np.r_[True, (a[1:] != a[:-1]) | (own[b][1:] != own[b][:-1])]
-    a, b, rel = a[first], b[first], rel[first]
+    n_members = int(own.max()) + 1
+    nearest = _first_min_per_group(a * n_members + own[b], np.r_[dist, dist])
+    a, b = a[nearest], b[nearest]
+    rel = samples.points_xy[a] - samples.points_xy[b]
     tb = samples.tangents[b]
     along = rel[:, 0] * tb[:, 0] + rel[:, 1] * tb[:, 1]
     lateral = np.abs(tb[:, 0] * rel[:, 1] - tb[:, 1] * rel[:, 0])

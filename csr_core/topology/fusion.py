@@ -66,17 +66,37 @@ def arclength(points: np.ndarray) -> np.ndarray:
     return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
 
 
+@dataclass(frozen=True, slots=True)
+class PolylineFrame:
+    """A densely sampled polyline ``points (B, 2)`` ready for projections, computed once per
+    line: its arclength ``s_m (B,)``, unit tangents ``(B, 2)`` and a KD-tree over its points."""
+
+    points: np.ndarray
+    s_m: np.ndarray
+    tangents: np.ndarray
+    tree: cKDTree
+
+
+def polyline_frame(line: np.ndarray) -> PolylineFrame:
+    tan = np.gradient(line, axis=0)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    return PolylineFrame(line, arclength(line), tan, cKDTree(line))
+
+
+def project_on_frame(points: np.ndarray, frame: PolylineFrame) -> tuple[np.ndarray, np.ndarray]:
+    """``project_on_polyline`` on a line prepared by ``polyline_frame``."""
+    _, i = frame.tree.query(points)
+    rel = points - frame.points[i]
+    tan = frame.tangents[i]
+    s = frame.s_m[i] + (rel * tan).sum(1)
+    d = tan[:, 0] * rel[:, 1] - tan[:, 1] * rel[:, 0]
+    return s, d
+
+
 def project_on_polyline(points: np.ndarray, line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Arclength ``s`` and signed lateral offset ``d`` (left positive) of ``points (P, 2)`` on a
     densely sampled ``line (B, 2)``; beyond the ends, s continues along the end tangents."""
-    s_b = arclength(line)
-    tan = np.gradient(line, axis=0)
-    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
-    _, i = cKDTree(line).query(points)
-    rel = points - line[i]
-    s = s_b[i] + (rel * tan[i]).sum(1)
-    d = tan[i, 0] * rel[:, 1] - tan[i, 1] * rel[:, 0]
-    return s, d
+    return project_on_frame(points, polyline_frame(line))
 
 
 def _weighted_median_per_bin(bins: np.ndarray, values: np.ndarray, weights: np.ndarray, n_bins: int) -> np.ndarray:
@@ -97,8 +117,10 @@ def _weighted_median_per_bin(bins: np.ndarray, values: np.ndarray, weights: np.n
 
 def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int, sigma_bins: float
                     ) -> tuple[np.ndarray, np.ndarray]:
-    num = gaussian_filter1d(np.bincount(bins, weights=w * d, minlength=n_bins), sigma_bins, mode="nearest")
-    den = gaussian_filter1d(np.bincount(bins, weights=w, minlength=n_bins), sigma_bins, mode="nearest")
+    # both sums smoothed in one call (row by row, as two calls would)
+    num, den = gaussian_filter1d(np.stack([np.bincount(bins, weights=w * d, minlength=n_bins),
+                                           np.bincount(bins, weights=w, minlength=n_bins)]),
+                                 sigma_bins, axis=1, mode="nearest")
     prof = np.where(den > 1e-12, num / np.maximum(den, 1e-12), np.nan)
     good = np.isfinite(prof)
     if good.any() and not good.all():
@@ -117,25 +139,31 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
     the backbone and the index of its seed member."""
     pts = np.concatenate(lines)
     own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
-    seed = int(np.argmax(_consensus(pts, own, gates, len(lines)) * weights))
+    tree = cKDTree(pts)
+    seed = int(np.argmax(_consensus(pts, own, gates, len(lines), tree) * weights))
     backbone = lines[seed]
     keep_seed = anchored is not None and bool(anchored[seed]) and len(backbone) >= 2
     n_before = 0
     used = {seed}
-    tree = cKDTree(pts)
     near_end = 3.0 * spacing
     for _ in range(2 * len(lines)):
         if len(backbone) < 2:
             break
-        total = arclength(backbone)[-1]
+        # the members near either end (not yet used), projected on the backbone all at once
+        cands_per_end = [sorted({int(own[h]) for h in tree.query_ball_point(backbone[-1 if end else 0],
+                                                                            near_end + float(gates.max()))} - used)
+                         for end in (0, 1)]
+        if not any(len(lines[k]) >= 2 for k in (*cands_per_end[0], *cands_per_end[1])):
+            break
+        frame = polyline_frame(backbone)
+        total = frame.s_m[-1]
+        projected = _project_members(lines, sorted(set(cands_per_end[0]) | set(cands_per_end[1])), frame)
         best = None  # (reach, end, points, member)
-        for end in (0, 1):
-            hits = tree.query_ball_point(backbone[-1 if end else 0], near_end + float(gates.max()))
-            cands = sorted({int(own[h]) for h in hits} - used)
+        for end, cands in enumerate(cands_per_end):
             for k in cands:
                 if len(lines[k]) < 2:
                     continue
-                s, d = project_on_polyline(lines[k], backbone)
+                s, d = projected[k]
                 close = np.abs(d) <= gates[k]
                 cand = np.flatnonzero(close & ((s >= total - near_end) & (s <= total) if end
                                                else (s <= near_end) & (s >= 0)))
@@ -168,9 +196,20 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         head = 2 * backbone[0] - backbone[1:pad + 1][::-1]
         tail = 2 * backbone[-1] - backbone[-pad - 1:-1][::-1]
         padded = np.vstack([head, backbone, tail])
-        sm = np.column_stack([gaussian_filter1d(padded[:, i], sigma, mode="nearest") for i in (0, 1)])
+        sm = gaussian_filter1d(padded, sigma, axis=0, mode="nearest")  # x and y, column by column
         backbone = resample_polyline(sm[len(head):len(head) + len(backbone)], spacing)
     return _extend_straight(backbone, 3.0, spacing), seed
+
+
+def _project_members(lines: Sequence[np.ndarray], members: Sequence[int], frame: PolylineFrame
+                     ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``project_on_frame`` of the lines of ``members`` (of at least 2 points), in one query."""
+    members = [k for k in members if len(lines[k]) >= 2]
+    if not members:
+        return {}
+    s, d = project_on_frame(np.concatenate([lines[k] for k in members]), frame)
+    cuts = np.cumsum([len(lines[k]) for k in members])[:-1]
+    return dict(zip(members, zip(np.split(s, cuts), np.split(d, cuts), strict=True), strict=True))
 
 
 def _smooth_around(backbone: np.ndarray, start: int, count: int, spacing: float) -> np.ndarray:
@@ -197,25 +236,45 @@ def _extend_straight(line: np.ndarray, length_m: float, spacing: float) -> np.nd
     return np.vstack([line[0] + q[::-1] * t0, line, line[-1] + q * t1])
 
 
-def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int) -> np.ndarray:
+def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
+               ) -> np.ndarray:
     """Per member: over its samples, how many other members pass within the gate (the member
-    most others agree with seeds the backbone, not the longest stray one)."""
+    most others agree with seeds the backbone, not the longest stray one). ``tree``: a KD-tree
+    over ``pts`` if the caller has one."""
     if n == 1:
         return np.ones(1)
-    pairs = cKDTree(pts).query_pairs(float(gates.max()), output_type="ndarray")
+    pairs = (tree if tree is not None else cKDTree(pts)).query_pairs(float(gates.max()), output_type="ndarray")
     if not len(pairs):
         return np.bincount(own, minlength=n).astype(float)
-    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
-    ok = (own[a] != own[b]) & (np.linalg.norm(pts[a] - pts[b], axis=1) <= gates[own[a]])
-    uniq = np.unique(a[ok].astype(np.int64) * n + own[b[ok]])  # (sample, other member) once
+    pairs = pairs[own[pairs[:, 0]] != own[pairs[:, 1]]]
+    pa, pb = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    rel = pts[pa] - pts[pb]
+    dist = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])  # as np.linalg.norm, once per pair
+    # (sample, other member) within the sample's member gate, seen from either end of a pair; once
+    near_a = dist <= gates[own[pa]]
+    near_b = dist <= gates[own[pb]]
+    uniq = _unique_ints(np.r_[pa[near_a] * n + own[pb[near_a]], pb[near_b] * n + own[pa[near_b]]])
     return np.bincount(own[uniq // n], minlength=n).astype(float) + 1e-3 * np.bincount(own, minlength=n)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, stop) of the runs of True in a 1-D mask."""
-    m = np.r_[False, mask, False].astype(np.int8)
-    edges = np.flatnonzero(np.diff(m))
-    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+def _unique_ints(values: np.ndarray) -> np.ndarray:
+    """``np.unique`` of an integer array by one sort (faster here than its hash table; timsort,
+    "stable", as the values come in runs: pairs by KD-tree leaf)."""
+    srt = np.sort(values, kind="stable")
+    return srt[np.r_[True, srt[1:] != srt[:-1]]] if len(srt) else srt
+
+
+def _runs_per_member(mask: np.ndarray, own: np.ndarray) -> tuple[list[int], list[int], list[int]]:
+    """The runs of True in a 1-D ``mask`` over all members' samples (``own``: their member,
+    ascending), cut where one member's samples end: each run's member and its [start, stop)
+    among that member's samples, in sample order."""
+    first = np.r_[True, own[1:] != own[:-1]]
+    last = np.r_[own[1:] != own[:-1], True]
+    starts = np.flatnonzero(mask & (first | ~np.r_[False, mask[:-1]]))
+    stops = np.flatnonzero(mask & (last | ~np.r_[mask[1:], False])) + 1
+    member = own[starts]
+    member_start = np.flatnonzero(first)[np.searchsorted(own[first], member)]
+    return member.tolist(), (starts - member_start).tolist(), (stops - member_start).tolist()
 
 
 def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.ndarray, weights: np.ndarray,
@@ -292,10 +351,12 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     # 1. all member samples on the backbone
     points = np.concatenate(lines)
     own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
-    s, d = project_on_polyline(points, backbone)
+    frame = polyline_frame(backbone)
+    s_b = frame.s_m
+    s, d = project_on_frame(points, frame)
     # only samples alongside the backbone (within the association window of it) speak for its
     # profile: in a group chained through splits and merges the other lanes may outnumber it
-    on_backbone = ((s >= -spacing) & (s <= arclength(backbone)[-1] + spacing)
+    on_backbone = ((s >= -spacing) & (s <= s_b[-1] + spacing)
                    & (np.abs(d) <= params.WINDOW_GATES * gate[own]))
     fit = on_backbone & fits[own]
     s0 = float(s.min())
@@ -336,15 +397,12 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
         keep_m[int(np.argmax(close_share))] = True
     detached: list[Member] = []
     min_run = max(int(params.MIN_OVERLAP_M / spacing), 2)
-    for k in range(n_m):
-        if not fits[k]:
-            continue
-        mask = off[own == k] if keep_m[k] else np.ones(int(cnt[k]), bool)
-        for a, b in _runs(mask):
-            if b - a >= min_run or not keep_m[k]:
-                m = members[k]
-                detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
-                                       m.sigma_m))
+    # a member kept: its runs off the line; one not kept: all of it (those that fit the element)
+    for k, a, b in zip(*_runs_per_member(fits[own] & (off | ~keep_m[own]), own), strict=True):
+        if b - a >= min_run or not keep_m[k]:
+            m = members[k]
+            detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
+                                   m.sigma_m))
     in_share = np.bincount(own[inlier & ~off], minlength=n_m) / np.maximum(cnt, 1)
     outliers = [k for k in range(n_m) if keep_m[k] and (in_share[k] < 0.5 * close_share[k] or not fits[k])]
     use = inlier & keep_m[own] & ~off
@@ -356,9 +414,7 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     idx = np.flatnonzero(support)
     cuts = np.flatnonzero(np.diff(idx) * params.BIN_M > params.MAX_GAP_M)
     spans = np.split(idx, cuts + 1)
-    s_b = arclength(backbone)
-    tan = np.gradient(backbone, axis=0)
-    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+    tan = frame.tangents
     normal = np.column_stack([-tan[:, 1], tan[:, 0]])
     centers = s0 + (np.arange(n_bins) + 0.5) * params.BIN_M
     # per-bin standard error: model (independent trips) and empirical (trip scatter)
@@ -389,7 +445,7 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
         q = np.r_[q, s_hi] if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
         base = np.column_stack([np.interp(q, s_b, backbone[:, 0]), np.interp(q, s_b, backbone[:, 1])])
         if anchor_xy is not None:
-            q, base = _with_anchor_vertices(q, base, anchor_xy, backbone, params.OUTPUT_SPACING_M)
+            q, base = _with_anchor_vertices(q, base, anchor_xy, frame, params.OUTPUT_SPACING_M)
         dq = np.interp(q, centers, mu)
         nx = np.interp(q, s_b, normal[:, 0])
         ny = np.interp(q, s_b, normal[:, 1])
@@ -408,12 +464,13 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     return out
 
 
-def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: np.ndarray,
+def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: PolylineFrame,
                           spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Output stations ``q`` and base points: inside the span of the anchored seed its own
     vertices (a curve sampled again at other stations would be cut a little inside at every
-    update), the regular stations beyond it."""
-    s_v, _ = project_on_polyline(anchor_xy, backbone)
+    update), the regular stations beyond it. ``backbone``: the fused line's backbone
+    (``polyline_frame``)."""
+    s_v, _ = project_on_frame(anchor_xy, backbone)
     inside = (s_v >= q[0]) & (s_v <= q[-1])
     if inside.sum() < 2 or bool((np.diff(s_v[inside]) <= 0).any()):
         return q, base

@@ -182,13 +182,15 @@ def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     pairs = cKDTree(xy).query_pairs(hi_w, output_type="ndarray")
     if not len(pairs):
         return
-    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
     fid = np.array([g.nodes[n]["feature_id"] for n in names])
+    # another centreline, same direction: the same both ways, checked before the pairs are doubled
+    pa, pb = pairs[:, 0], pairs[:, 1]
+    pairs = pairs[(fid[owner[pa]] != fid[owner[pb]]) & ((tan[pa] * tan[pb]).sum(1) >= cos_max)]
+    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
     rel = xy[b] - xy[a]
     lat = tan[a, 0] * rel[:, 1] - tan[a, 1] * rel[:, 0]
     along = (tan[a] * rel).sum(1)
-    ok = ((fid[owner[a]] != fid[owner[b]]) & (np.abs(along) <= 1.0) & ((tan[a] * tan[b]).sum(1) >= cos_max)
-          & (np.abs(lat) >= lo_w) & (np.abs(lat) <= hi_w))
+    ok = (np.abs(along) <= 1.0) & (np.abs(lat) >= lo_w) & (np.abs(lat) <= hi_w)
     a, b, lat = a[ok], b[ok], lat[ok]
     if not len(a):
         return

@@ -34,6 +34,7 @@ the severity-weighted share of instance length flagged, and the list of flags.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -117,14 +118,18 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         pairs = tree.query_pairs(params.MAX_LANE_WIDTH_M, output_type="ndarray")
         if not len(pairs):
             continue
-        a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
-        keep = (own[a] != own[b]) & (np.abs((tans[a] * tans[b]).sum(1)) >= math.cos(math.radians(15)))
-        a, b = a[keep], b[keep]
+        # samples a, b of two nearly parallel lines, b beside a (within a sample spacing along a's
+        # tangent), either way round; checked pair by pair before the pairs are doubled
+        pairs = pairs[own[pairs[:, 0]] != own[pairs[:, 1]]]
+        pa, pb = pairs[:, 0], pairs[:, 1]
+        pairs = pairs[np.abs((tans[pa] * tans[pb]).sum(1)) >= math.cos(math.radians(15))]
+        pa, pb = pairs[:, 0], pairs[:, 1]
+        rel = pts[pb] - pts[pa]  # reversed for b -> a: |along| the same
+        beside_a = np.abs((tans[pa] * rel).sum(1)) <= spacing
+        beside_b = np.abs((tans[pb] * rel).sum(1)) <= spacing
+        a, b = np.r_[pa[beside_a], pb[beside_b]], np.r_[pb[beside_a], pa[beside_b]]
         rel = pts[b] - pts[a]
         lat = np.abs(tans[a, 0] * rel[:, 1] - tans[a, 1] * rel[:, 0])
-        along = np.abs((tans[a] * rel).sum(1))
-        ok = along <= spacing
-        a, b, lat = a[ok], b[ok], lat[ok]
         nearest = np.full(len(pts), np.inf)
         np.minimum.at(nearest, a, lat)
         finite = nearest[np.isfinite(nearest) & (nearest > gate)]
@@ -133,8 +138,8 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         noise = params.DUPLICATE_SIGMAS * np.hypot(unc[own[a]], unc[own[b]])
         # alongside: the samples of a with a sample of the other line beside them (either side)
         near = lat < narrow
-        beside = np.unique(np.c_[own[a[near]], own[b[near]], a[near]], axis=0)
-        n_beside = Counter(zip(beside[:, 0].tolist(), beside[:, 1].tolist(), strict=True))
+        beside = np.unique(a[near] * len(idx) + own[b[near]])  # (sample, other line) once
+        n_beside = Counter(zip(own[beside // len(idx)].tolist(), (beside % len(idx)).tolist(), strict=True))
         bad = (lat > noise) & near
         # per pair of features: the run of narrow samples, if the offset holds along it (a copy
         # is parallel: its offset varies less than the noise bound; branches that diverge do
@@ -148,11 +153,12 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         a, b, lat, noise = a[first], b[first], lat[first], noise[first]  # nearest partner sample only
         support = [int(features[i].properties.get("support_trips", 1)) for i in idx]
         length = np.bincount(own, minlength=len(idx)) * spacing
-        key = own[a] * len(idx) + own[b]
-        for k in np.unique(key):
-            sel = key == k
-            fa, fb = divmod(int(k), len(idx))
-            run = float(sel.sum()) * spacing
+        key = own[a] * len(idx) + own[b]  # ascending (sorted by own[a], own[b] above)
+        keys, starts = np.unique(key, return_index=True)
+        for k, start, stop in zip(keys.tolist(), starts.tolist(), [*starts[1:].tolist(), len(key)], strict=True):
+            sel = slice(start, stop)  # this pair of features
+            fa, fb = divmod(k, len(idx))
+            run = float(stop - start) * spacing
             if run < min(params.WIDTH_RUN_M, 0.5 * length[fa]) or run < 0.5 * n_beside[(fa, fb)] * spacing:
                 continue
             lo, hi = np.percentile(lat[sel], [10, 90])
@@ -255,17 +261,27 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
         per_tile_flags.setdefault(fl.tile, Counter())[fl.kind] += 1
     quality: dict[tuple[int, int], TileQuality] = {}
     if len(pts):
-        keys, inv = np.unique(tiles, axis=0, return_inverse=True)
-        inv = inv.ravel()
+        keys, inv = _unique_rows(tiles)
         total = np.bincount(inv, minlength=len(keys))
         bad = np.bincount(inv, weights=worst[own], minlength=len(keys))
+        tile_feature = np.unique(inv * len(features) + own)  # (tile, feature) with samples there
+        n_features = np.bincount(tile_feature // len(features), minlength=len(keys)).tolist()
         for t, key in enumerate(keys):
             tk = (int(key[0]), int(key[1]))
-            n_feat = len(np.unique(own[inv == t]))
+            n_feat = n_features[t]
             c = per_tile_flags.get(tk, Counter())
             quality[tk] = TileQuality(tk, float(1.0 - bad[t] / max(total[t], 1)),
                                       tuple(f"{kind}:{n}" for kind, n in sorted(c.items())), n_feat)
     return tuple(flags), quality
+
+
+def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(rows, axis=0, return_inverse=True)`` of integer rows ``(N, 2)`` (tile indices),
+    by one integer key per row (in the same lexicographic order)."""
+    lo = rows.min(0)
+    span = int(rows[:, 1].max() - lo[1]) + 1
+    uniq, inv = np.unique((rows[:, 0] - lo[0]) * span + (rows[:, 1] - lo[1]), return_inverse=True)
+    return np.column_stack([uniq // span + lo[0], uniq % span + lo[1]]), inv
 
 
 def _labelled_tree(per_trip: Mapping[str, np.ndarray]):
@@ -279,21 +295,33 @@ def _labelled_tree(per_trip: Mapping[str, np.ndarray]):
     return keys, rows, label, cKDTree(rows[:, :2])
 
 
+def _ball_hits(tree: cKDTree, points: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query_ball_point`` of ``points (P, 2)``, flattened: per point the number of rows
+    within ``radius_m`` ``(P,)``, and those rows, point after point."""
+    hits = tree.query_ball_point(points, radius_m)
+    counts = np.fromiter(map(len, hits), np.int64, len(hits))
+    return counts, np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
+
+
 def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np.ndarray],
                     radius_m: float) -> list[int]:
     """For each feature, how many trips have some element point within ``radius_m`` of it
-    (``trip_points``: each trip's element points, a few metres apart)."""
-    keys, _, label, tree = _labelled_tree(trip_points)
-    if not keys or not features:
-        return [0] * len(features)
-    out = []
+    (``trip_points``: each trip's element points, a few metres apart). All features' probes
+    (every 5 m) at once, trip after trip (a count per probe, no lists of the points)."""
+    probes = []
     for f in features:
         p = np.asarray(f.points_xy_world, float)
-        probe = resample_polyline(p, 5.0) if len(p) >= 2 else p
-        hits = tree.query_ball_point(probe, radius_m)
-        idx = np.fromiter((i for h in hits for i in h), dtype=np.int64)
-        out.append(int(len(np.unique(label[idx]))))
-    return out
+        probes.append(resample_polyline(p, 5.0) if len(p) >= 2 else p.reshape(-1, 2))
+    if not probes:
+        return []
+    feature_of_probe = np.repeat(np.arange(len(features)), [len(p) for p in probes])
+    all_probes = np.concatenate(probes)
+    out = np.zeros(len(features), np.int64)
+    for points in trip_points.values():
+        if len(points):
+            near = cKDTree(points).query_ball_point(all_probes, radius_m, return_length=True) > 0
+            out += np.bincount(feature_of_probe[near], minlength=len(features)) > 0
+    return out.tolist()
 
 
 PASS_PROBE_SPACING_M = 5.0  # a line is checked every this many metres
@@ -305,28 +333,36 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     negative evidence against a ghost (``PASS_LATERAL_M``, ``PASS_MAX_ANGLE_RAD``,
     ``PASS_MIN_SHARE``). ``trip_paths``: each trip's driven path as ``(P, 4)`` rows x, y, unit
     direction x, y a few metres apart (``instances.path_probes``); ``properties["trips"]`` of a
-    feature names the trips that saw it. Polygons and stop lines (crossed, not driven along): 0."""
+    feature names the trips that saw it. Polygons and stop lines (crossed, not driven along): 0.
+    All lines' probes in one query."""
     keys, rows, label, tree = _labelled_tree(trip_paths)
+    out = [0] * len(features)
     if not keys or not features:
-        return [0] * len(features)
+        return out
     cos_max = math.cos(params.PASS_MAX_ANGLE_RAD)
-    out = []
-    for f in features:
+    lines, probes, tangents = [], [], []
+    for k, f in enumerate(features):
         p = np.asarray(f.points_xy_world, float)
         if f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 2:
-            out.append(0)
             continue
         probe = resample_polyline(p, PASS_PROBE_SPACING_M)
         tangent = np.gradient(probe, axis=0)
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-        hits = tree.query_ball_point(probe, params.PASS_LATERAL_M)
-        counts = np.fromiter((len(h) for h in hits), np.int64, len(probe))
-        idx = np.fromiter((i for h in hits for i in h), np.int64, int(counts.sum()))
-        at = np.repeat(np.arange(len(probe)), counts)
-        along = np.abs(np.einsum("ij,ij->i", rows[idx, 2:], tangent[at])) >= cos_max
-        probe_trip = np.unique(at[along] * len(keys) + label[idx[along]])  # (probe, trip) with a pass
-        per_trip = np.bincount(probe_trip % len(keys), minlength=len(keys))
-        seen_by = set(f.properties.get("trips", ()))
-        out.append(sum(1 for i, k in enumerate(keys)
-                       if per_trip[i] >= params.PASS_MIN_SHARE * len(probe) and k not in seen_by))
+        lines.append(k)
+        probes.append(probe)
+        tangents.append(tangent)
+    if not lines:
+        return out
+    n_keys = len(keys)
+    counts, idx = _ball_hits(tree, np.concatenate(probes), params.PASS_LATERAL_M)
+    at = np.repeat(np.arange(len(counts)), counts)
+    along = np.abs(np.einsum("ij,ij->i", rows[idx, 2:], np.concatenate(tangents)[at])) >= cos_max
+    probe_trip = np.unique(at[along] * n_keys + label[idx[along]])  # (probe, trip) with a pass
+    line_of_probe = np.repeat(np.arange(len(lines)), [len(p) for p in probes])
+    per_line_trip = np.bincount(line_of_probe[probe_trip // n_keys] * n_keys + probe_trip % n_keys,
+                                minlength=len(lines) * n_keys).reshape(len(lines), n_keys)
+    for j, k in enumerate(lines):
+        seen_by = set(features[k].properties.get("trips", ()))
+        out[k] = sum(1 for i, key in enumerate(keys)
+                     if per_line_trip[j, i] >= params.PASS_MIN_SHARE * len(probes[j]) and key not in seen_by)
     return out
