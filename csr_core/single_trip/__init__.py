@@ -265,8 +265,10 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             n_dropped += 1
             continue
         upload_frames = frames[pieces.frame[track.pieces]]
-        raw_v = [trip.elements[f][j].points_xy_vehicle for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)]
-        counts = np.fromiter((len(v) for v in raw_v), dtype=np.int64, count=len(raw_v))
+        detections = [trip.elements[f][j]  # (plain ints index the tuples faster)
+                      for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)]
+        raw_v = [e.points_xy_vehicle for e in detections]
+        counts = np.fromiter(map(len, raw_v), dtype=np.int64, count=len(raw_v))
         offsets = np.concatenate(([0], np.cumsum(counts)))  # (np.r_ costs 30 us a call)
         pts_v = np.concatenate(raw_v)
         original = np.ones(len(pts_v), dtype=bool)
@@ -311,7 +313,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                                                    key=len, reverse=True))]
         style: list[DividerStyle | None] | None = None  # the track's, voted once
         for points_w, lat, alo, seen in spliced:
-            length = float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) if len(points_w) > 1 else 0.0
+            step = points_w[1:] - points_w[:-1]
+            length = float(np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1]).sum())  # as np.linalg.norm
             if len(seen) < params.TRACK_MIN_FRAMES or (not track.type.is_polygon
                                                        and length < params.min_length_m(track.type)):
                 log.debug("dropped %s (%.0f m from %s): %d frames", track.type.value, length,
@@ -327,8 +330,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 n_dropped += 1
                 continue
             if style is None:
-                style = [_style([trip.elements[f][j].style
-                                 for f, j in zip(upload_frames, pieces.element[track.pieces], strict=True)])]
+                style = [_style([e.style for e in detections])]
             candidates.append((TripInstance(
                 type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),

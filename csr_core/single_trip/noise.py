@@ -7,17 +7,18 @@ from __future__ import annotations
 import numpy as np
 
 from csr_core.single_trip.params import SingleTripParams
+from csr_core.single_trip.splicing import middle_sorted
 from csr_core.types import ElementNoise, ElementType
 
 
 def robust_sigma(residuals: np.ndarray) -> float:
     """1.4826 x median absolute deviation from the median: the Gaussian sigma, robust to outliers."""
-    r = np.sort(np.asarray(residuals, float).ravel())
+    r = middle_sorted(np.asarray(residuals, float).ravel())
     n = len(r)
     if n == 0:
         return float("nan")
     lo, hi = (n - 1) // 2, n // 2  # medians of sorted arrays (np.median's per-call cost, thousands of calls)
-    dev = np.sort(np.abs(r - 0.5 * (r[lo] + r[hi])))
+    dev = middle_sorted(np.abs(r - 0.5 * (r[lo] + r[hi])))
     return float(1.4826 * 0.5 * (dev[lo] + dev[hi]))
 
 

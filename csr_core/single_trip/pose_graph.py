@@ -367,38 +367,57 @@ class _NodeGraph:
         self.node_sig_xy = np.sqrt(cum_xy[nodes[1:]] - cum_xy[nodes[:-1]])
         self.node_sig_yaw = np.sqrt(cum_yaw[nodes[1:]] - cum_yaw[nodes[:-1]])
         self.node_heading = heading_yaw[nodes]
+        self._fixed: tuple[gtsam.NonlinearFactorGraph, gtsam.NonlinearFactorGraph] | None = None
+        self._gnss_models: dict[str, dict[float, gtsam.noiseModel.Base]] = {}
+
+    def _fixed_factors(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.NonlinearFactorGraph]:
+        """The odometry between-factors and the GNSS course priors: the same in every solve,
+        so built once (the factors are shared by the graphs of all solves)."""
+        if self._fixed is None:
+            p = self.params
+            odometry = gtsam.NonlinearFactorGraph()
+            for k in range(len(self.nodes) - 1):
+                model = gtsam.noiseModel.Diagonal.Sigmas(
+                    np.array([self.node_sig_xy[k], self.node_sig_xy[k], self.node_sig_yaw[k]]))
+                odometry.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*self.node_incr[k]), model))
+            course = gtsam.NonlinearFactorGraph()
+            head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
+            head_model = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
+            for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():
+                course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(float(self.node_heading[node])), head_model))
+            self._fixed = (odometry, course)
+        return self._fixed
+
+    def _gnss_model(self, kernel: str, sigma: float) -> gtsam.noiseModel.Base:
+        """The robust (``kernel``: Huber or Cauchy) isotropic GNSS noise model of ``sigma``."""
+        p = self.params
+        est: gtsam.noiseModel.mEstimator.Base = (
+            gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS) if kernel == "huber"
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
+        return gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sigma))
 
     def build(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> gtsam.NonlinearFactorGraph:
-        p = self.params
+        odometry, course = self._fixed_factors()
         g = gtsam.NonlinearFactorGraph()
-        for k in range(len(self.nodes) - 1):
-            model = gtsam.noiseModel.Diagonal.Sigmas(
-                np.array([self.node_sig_xy[k], self.node_sig_xy[k], self.node_sig_yaw[k]]))
-            g.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*self.node_incr[k]), model))
+        g.push_back(odometry)
         yaw = node_poses[self.node_of[gnss_idx], 2]
         c, s = np.cos(yaw), np.sin(yaw)
         lever = self.node_T_fix[gnss_idx]
         z = self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
                                                       s * lever[:, 0] + c * lever[:, 1]])
-        est: gtsam.noiseModel.mEstimator.Base = (
-            gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS) if kernel == "huber"
-            else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
-        models: dict[float, gtsam.noiseModel.Base] = {}  # one noise model per distinct sigma
+        models = self._gnss_models.setdefault(kernel, {})  # one noise model per distinct sigma, kept across solves
         for zi, node, sig in zip(z, self.node_of[gnss_idx].tolist(), self.factor_sigma[gnss_idx].tolist(), strict=True):
             robust = models.get(sig)
             if robust is None:
-                robust = models[sig] = gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sig))
+                robust = models[sig] = self._gnss_model(kernel, sig)
             g.add(gtsam.PoseTranslationPrior2D(node, zi, robust))
-        head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
-        head_model = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
-        for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():
-            g.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(float(self.node_heading[node])), head_model))
+        g.push_back(course)
         return g
 
     def solve(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
         values = gtsam.Values()
-        for k in range(len(self.nodes)):
-            values.insert(k, gtsam.Pose2(*node_poses[k]))
+        for k, pose in enumerate(node_poses.tolist()):  # plain floats: a third faster into gtsam
+            values.insert(k, gtsam.Pose2(*pose))
         values = _optimize(self.build(kernel, gnss_idx, node_poses), values, self.params)
         return gtsam.utilities.extractPose2(values)
 

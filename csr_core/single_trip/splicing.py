@@ -20,12 +20,17 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, label
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
+
+_SORT_BELOW = 256  # _median: np.sort below this length, np.partition above
+_INT16_MAX = int(np.iinfo(np.int16).max)
+_EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)  # _cluster_sd: cells touching by a side or a corner
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,17 +44,35 @@ class SplicedLine:
 def _arclength(points: np.ndarray) -> np.ndarray:
     out = np.zeros(max(len(points), 1))
     if len(points) > 1:
-        step = np.diff(points, axis=0)
+        step = points[1:] - points[:-1]  # np.diff(points, axis=0) without its per-call cost
         np.cumsum(np.hypot(step[:, 0], step[:, 1]), out=out[1:])
     return out
+
+
+def _run_starts(ids: np.ndarray) -> np.ndarray:
+    """Indices (R,) where the runs of equal consecutive ``ids`` start (the first is 0)."""
+    change = np.empty(max(len(ids), 1), dtype=bool)
+    change[0] = True
+    np.not_equal(ids[1:], ids[:-1], out=change[1:len(ids)])
+    return np.flatnonzero(change)
 
 
 def _median(values: np.ndarray) -> float:
     """``np.median`` of a 1-D array, without its per-call overhead (called thousands of times
     per trip on small arrays)."""
-    v = np.sort(values)
-    n = len(v)
+    n = len(values)
+    v = middle_sorted(values)
     return 0.5 * float(v[(n - 1) // 2] + v[n // 2])
+
+
+def middle_sorted(values: np.ndarray) -> np.ndarray:
+    """``values`` (1-D) with at least its middle element(s) ``(n - 1) // 2`` and ``n // 2`` in
+    sorted place: ``np.sort`` for short arrays, a partition around the middle for long ones
+    (linear time: five times faster on a few thousand residuals)."""
+    n = len(values)
+    if n <= _SORT_BELOW:
+        return np.sort(values)
+    return np.partition(values, ((n - 1) // 2, n // 2))
 
 
 def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
@@ -63,9 +86,19 @@ def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
     return tan / np.maximum(norm, 1e-12)[:, None]
 
 
-def _geometry(backbone: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A backbone with its arclength and unit tangents, computed once per backbone."""
-    return backbone, _arclength(backbone), _unit_tangents(backbone)
+class _Geometry(NamedTuple):
+    """A backbone of B points with its arclength, unit tangents and KD-tree (``_geometry``)."""
+
+    columns: np.ndarray  # (4, B) x, y, unit tangent x, y: contiguous rows (the cheapest to gather)
+    arclength: np.ndarray  # (B,)
+    tree: cKDTree
+
+
+def _geometry(backbone: np.ndarray) -> _Geometry:
+    """A backbone (B, 2) with its arclength, unit tangents and KD-tree, computed once per
+    backbone (the path guide of a track is projected on twice)."""
+    return _Geometry(np.concatenate([backbone.T, _unit_tangents(backbone).T]), _arclength(backbone),
+                     cKDTree(backbone))
 
 
 @functools.lru_cache(maxsize=16)
@@ -74,7 +107,9 @@ def _gaussian_kernel(sigma_bins: float, truncate: float = 4.0) -> np.ndarray:
     radius = int(truncate * sigma_bins + 0.5)
     x = np.arange(-radius, radius + 1, dtype=float)
     w = np.exp(-0.5 * (x / sigma_bins) ** 2)
-    return w / w.sum()
+    w /= w.sum()
+    w.setflags(write=False)  # cached: shared by every caller
+    return w
 
 
 def _smooth_zero_padded(values: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -94,25 +129,34 @@ def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
     return np.column_stack([np.interp(q, s, points[:, 0]), np.interp(q, s, points[:, 1])])
 
 
-def _project(points: np.ndarray, geom: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
-    sampled backbone (``_geometry``: points (B, 2), arclength, unit tangents)."""
-    backbone, s_b, tan = geom
-    _, i = cKDTree(backbone).query(points)
-    rel = points - backbone[i]
-    t = tan[i]
-    s = s_b[i] + rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
-    d = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
+    sampled backbone (``_geometry``): from its nearest point (KD-tree), along its tangent."""
+    _, i = geom.tree.query(points)
+    x, y, tan_x, tan_y = geom.columns
+    rel_x, rel_y = points[:, 0] - x[i], points[:, 1] - y[i]
+    t_x, t_y = tan_x[i], tan_y[i]
+    s = geom.arclength[i] + rel_x * t_x + rel_y * t_y
+    d = t_x * rel_y - t_y * rel_x
     return s, d
 
 
 def _binned_median(bins: np.ndarray, values: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
-    order = np.lexsort((values, bins))
+    """Per-bin median (the upper middle value; NaN for an empty bin) and counts (n_bins,).
+
+    Values sorted, then stably by bin: the order of ``np.lexsort((values, bins))`` up to ties
+    of equal values, at about half its cost (numpy's stable sort of 16-bit keys is a radix
+    sort; lexsort's indirect merge sort is slow on the large tracks)."""
+    by_value = np.argsort(values)
+    bin_of = bins[by_value]
+    if n_bins <= _INT16_MAX:
+        bin_of = bin_of.astype(np.int16)
+    order = by_value[np.argsort(bin_of, kind="stable")]
     counts = np.bincount(bins, minlength=n_bins)
-    starts = np.cumsum(counts) - counts
+    starts = counts.cumsum() - counts
     med = np.full(n_bins, np.nan)
     ok = counts > 0
-    med[ok] = values[order][starts[ok] + counts[ok] // 2]
+    med[ok] = values[order[starts[ok] + counts[ok] // 2]]
     return med, counts
 
 
@@ -148,7 +192,23 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     # head: the same on the reversed line
     j_span = min(int(np.searchsorted(s, span)) + 1, n - 1)
     head = arc(line[0], line[1], s[j_span - 1] if j_span - 1 > 0 else span, heading(j_span, j_span - 1))
-    return np.vstack([head[::-1], line, tail])
+    return np.concatenate([head[::-1], line, tail])
+
+
+def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: float
+                 ) -> tuple[float, float, float, float] | None:
+    """End point and unit tangent (x, y, tx, ty) at the tail (or head) of a polyline given as
+    two lists of floats, the tangent over its last ``tangent_m``; None where degenerate."""
+    n = len(bbx)
+    bx, by = (bbx[-1], bby[-1]) if at_tail else (bbx[0], bby[0])
+    j, step = (n - 2, -1) if at_tail else (1, 1)
+    while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < tangent_m:
+        j += step
+    tx, ty = bx - bbx[j], by - bby[j]
+    tn = math.hypot(tx, ty)
+    if tn < 1e-9:
+        return None
+    return bx, by, tx / tn, ty / tn
 
 
 def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
@@ -161,6 +221,7 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     ref = None
     bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
     bby: list[float] = []
+    tangents: dict[bool, tuple[float, float, float, float] | None] = {}  # per end, until the backbone grows
     for p in polys:
         d = p[-1] - p[0]
         if ref is not None and float(d @ ref) < 0:
@@ -170,32 +231,32 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
             ref = d
         if len(bbx) < 2:
             bbx, bby = p[:, 0].tolist(), p[:, 1].tolist()
+            tangents.clear()
             continue
         px, py = p[:, 0], p[:, 1]
-        for end in (1, 0):
-            n = len(bbx)
-            bx, by = (bbx[-1], bby[-1]) if end else (bbx[0], bby[0])
-            j, step = (n - 2, -1) if end else (1, 1)
-            while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < tangent_m:
-                j += step
-            tx, ty = bx - bbx[j], by - bby[j]
-            tn = math.hypot(tx, ty)
-            if tn < 1e-9:
+        (x_first, y_first), (x_last, y_last) = p[0].tolist(), p[-1].tolist()
+        for at_tail in (True, False):
+            if at_tail not in tangents:
+                tangents[at_tail] = _end_tangent(bbx, bby, at_tail, tangent_m)
+            tangent = tangents[at_tail]
+            if tangent is None:
                 continue
-            tx, ty = tx / tn, ty / tn
+            bx, by, tx, ty = tangent
+            # its end points first: most observations do not reach beyond this end
+            if max((x_first - bx) * tx + (y_first - by) * ty, (x_last - bx) * tx + (y_last - by) * ty) <= min_step_m:
+                continue
             proj = (px - bx) * tx + (py - by) * ty
-            if max(float(proj[0]), float(proj[-1])) <= min_step_m:
-                continue
             lat = np.abs((px - bx) * ty - (py - by) * tx)
             beyond = np.flatnonzero((proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj))
             if len(beyond):
                 ext = beyond[np.argsort(proj[beyond])]
-                if end:
+                if at_tail:
                     bbx.extend(px[ext].tolist())
                     bby.extend(py[ext].tolist())
                 else:
                     bbx[:0] = px[ext[::-1]].tolist()
                     bby[:0] = py[ext[::-1]].tolist()
+                tangents.clear()
     return np.column_stack([bbx, bby]) if bbx else points_w[:1]
 
 
@@ -235,25 +296,35 @@ def _cluster_sd(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     np.cumsum(grid, axis=0, out=csum[1:])
     i = np.arange(n_s)
     grown = (csum[np.minimum(i + reach + 1, n_s)] - csum[np.maximum(i - reach, 0)]) > 0
-    labels, _ = label(grown, structure=np.ones((3, 3), dtype=bool))
+    labels, _ = label(grown, structure=_EIGHT_CONNECTED)
     return labels[sb, db] - 1
 
 
-def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray,
-                 geom: tuple[np.ndarray, np.ndarray, np.ndarray], params: SingleTripParams) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
-    """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
-    Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
-    s_lo, s_hi, fitted d at each point) or None."""
-    bin_m = params.SPLICE_BIN_M
-    s0 = s.min()
-    bins = np.floor((s - s0) / bin_m).astype(np.int64)
+def _binned_profile(s: np.ndarray, d: np.ndarray, bin_m: float) -> tuple[np.ndarray, int, np.ndarray]:
+    """Arclength bins (P,) of width ``bin_m`` from the smallest s, their number and the per-bin
+    median of d (the first step of ``_fit_profile``, shared with ``_mixture_sigma``)."""
+    bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
     n_bins = int(bins.max()) + 1
     med, _ = _binned_median(bins, d, n_bins)
+    return bins, n_bins, med
+
+
+def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geometry, params: SingleTripParams,
+                 binned: tuple[np.ndarray, int, np.ndarray] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
+    """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
+    Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
+    s_lo, s_hi, fitted d at each point) or None. ``binned``: ``_binned_profile(s, d)`` when
+    already computed."""
+    bin_m = params.SPLICE_BIN_M
+    s0 = s.min()
+    bins, n_bins, med = binned if binned is not None else _binned_profile(s, d, bin_m)
     dev = np.abs(d - med[bins])
     sigma = max(1.4826 * _median(dev), 0.02)
     inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
-    w = np.bincount(bins[inl], minlength=n_bins).astype(float)
-    sum_d = np.bincount(bins[inl], weights=d[inl], minlength=n_bins)
+    bins_inl = bins[inl]
+    w = np.bincount(bins_inl, minlength=n_bins).astype(float)
+    sum_d = np.bincount(bins_inl, weights=d[inl], minlength=n_bins)
     kernel = _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m)
     num = _smooth_zero_padded(sum_d, kernel)
     den = _smooth_zero_padded(w, kernel)
@@ -267,13 +338,28 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray,
         return None
     q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
     q = np.append(q, s_hi) if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
-    backbone, s_b, tan = geom
+    s_b, (x, y, tan_x, tan_y) = geom.arclength, geom.columns
     dq = np.interp(q, centers, d_s)
-    bx, by = np.interp(q, s_b, backbone[:, 0]), np.interp(q, s_b, backbone[:, 1])
-    tx, ty = np.interp(q, s_b, tan[:, 0]), np.interp(q, s_b, tan[:, 1])
+    bx, by = np.interp(q, s_b, x), np.interp(q, s_b, y)
+    tx, ty = np.interp(q, s_b, tan_x), np.interp(q, s_b, tan_y)
     nn = np.maximum(np.hypot(tx, ty), 1e-12)
     line = np.column_stack([bx - dq * ty / nn, by + dq * tx / nn])
     return line, inl, s_lo, s_hi, np.interp(s, centers, d_s)
+
+
+@functools.lru_cache(maxsize=8)
+def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extension_m: float) -> _Geometry | None:
+    """The geometry of the guide of a splice: the vehicle path ``(n, 2)`` (given by its bytes, to
+    be cached) resampled and prolonged at both ends; None when too short. Tracks seen over the
+    same frames share their path (a quarter of them): the last few guides are kept."""
+    path = np.frombuffer(path_bytes, dtype=dtype).reshape(n, 2)
+    guide = _extend_ends(resample_polyline(path, bin_m), extension_m, bin_m)
+    if len(guide) < 3:
+        return None
+    geom = _geometry(guide)
+    for shared in (geom.columns, geom.arclength):  # cached: shared by every caller
+        shared.setflags(write=False)
+    return geom
 
 
 def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
@@ -292,15 +378,14 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
     bin_m = params.SPLICE_BIN_M
     if original is None:
         original = np.ones(len(points_w), dtype=bool)
-    guide = None
+    guide_geom = None
     if guide_xy is not None and len(guide_xy) >= 2:
-        guide = _extend_ends(resample_polyline(guide_xy, bin_m), params.SPLICE_GUIDE_EXTENSION_M, bin_m)
-        if len(guide) < 3:
-            guide = None
-    if guide is not None:
+        guide_xy = np.ascontiguousarray(guide_xy)
+        guide_geom = _guide_geometry(guide_xy.tobytes(), guide_xy.dtype.str, len(guide_xy), bin_m,
+                                     params.SPLICE_GUIDE_EXTENSION_M)
+    if guide_geom is not None:
         # separate the elements of the track along the path; each element is then spliced on
         # the path if it runs along it, else on its own shape
-        guide_geom = _geometry(guide)
         ends = unique_ids(obs_ends.ravel())  # the along/across test needs only the observation ends
         s_ends, _ = _project(points_w[ends], guide_geom)
         if _runs_along(s_ends, points_w[ends], obs_id[ends]) < params.SPLICE_ALONG_GUIDE_MIN:
@@ -311,31 +396,32 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         s, d = _project(points_w, guide_geom)
         labels = _cluster_sd(s, d, params)
         out = []
-        groups: list[np.ndarray] = []
+        groups: list[tuple[np.ndarray, tuple[np.ndarray, int, np.ndarray] | None]] = []  # points, their bins
         for lab in np.unique(labels):
             sel = np.flatnonzero(labels == lab)
-            if len(sel) > 10 and _mixture_sigma(s[sel], d[sel], bin_m) > params.SPLICE_MIXTURE_SIGMA_M:
+            binned = _binned_profile(s[sel], d[sel], bin_m) if len(sel) > 10 else None
+            if binned is not None and _mixture_sigma(d[sel], binned) > params.SPLICE_MIXTURE_SIGMA_M:
                 sub = split_modes(s[sel], d[sel], params)
-                groups.extend(sel[sub == k] for k in np.unique(sub[sub >= 0]))
+                groups.extend((sel[sub == k], None) for k in np.unique(sub[sub >= 0]))
             else:
-                groups.append(sel)
-        for sel in groups:
+                groups.append((sel, binned))
+        for sel, binned in groups:
             if n_distinct(obs_id[sel]) < params.TRACK_MIN_FRAMES:
                 continue
             if _runs_along(s[sel], points_w[sel], obs_id[sel]) >= params.SPLICE_ALONG_GUIDE_MIN:
                 out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide_geom, False, obs_id, obs_ends, end_free, params,
-                                      original))
+                                      original, binned))
             else:
                 out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original))
         return out
     return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original)
 
 
-def _mixture_sigma(s: np.ndarray, d: np.ndarray, bin_m: float) -> float:
-    """Robust spread (m) of lateral offsets around their per-bin median: large for a cluster that
-    mixes elements (a Y where a connector leaves a lane)."""
-    bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
-    med, _ = _binned_median(bins, d, int(bins.max()) + 1)
+def _mixture_sigma(d: np.ndarray, binned: tuple[np.ndarray, int, np.ndarray]) -> float:
+    """Robust spread (m) of lateral offsets ``d`` around their per-bin median (``binned``, from
+    ``_binned_profile``): large for a cluster that mixes elements (a Y where a connector leaves
+    a lane)."""
+    bins, _, med = binned
     return 1.4826 * _median(np.abs(d - med[bins]))
 
 
@@ -361,23 +447,24 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     chains_d: list[float] = []
     chains_bin: list[int] = []
     mode_chain = np.full(len(mode_start), -1)
-    for m in range(len(mode_start)):
-        if mode_n[m] < 2:
+    # the chaining walks the modes one by one: on plain Python numbers (numpy scalars cost ten times more)
+    for m, (size, at_bin, offset) in enumerate(zip(mode_n.tolist(), mode_bin.tolist(), mode_d.tolist(), strict=True)):
+        if size < 2:
             continue
         best, best_dist = -1, params.SPLICE_MODE_GATE_M
         for c in range(len(chains_d)):
-            if mode_bin[m] - chains_bin[c] > max_gap_bins or chains_bin[c] == mode_bin[m]:
+            if at_bin - chains_bin[c] > max_gap_bins or chains_bin[c] == at_bin:
                 continue
-            dist = abs(mode_d[m] - chains_d[c])
+            dist = abs(offset - chains_d[c])
             if dist < best_dist:
                 best, best_dist = c, dist
         if best < 0:
-            chains_d.append(float(mode_d[m]))
-            chains_bin.append(int(mode_bin[m]))
+            chains_d.append(offset)
+            chains_bin.append(at_bin)
             best = len(chains_d) - 1
         else:
-            chains_d[best] = float(mode_d[m])
-            chains_bin[best] = int(mode_bin[m])
+            chains_d[best] = offset
+            chains_bin[best] = at_bin
         mode_chain[m] = best
     labels_sorted = np.repeat(mode_chain, mode_n)
     labels = np.empty(len(s), dtype=np.int64)
@@ -390,10 +477,11 @@ def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
     order = (np.arange(len(obs_id)) if len(obs_id) < 2 or not bool((obs_id[1:] < obs_id[:-1]).any())
              else np.argsort(obs_id, kind="stable"))
     sorted_ids = obs_id[order]
-    start = np.flatnonzero(np.concatenate([np.ones(1, dtype=bool), sorted_ids[1:] != sorted_ids[:-1]]))
+    start = _run_starts(sorted_ids)
     end = np.append(start[1:], len(order)) - 1
     first, last = order[start], order[end]
-    chord = np.linalg.norm(points[last] - points[first], axis=1)
+    step = points[last] - points[first]
+    chord = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])  # np.linalg.norm(step, axis=1)
     ok = chord > 2.0
     if not ok.any():
         return 1.0
@@ -407,9 +495,9 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
     bin_m = params.SPLICE_BIN_M
     pts = points_w[sel]
     ids = obs_id[sel]
-    starts = np.flatnonzero(np.concatenate([np.ones(1, dtype=bool), ids[1:] != ids[:-1]]))
+    starts = _run_starts(ids)
     ends = np.append(starts[1:], len(ids)) - 1
-    short = float(np.ptp(pts, axis=0).max()) < params.SPLICE_STRAIGHT_BELOW_M
+    short = float((pts.max(0) - pts.min(0)).max()) < params.SPLICE_STRAIGHT_BELOW_M  # np.ptp
     grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]))
     if len(grown) >= 2 and _arclength(grown)[-1] > 2 * bin_m:
         backbone = smooth_polyline(grown, bin_m / 2, params.SPLICE_BACKBONE_SMOOTH_M)
@@ -431,11 +519,13 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
 
 
 def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: np.ndarray,
-               geom: tuple[np.ndarray, np.ndarray, np.ndarray], refine: bool, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
-               params: SingleTripParams, original: np.ndarray) -> list[SplicedLine]:
-    """One element (points ``sel`` with backbone coordinates) -> its SplicedLine (or none)."""
+               geom: _Geometry, refine: bool, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
+               params: SingleTripParams, original: np.ndarray,
+               binned: tuple[np.ndarray, int, np.ndarray] | None = None) -> list[SplicedLine]:
+    """One element (points ``sel`` with backbone coordinates) -> its SplicedLine (or none).
+    ``binned``: ``_binned_profile(s_sel, d_sel)`` when already computed."""
     bin_m = params.SPLICE_BIN_M
-    fit = _fit_profile(s_sel, d_sel, obs_id[sel], geom, params)
+    fit = _fit_profile(s_sel, d_sel, obs_id[sel], geom, params, binned)
     if fit is not None and refine and fit[3] - fit[2] >= 2 * bin_m:
         bb2 = resample_polyline(fit[0], bin_m / 2)
         if len(bb2) >= 3:
@@ -472,7 +562,7 @@ def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tu
     if len(obs_id) > 1 and bool((obs_id[1:] < obs_id[:-1]).any()):
         order = np.argsort(obs_id, kind="stable")
         s, obs_id = s[order], obs_id[order]
-    starts = np.flatnonzero(np.concatenate([np.ones(1, dtype=bool), obs_id[1:] != obs_id[:-1]]))
+    starts = _run_starts(obs_id)
     lo = np.minimum.reduceat(s, starts)  # per observation (runs of equal ids)
     hi = np.maximum.reduceat(s, starts)
     s_lo = _median(lo[lo <= lo.min() + window_m])
@@ -486,7 +576,7 @@ def unique_ids(ids: np.ndarray) -> np.ndarray:
         return np.unique(ids)
     if bool((ids[1:] < ids[:-1]).any()):
         return np.unique(ids)
-    return ids[np.concatenate(([True], ids[1:] != ids[:-1]))]
+    return ids[_run_starts(ids)]
 
 
 def n_distinct(ids: np.ndarray) -> int:
@@ -535,8 +625,9 @@ def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.
         return _robust_rectangle(polys, headings_rad)
     cand = [i for i in range(len(polys)) if whole[i]]
     # consistent winding (counter-clockwise)
-    ccw = [p if polygon_area(p) >= 0 else p[::-1] for p in polys]
-    areas = np.array([abs(polygon_area(ccw[i])) for i in cand])
+    signed = [polygon_area(p) for p in polys]
+    ccw = [p if area >= 0 else p[::-1] for p, area in zip(polys, signed, strict=True)]
+    areas = np.array([abs(signed[i] if signed[i] >= 0 else polygon_area(ccw[i])) for i in cand])
     ref_i = cand[int(np.argsort(areas)[len(areas) // 2])]
     ref = ccw[ref_i]
     m = len(ref)
@@ -547,7 +638,8 @@ def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.
         if len(p) != m:
             continue
         shifts = p[roll]
-        err = np.linalg.norm(shifts - ref[None], axis=-1).sum(1)
+        diff = shifts - ref[None]
+        err = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]).sum(1)  # np.linalg.norm(diff, axis=-1)
         stack.append(shifts[int(np.argmin(err))])
         heads.append(headings_rad[i])
     arr = np.stack(stack)  # (n, m, 2)

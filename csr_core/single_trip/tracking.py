@@ -31,6 +31,7 @@ from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import ElementType
 
 TYPE_CODES = {t: i for i, t in enumerate(ElementType)}
+_BOUND_SLACK_M = 1e-6  # _chamfer_lower_bound: rounding allowance (the bound holds exactly in reals)
 _POLYGON_CODES = np.array([t.is_polygon for t in ElementType])
 _LATERAL_CODES = np.array([t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
                            for t in ElementType])
@@ -60,7 +61,9 @@ def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray
     q = len(offsets) - 1
     counts = np.diff(offsets)
     piece = np.repeat(np.arange(q), counts)
-    step = np.r_[0.0, np.linalg.norm(np.diff(points, axis=0), axis=1)]
+    step = np.zeros(len(points))
+    d = points[1:] - points[:-1]
+    np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1], out=step[1:])  # np.linalg.norm(d, axis=1)
     step[offsets[:-1]] = 0.0  # no step across pieces
     s = np.cumsum(step)
     s_local = s - s[offsets[:-1]][piece]
@@ -82,19 +85,52 @@ def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float
     """Polylines (concatenated ``points`` with ``offsets``) with points inserted so that no step
     exceeds ``max_step_m``; returns the new points, offsets and which points are original."""
     n = len(points)
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    same = np.ones(n - 1, dtype=bool)
-    same[offsets[1:-1] - 1] = False  # no segment across polylines
-    k = np.where(same, np.maximum(np.ceil(seg / max_step_m).astype(np.int64), 1), 1)
+    step = points[1:] - points[:-1]
+    seg = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])  # np.linalg.norm(step, axis=1)
     # each point i < n-1 emits k_i points (itself and k_i - 1 interpolated); the last emits one
-    counts = np.append(k, 1)
+    counts = np.ones(n, dtype=np.int64)
+    counts[:-1] = np.maximum(np.ceil(seg / max_step_m).astype(np.int64), 1)
+    counts[offsets[1:-1] - 1] = 1  # no segment across polylines
+    ends = np.cumsum(counts)
     start = np.repeat(np.arange(n), counts)
-    frac = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-    frac = frac / np.repeat(counts, counts)
-    nxt = np.minimum(start + 1, n - 1)
-    out = points[start] + frac[:, None] * (points[nxt] - points[start])
-    new_off = np.concatenate(([0], np.cumsum(counts)))[offsets]
+    frac = np.arange(int(ends[-1])) - (ends - counts)[start]
+    frac = frac / counts[start]
+    step_from = np.concatenate([step, np.zeros((1, 2))])  # step to the next point (none after the last)
+    out = points[start] + frac[:, None] * step_from[start]
+    new_off = np.concatenate(([0], ends))[offsets]
     return out, new_off, frac == 0
+
+
+def _segment_distance2(points: np.ndarray, polys: np.ndarray) -> np.ndarray:
+    """Squared distance (M, P) of each point of ``points (M, P, 2)`` to the matching polyline of
+    ``polys (M, K, 2)`` (its segments, not extended).
+
+    One pass per segment on (M, P) arrays, coordinates kept apart and the running minimum
+    updated in place: with K small (the tracker's resampled pieces) this is about 2.5x faster
+    than (M, P, K-1) arrays, which do not stay in the cache."""
+    px, py = points[..., 0], points[..., 1]
+    ax, ay = polys[:, :-1, 0], polys[:, :-1, 1]  # (M, S) segment starts
+    ab = polys[:, 1:, :] - polys[:, :-1, :]
+    bx_all, by_all = ab[..., 0], ab[..., 1]
+    inv_len2 = 1.0 / np.maximum(np.einsum("msk,msk->ms", ab, ab), 1e-12)  # (M, S)
+    best = None
+    for s in range(ab.shape[1]):
+        bx, by = bx_all[:, s, None], by_all[:, s, None]
+        rx = px - ax[:, s, None]
+        ry = py - ay[:, s, None]
+        t = rx * bx
+        t += ry * by
+        t *= inv_len2[:, s, None]
+        np.clip(t, 0.0, 1.0, out=t)
+        dx = t * bx  # dx = rx - t bx, dy = ry - t by, in place
+        np.subtract(rx, dx, out=dx)
+        t *= by
+        np.subtract(ry, t, out=t)
+        dx *= dx
+        t *= t
+        dx += t
+        best = dx if best is None else np.minimum(best, dx, out=best)
+    return best
 
 
 def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
@@ -102,16 +138,7 @@ def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: fl
     ``polys (M, K, 2)``, the polyline extended at both ends along its chord (first to last
     point: a noisy end segment of a short dash would swing) by up to ``max_extrapolation_m``;
     farther: ``cap_m``. Returns (M, P)."""
-    # coordinates kept apart ((M, P, S) arrays, no trailing axis of 2): about twice as fast
-    a = polys[:, :-1, :]  # (M, S, 2) segment starts
-    ab = polys[:, 1:, :] - a
-    inv_len2 = 1.0 / np.maximum(np.einsum("msk,msk->ms", ab, ab), 1e-12)[:, None, :]  # (M, 1, S)
-    bx, by = ab[..., 0][:, None, :], ab[..., 1][:, None, :]
-    rx = points[..., 0][:, :, None] - a[..., 0][:, None, :]  # (M, P, S)
-    ry = points[..., 1][:, :, None] - a[..., 1][:, None, :]
-    t = np.clip((rx * bx + ry * by) * inv_len2, 0.0, 1.0)
-    dx, dy = rx - t * bx, ry - t * by
-    d = np.sqrt((dx * dx + dy * dy).min(-1))  # (M, P)
+    d = np.sqrt(_segment_distance2(points, polys))  # (M, P)
     chord = polys[:, -1] - polys[:, 0]
     length = np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-9)
     ux, uy = (chord[:, 0] / length)[:, None], (chord[:, 1] / length)[:, None]
@@ -165,14 +192,21 @@ def _pairs_between(keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndar
 
 @dataclass(frozen=True, slots=True)
 class _Shapes:
-    """Per-piece quantities of the pair pre-tests, computed once per trip."""
+    """Per-piece quantities of the pair pre-tests, computed once per trip. Coordinates are kept
+    as separate contiguous (Q,) arrays: the pre-tests gather them for ~10^5 pairs, and 1-D
+    gathers are the cheapest."""
 
-    lo: np.ndarray  # (Q, 2) bounding box
-    hi: np.ndarray
-    start: np.ndarray  # (Q, 2) first point
-    u: np.ndarray  # (Q, 2) unit chord
+    lo_x: np.ndarray  # (Q,) bounding box
+    lo_y: np.ndarray
+    hi_x: np.ndarray
+    hi_y: np.ndarray
+    start_x: np.ndarray  # (Q,) first point
+    start_y: np.ndarray
+    u_x: np.ndarray  # (Q,) unit chord
+    u_y: np.ndarray
     length: np.ndarray  # (Q,) chord length
-    mid: np.ndarray  # (Q, 2) middle point
+    mid_x: np.ndarray  # (Q,) middle point
+    mid_y: np.ndarray
     sag: np.ndarray  # (Q,) largest distance of a point to the chord line
 
     @staticmethod
@@ -182,54 +216,74 @@ class _Shapes:
         u = chord / length[:, None]
         rel = pw - pw[:, :1]
         sag = np.abs(rel[..., 0] * u[:, None, 1] - rel[..., 1] * u[:, None, 0]).max(1)
-        return _Shapes(pw.min(1), pw.max(1), pw[:, 0], u, length, pw[:, pw.shape[1] // 2], sag)
+        lo, hi, mid = pw.min(1), pw.max(1), pw[:, pw.shape[1] // 2]
+
+        def col(a: np.ndarray, k: int) -> np.ndarray:
+            return np.ascontiguousarray(a[:, k])
+
+        return _Shapes(col(lo, 0), col(lo, 1), col(hi, 0), col(hi, 1), col(pw[:, 0], 0), col(pw[:, 0], 1),
+                       col(u, 0), col(u, 1), length, col(mid, 0), col(mid, 1), sag)
 
 
 def _bbox_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, margin_m: float) -> np.ndarray:
-    gap = np.maximum(sh.lo[b] - sh.hi[a], sh.lo[a] - sh.hi[b])
-    return (gap <= margin_m).all(-1)
+    """Indices of the pairs (a, b) whose bounding boxes are within ``margin_m`` of each other
+    along x and y (y tested only on the pairs that pass along x)."""
+    idx = np.flatnonzero((sh.lo_x[b] - sh.hi_x[a] <= margin_m) & (sh.lo_x[a] - sh.hi_x[b] <= margin_m))
+    a, b = a[idx], b[idx]
+    return idx[(sh.lo_y[b] - sh.hi_y[a] <= margin_m) & (sh.lo_y[a] - sh.hi_y[b] <= margin_m)]
 
 
 def _coarse_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float,
                  min_cos: float) -> np.ndarray:
     """Cheap pre-test of pairs: bounding boxes within reach; chords nearly parallel (pieces
     shorter than 2 m exempt); the middle point of one within ``gate_m`` plus both pieces'
-    sagitta (curvature) of the other's chord line."""
-    keep = _bbox_near(sh, a, b, ext_m)
-    a, b = a[keep], b[keep]
-    u, length, sag = sh.u, sh.length, sh.sag
-    r1 = sh.mid[b] - sh.start[a]
-    lat1 = np.abs(r1[:, 0] * u[a, 1] - r1[:, 1] * u[a, 0])
-    r2 = sh.mid[a] - sh.start[b]
-    lat2 = np.abs(r2[:, 0] * u[b, 1] - r2[:, 1] * u[b, 0])
-    cos = np.abs((u[a] * u[b]).sum(1))
-    short = (length[a] < 2.0) | (length[b] < 2.0)
-    ok = (np.minimum(lat1, lat2) <= gate_m + sag[a] + sag[b]) & ((cos >= min_cos) | short | (sag[a] + sag[b] > 1.0))
-    keep[np.flatnonzero(keep)] = ok
+    sagitta (curvature) of the other's chord line. Returns a mask (n_pairs,)."""
+    keep = np.zeros(len(a), dtype=bool)
+    near = _bbox_near(sh, a, b, ext_m)
+    a, b = a[near], b[near]
+    ua_x, ua_y, ub_x, ub_y = sh.u_x[a], sh.u_y[a], sh.u_x[b], sh.u_y[b]
+    lat1 = np.abs((sh.mid_x[b] - sh.start_x[a]) * ua_y - (sh.mid_y[b] - sh.start_y[a]) * ua_x)
+    lat2 = np.abs((sh.mid_x[a] - sh.start_x[b]) * ub_y - (sh.mid_y[a] - sh.start_y[b]) * ub_x)
+    cos = np.abs(ua_x * ub_x + ua_y * ub_y)
+    sag_a, sag_b = sh.sag[a], sh.sag[b]
+    short = (sh.length[a] < 2.0) | (sh.length[b] < 2.0)
+    ok = (np.minimum(lat1, lat2) <= gate_m + sag_a + sag_b) & ((cos >= min_cos) | short | (sag_a + sag_b > 1.0))
+    keep[near[ok]] = True
     return keep
+
+
+def _chamfer_lower_bound(points: np.ndarray, sh: _Shapes, poly: np.ndarray, cap_m: float) -> np.ndarray:
+    """A lower bound (M,) of ``pair_distance(points, pw[poly], ., cap_m).mean(1)`` for
+    ``points (M, P, 2)`` and the pieces ``poly (M,)``: a piece, and its extensions along its
+    chord, lie within its sagitta of its chord line, so a point is at least its offset from that
+    line minus the sagitta from them. About a tenth of the cost of the distances: pairs whose
+    bound is beyond the gate are dropped before them."""
+    px, py = points[..., 0], points[..., 1]
+    ux, uy = sh.u_x[poly, None], sh.u_y[poly, None]
+    offset = np.abs((px - sh.start_x[poly, None]) * uy - (py - sh.start_y[poly, None]) * ux)
+    return np.minimum(np.maximum(offset - sh.sag[poly, None], 0.0), cap_m).mean(1)
 
 
 def collect_pieces(frames: np.ndarray, poses_xyyaw: np.ndarray, elements, k: int) -> Pieces:
     """Flatten the detections of the tracked ``frames`` (indices into the upload) into Pieces."""
-    pts, f_idx, e_idx, codes = [], [], [], []
-    for f, frame in enumerate(frames):
-        for j, e in enumerate(elements[frame]):
-            pts.append(e.points_xy_vehicle)
-            f_idx.append(f)
-            e_idx.append(j)
-            codes.append(TYPE_CODES[e.type])
+    per_frame = [elements[frame] for frame in frames]
+    flat = [e for frame_elements in per_frame for e in frame_elements]
+    pts = [e.points_xy_vehicle for e in flat]
     if not pts:
         z = np.zeros(0, dtype=np.int64)
         return Pieces(z, z, z, np.zeros((0, k, 2)), np.zeros((0, k, 2)))
-    counts = np.fromiter((len(p) for p in pts), dtype=np.int64, count=len(pts))
+    counts = np.fromiter(map(len, pts), dtype=np.int64, count=len(pts))
     offsets = np.r_[0, np.cumsum(counts)]
-    pv = resample_flat(np.concatenate(pts).astype(float), offsets, k)
-    f_arr = np.asarray(f_idx, dtype=np.int64)
+    pv = resample_flat(np.concatenate(pts).astype(float, copy=False), offsets, k)
+    n_per_frame = np.fromiter(map(len, per_frame), dtype=np.int64, count=len(per_frame))
+    f_arr = np.repeat(np.arange(len(per_frame), dtype=np.int64), n_per_frame)
+    e_idx = np.arange(len(flat), dtype=np.int64) - np.repeat(np.cumsum(n_per_frame) - n_per_frame, n_per_frame)
+    codes = np.fromiter((TYPE_CODES[e.type] for e in flat), dtype=np.int64, count=len(flat))
     pose = poses_xyyaw[frames[f_arr]]
     c, s = np.cos(pose[:, 2])[:, None], np.sin(pose[:, 2])[:, None]
     pw = np.stack([c * pv[..., 0] - s * pv[..., 1] + pose[:, None, 0],
                    s * pv[..., 0] + c * pv[..., 1] + pose[:, None, 1]], axis=-1)
-    return Pieces(f_arr, np.asarray(e_idx, dtype=np.int64), np.asarray(codes, dtype=np.int64), pv, pw)
+    return Pieces(f_arr, e_idx, codes, pv, pw)
 
 
 def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray, elements,
@@ -264,9 +318,17 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
                      np.cos(params.TRACK_MAX_ANGLE_RAD))
     a, b = a[m], b[m]
     if len(a):
-        d_ab = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
-        d_ba = pair_distance(pc.points_w[a], pc.points_w[b], ext, cap).mean(1)
-        m = np.minimum(d_ab, d_ba) <= params.TRACK_MERGE_GATE_M
+        # min(d_ab, d_ba) within the gate: each distance only where its lower bound is within
+        # the gate, d_ba only where d_ab is not
+        gate = params.TRACK_MERGE_GATE_M
+        m = np.zeros(len(a), dtype=bool)
+        i_ab = np.flatnonzero(_chamfer_lower_bound(pc.points_w[b], shapes, a, cap) <= gate + _BOUND_SLACK_M)
+        d_ab = pair_distance(pc.points_w[b[i_ab]], pc.points_w[a[i_ab]], ext, cap).mean(1)
+        m[i_ab] = d_ab <= gate
+        rest = np.flatnonzero(~m)
+        rest = rest[_chamfer_lower_bound(pc.points_w[a[rest]], shapes, b[rest], cap) <= gate + _BOUND_SLACK_M]
+        d_ba = pair_distance(pc.points_w[a[rest]], pc.points_w[b[rest]], ext, cap).mean(1)
+        m[rest] = d_ba <= gate
         rows.append(a[m])
         cols.append(b[m])
 
@@ -282,14 +344,16 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         a, b = a[m], b[m]
         if len(a) == 0:
             continue
-        chamfer = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
-        poly = _POLYGON_CODES[pc.type_code[a]]
-        if poly.any():  # an outline is not extended along its chord (a side): a neighbour is not it
-            chamfer[poly] = pair_distance(pc.points_w[b[poly]], pc.points_w[a[poly]], 0.0, cap).mean(1)
         # pose uncertainty over the travel between the frames widens the gate
         gap_m = np.abs(travel_m[frames[pc.frame[b]]] - travel_m[frames[pc.frame[a]]])
         sig_rel = params.ODOM_SIGMA_XY_PER_M * gap_m + params.ODOM_SIGMA_YAW_PER_M * gap_m * 15.0
         gate = np.sqrt(params.TRACK_GATE_M ** 2 + (params.TRACK_GATE_SIGMAS * sig_rel) ** 2)
+        near = _chamfer_lower_bound(pc.points_w[b], shapes, a, cap) <= gate + _BOUND_SLACK_M
+        a, b, gate = a[near], b[near], gate[near]
+        chamfer = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
+        poly = _POLYGON_CODES[pc.type_code[a]]
+        if poly.any():  # an outline is not extended along its chord (a side): a neighbour is not it
+            chamfer[poly] = pair_distance(pc.points_w[b[poly]], pc.points_w[a[poly]], 0.0, cap).mean(1)
         ok = chamfer <= gate
         a, b, chamfer = a[ok], b[ok], chamfer[ok]
         # lateral order: offsets at the vehicle of both pieces, in the later frame's vehicle frame
@@ -330,12 +394,19 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
     n_comp, labels = connected_components(graph, directed=False)
     by_label = np.argsort(labels, kind="stable")
     bounds = np.r_[0, np.cumsum(np.bincount(labels, minlength=n_comp))]
+    # distinct frames of every track at once: a track's pieces are in frame order
+    frame_of = pc.frame[by_label]
+    first_of_frame = np.ones(q, dtype=bool)
+    first_of_frame[1:] = frame_of[1:] != frame_of[:-1]
+    first_of_frame[bounds[:-1]] = True
+    distinct_frames = frame_of[first_of_frame]
+    frame_bounds = np.r_[0, np.cumsum(first_of_frame)][bounds]
     types = list(ElementType)
+    track_types = pc.type_code[by_label[bounds[:-1]]].tolist()
     tracks = []
     for i in range(n_comp):
-        members = by_label[bounds[i]:bounds[i + 1]]
-        tracks.append(Track(type=types[int(pc.type_code[members[0]])], pieces=members,
-                            frames=np.unique(pc.frame[members])))
+        tracks.append(Track(type=types[track_types[i]], pieces=by_label[bounds[i]:bounds[i + 1]],
+                            frames=distinct_frames[frame_bounds[i]:frame_bounds[i + 1]]))
     return pc, tracks
 
 
@@ -353,12 +424,15 @@ def regroup_observations(points_w: np.ndarray, frame: np.ndarray, gate_m: float,
     a, b = a[near], b[near]
     if len(a) == 0:
         return np.arange(m)
-    d_ab = pair_distance(points_w[b], points_w[a], max_extrapolation_m, 3.0 * gate_m).mean(1)
-    d_ba = pair_distance(points_w[a], points_w[b], max_extrapolation_m, 3.0 * gate_m).mean(1)
     chord = points_w[:, -1] - points_w[:, 0]
     length = np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-9)
     u = chord / length[:, None]
     parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(max_angle_rad)) | (np.minimum(length[a], length[b]) < 2.0)
-    ok = (np.maximum(d_ab, d_ba) <= gate_m) & parallel
-    graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(m, m))
+    a, b = a[parallel], b[parallel]
+    # both mean distances within the gate: d_ba only where d_ab is
+    d_ab = pair_distance(points_w[b], points_w[a], max_extrapolation_m, 3.0 * gate_m).mean(1)
+    ok = np.flatnonzero(d_ab <= gate_m)
+    d_ba = pair_distance(points_w[a[ok]], points_w[b[ok]], max_extrapolation_m, 3.0 * gate_m).mean(1)
+    ok = ok[d_ba <= gate_m]
+    graph = coo_matrix((np.ones(len(ok)), (a[ok], b[ok])), shape=(m, m))
     return connected_components(graph, directed=False)[1]
