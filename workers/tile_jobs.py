@@ -657,6 +657,18 @@ def held_back_counts(held: Sequence[versions.VersionFeature]) -> dict[str, int]:
     return dict(Counter(str(f.type) for f in held))
 
 
+def held_back_features(version: TileVersion) -> list[versions.VersionFeature] | None:
+    """The lines ``version`` held back (``TopologyResult.suppressed`` of its topology state), clipped
+    to its tile in lon/lat as the merge clipped them for ``quality["held_back"]`` (same ids, same
+    parts); ``None`` when the version has no readable state (written without one, or by an older
+    :data:`TOPOLOGY_STATE_VERSION`). Frame: the version's ``origin_lat/lon`` (the merge's frame)."""
+    topology = _load_state(version)
+    if topology is None:
+        return None
+    frame = LocalFrame(version.origin_lat, version.origin_lon)
+    return clip_to_tile(topology.suppressed, frame, version.z, version.x, version.y)
+
+
 def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult) -> None:
     if result.nothing_to_do:
         return

@@ -15,6 +15,7 @@ from services.api.metrics import Metrics
 from services.api.routes import (
     corrections,
     export,
+    held_back,
     jobs,
     keys,
     map_read,
@@ -80,7 +81,7 @@ def create_app(settings: Settings) -> FastAPI:
     app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan)
     install_error_handlers(app)
     for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web, ops_jobs,
-                   trip_geometry):
+                   trip_geometry, held_back):
         app.include_router(module.router)
     # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)
     app.add_middleware(TileFastPath, fastapi_app=app)

@@ -1,0 +1,93 @@
+"""Lines held back from a tile version, for the map team to confirm or correct (docs/tiles.md,
+"Held-back lines").
+
+- ``GET /v1/tiles/{z}/{x}/{y}/held-back[?version=N]``   the held-back lines of the tile's latest
+  version (or of version N) as GeoJSON, each with ``"status": "held_back"``
+
+The merge holds back a line that several trips drove alongside without seeing it (a ghost, a
+mis-spliced line: ``TopologyResult.suppressed``). The version's ``quality["held_back"]`` counts them
+by type; their geometry lives only in the version's topology state, which this route unpickles and
+clips to the tile as the merge did, so the features here are exactly the ones counted there.
+
+A version without a readable state (written without one, or by an older algorithm) is a 409
+``state_unavailable``, not an empty collection: "nothing was held back" and "we cannot tell" must
+not look alike to a client.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+from fastapi.responses import Response
+from sqlalchemy.orm import Session
+
+from services.api.deps import Reader, SessionDep
+from services.api.errors import ApiError
+from services.db import versions as vs
+from services.db.models import TileVersion
+from services.tiles.http import CORS_HEADERS, LIVE_CACHE_CONTROL, PINNED_CACHE_CONTROL, check_tile
+from services.tiles.render import feature_collection, feature_json
+
+router = APIRouter(prefix="/v1", tags=["versions"])
+
+HELD_BACK_STATUS = "held_back"  # each feature's ``status``: not in the published map
+
+
+def _version_or_404(session: Session, z: int, x: int, y: int, version: int | None) -> TileVersion:
+    """The tile's version ``version`` (its latest when ``None``); 404 naming the tile, or the version."""
+    if not vs.has_version(session, z=z, x=x, y=y):
+        raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
+    if version is None:
+        row = vs.latest_version(session, z=z, x=x, y=y)
+    else:
+        row = vs.get_version(session, z=z, x=x, y=y, version=version)
+    if row is None:
+        raise ApiError(
+            404, "not_found", f"tile {z}/{x}/{y} has no version {version}", location="query.version"
+        )
+    return row
+
+
+@router.get(
+    "/tiles/{z}/{x}/{y}/held-back",
+    response_class=Response,
+    responses={200: {"content": {"application/geo+json": {}}}},
+)
+def held_back_lines(
+    _: Reader,
+    session: SessionDep,
+    z: int,
+    x: int,
+    y: int,
+    version: Annotated[int | None, Query(ge=1, description="tile version (default: the latest)")] = None,
+) -> Response:
+    """The lines held back from the tile's latest version (or ``version``) as a GeoJSON
+    FeatureCollection with ``tile``, ``version`` and ``map_version``; per feature the properties the
+    merge gave it and ``"status": "held_back"``. 409 when the version has no readable topology state."""
+    # the job code (and the topology types the state unpickles to) is loaded at the first call
+    # only, as app.py loads the job runners: routes do not import workers/ at module level
+    from workers.tile_jobs import held_back_features
+
+    with session.begin():
+        check_tile(z, x, y)
+        row = _version_or_404(session, z, x, y, version)
+        held = held_back_features(row)
+        if held is None:
+            raise ApiError(
+                409,
+                "state_unavailable",
+                f"tile {z}/{x}/{y} v{row.version} has no readable topology state (written without one, or "
+                "by an older algorithm): its held-back lines are unknown",
+                location="query.version" if version is not None else "path",
+            )
+        mapped = [vs.MapFeature(f, row.id, z, x, y, row.version) for f in held]
+        body = feature_collection(
+            [feature_json(m, extra={"status": HELD_BACK_STATUS}) for m in mapped],
+            tile=f"{z}/{x}/{y}",
+            version=row.version,
+            map_version=row.id,
+        )
+    # a pinned version never changes; the latest does when the tile is merged again
+    cache = PINNED_CACHE_CONTROL if version is not None else LIVE_CACHE_CONTROL
+    return Response(body, media_type="application/geo+json", headers={**CORS_HEADERS, "Cache-Control": cache})
