@@ -139,6 +139,7 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
         origin_lon=frame.origin_lon,
         poses_xyyaw_world=poses_by_key,
         map_features=tuple(topology.features),
+        held_back_features=tuple(topology.suppressed),
         failed=failed,
         diagnostics={
             "method": Method.PIPELINE.value,
@@ -150,6 +151,7 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "unaligned": unaligned,
             "tile_quality": _jsonable(topology.tile_quality),
             "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
+            "held_back_features": len(topology.suppressed),
         },
     )
 

@@ -242,8 +242,9 @@ def _poses_csv_bytes(timestamps_s: np.ndarray, lonlat_deg: np.ndarray, heading_d
     return ("\n".join(lines) + "\n").encode()
 
 
-def map_features_to_geojson(features: Sequence[MapFeature], frame: LocalFrame) -> dict:
-    """Map features (world plane of ``frame``) -> GeoJSON FeatureCollection like ``GET /v1/map``."""
+def map_features_to_geojson(features: Sequence[MapFeature], frame: LocalFrame, extra: dict | None = None) -> dict:
+    """Map features (world plane of ``frame``) -> GeoJSON FeatureCollection like ``GET /v1/map``;
+    ``extra`` is added to every feature's properties."""
     out: list[dict] = []
     if not features:
         return {"type": "FeatureCollection", "features": out}
@@ -262,6 +263,7 @@ def map_features_to_geojson(features: Sequence[MapFeature], frame: LocalFrame) -
         if f.style is not None:
             props["style"] = f.style.value
         props.update({k: v for k, v in f.properties.items() if k not in props})
+        props.update(extra or {})
         out.append({"type": "Feature", "id": fid, "geometry": geometry, "properties": props})
     return {"type": "FeatureCollection", "features": out}
 
@@ -269,7 +271,9 @@ def map_features_to_geojson(features: Sequence[MapFeature], frame: LocalFrame) -
 def write_reconstruction(
     recon: Reconstruction, trips: Sequence[Trip], out_dir: str | Path, report: dict | None = None
 ) -> Path:
-    """Write ``OUT_DIR/poses/*.csv``, ``OUT_DIR/map.geojson`` and ``OUT_DIR/report.json``.
+    """Write ``OUT_DIR/poses/*.csv``, ``OUT_DIR/map.geojson``, ``OUT_DIR/held_back.geojson`` (lines
+    kept out of the map, each with ``"status": "held_back"``, like ``GET /v1/tiles/{z}/{x}/{y}/held-back``)
+    and ``OUT_DIR/report.json``.
 
     Each CSV has one row per uploaded frame of its trip, in upload order, with the trip's own
     ``t``; trips in ``recon.failed`` (or without poses) get no CSV and are listed in the report.
@@ -297,6 +301,8 @@ def write_reconstruction(
         written.append(trip.key)
     geojson = map_features_to_geojson(recon.map_features, frame)
     (out_dir / "map.geojson").write_bytes(orjson.dumps(geojson))
+    held_back = map_features_to_geojson(recon.held_back_features, frame, extra={"status": "held_back"})
+    (out_dir / "held_back.geojson").write_bytes(orjson.dumps(held_back))
     full_report = {
         "origin": {"lat": recon.origin_lat, "lon": recon.origin_lon},
         "trips": len(trips),

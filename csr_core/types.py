@@ -198,6 +198,8 @@ class Reconstruction:
 
     ``poses_xyyaw_world`` maps ``trip.key`` to the final world_T_vehicle pose of every uploaded
     frame; a trip that failed alignment is absent there and present in ``failed`` with a reason.
+    ``held_back_features`` are lines the topology kept out of ``map_features`` (trips drove
+    alongside them without seeing them: ghosts, mis-spliced lines) for a human to look at.
     """
 
     origin_lat: float
@@ -206,3 +208,4 @@ class Reconstruction:
     map_features: tuple[MapFeature, ...]
     failed: dict[str, str] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    held_back_features: tuple[MapFeature, ...] = ()

@@ -2,7 +2,8 @@
 
 Runs the whole reconstruction in one process on ``SCENARIO_DIR/trips/`` (file-name order, as if
 uploaded in that order; never ``truth/``) and writes ``OUT_DIR/poses/<key>.csv``,
-``OUT_DIR/map.geojson`` and ``OUT_DIR/report.json`` (failures, timings). Exit code 2 with a
+``OUT_DIR/map.geojson``, ``OUT_DIR/held_back.geojson`` (lines kept out of the map for a human to
+look at) and ``OUT_DIR/report.json`` (failures, timings). Exit code 2 with a
 message naming the file for a missing or invalid scenario.
 """
 
@@ -82,7 +83,7 @@ def _run(args: argparse.Namespace) -> int:
     print(
         f"csr reconstruct: {params.method.value}: {len(trips)} trips ({frames} frames, "
         f"{uploaded_bytes / 1e6:.1f} MB uploaded), {len(trips) - len(recon.failed)} with poses, "
-        f"{len(recon.failed)} failed, {len(recon.map_features)} map features, "
-        f"{t_end - t_start:.1f} s -> {out}"
+        f"{len(recon.failed)} failed, {len(recon.map_features)} map features "
+        f"({len(recon.held_back_features)} lines held back), {t_end - t_start:.1f} s -> {out}"
     )
     return 0

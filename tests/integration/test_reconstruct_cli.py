@@ -93,6 +93,11 @@ def test_outputs_follow_contract_section_4(scenario, outputs, method):
             assert geom["type"] == "LineString" and len(geom["coordinates"]) >= 2
     report = orjson.loads((out / "report.json").read_bytes())
     assert report["trips"] == len(trip_files) and report["method"] == method
+    held = orjson.loads((out / "held_back.geojson").read_bytes())
+    assert held["type"] == "FeatureCollection"
+    assert all(f["properties"]["status"] == "held_back" for f in held["features"])
+    if method == "pipeline":
+        assert len(held["features"]) == report["diagnostics"]["held_back_features"]
 
 
 def test_gnss_only_accuracy_is_in_the_band_the_profile_implies(scenario, outputs):
