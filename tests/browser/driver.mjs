@@ -2,7 +2,7 @@
 // the viewer or the ops page of a running CSR service, and prints one JSON line of what it saw.
 // pytest (tests/browser/test_*.py) starts the service, seeds data, runs this and asserts.
 //
-//   node tests/browser/driver.mjs viewer|ops '{"base": "http://127.0.0.1:PORT", "key": "...", "out": "test-artifacts/browser", ...}'
+//   node tests/browser/driver.mjs viewer|held-back|ops '{"base": "http://127.0.0.1:PORT", "key": "...", "out": "test-artifacts/browser", ...}'
 import { createRequire } from 'node:module';
 import { mkdirSync } from 'node:fs';
 import { join } from 'node:path';
@@ -247,6 +247,88 @@ async function addPair(page, finished) {
   await shot(page, 'viewer-after-add-pair');
 }
 
+// --- held-back lines ------------------------------------------------------------------------------
+
+/** The held-back lines drawn: unique feature ids on the ``held-back`` layer, and the FeatureCollection's size. */
+const heldBackDrawn = (page) =>
+  page.evaluate(() => {
+    const { map, state } = window.csrViewer;
+    const ids = map.queryRenderedFeatures({ layers: ['held-back'] }).map((f) => f.properties.id);
+    return { rendered: [...new Set(ids)].sort(), source: state.heldBack ? state.heldBack.features.length : null };
+  });
+
+/** Wait for the toggle's answer about ``tile``: its response, then the text it leads to. */
+async function heldBackAnswer(page, tile, act) {
+  const answered = page.waitForResponse((r) => r.url().includes(`/v1/tiles/${tile}/held-back`));
+  await act();
+  const response = await answered;
+  await page.waitForFunction(() => document.getElementById('held-back-count').textContent !== 'loading…');
+  await page.waitForTimeout(300);
+  await idle(page);
+  const url = new URL(response.url());
+  return {
+    path: url.pathname + url.search, status: response.status(),
+    text: await page.locator('#held-back-count').textContent(), ...(await heldBackDrawn(page)),
+  };
+}
+
+/** The "held-back lines" toggle of the tile panel, over ``config.tiles`` ({name, click: [lon, lat]}),
+ * visited in order: off at first, then on; the slider's version and the live map's latest; a
+ * held-back line's details; off again at the end. */
+async function heldBack(page) {
+  const [first] = config.tiles;
+  await page.goto(`${config.base}/viewer/#18/${first.click[1]}/${first.click[0]}`);
+  await enterKey(page, config.key);
+  await page.waitForSelector('body[data-ready=true]');
+  await page.waitForFunction(() => window.csrViewer.map.getSource('live') !== undefined);
+  await idle(page);
+  const tiles = {};
+  for (const [i, tile] of config.tiles.entries()) {
+    await page.evaluate((ll) => window.csrViewer.map.jumpTo({ center: ll, zoom: 18 }), tile.click);
+    await idle(page);
+    const point = await project(page, tile.click);
+    const seen = {};
+    const click = () => page.mouse.click(point.x, point.y);
+    if (i === 0) {
+      await click();
+      await page.waitForSelector('#versions:not([hidden])');
+      await page.waitForFunction((name) => document.getElementById('tile-name').textContent === name, tile.name);
+      await idle(page);
+      seen.off = { text: await page.locator('#held-back-count').textContent(), ...(await heldBackDrawn(page)) };
+      // on: the version the slider shows (the newest when a tile is selected)
+      seen.on = await heldBackAnswer(page, tile.name, () => page.locator('#held-back-toggle').check());
+    } else {
+      seen.on = await heldBackAnswer(page, tile.name, click); // the toggle stays on from tile to tile
+    }
+    seen.tile_name = await page.locator('#tile-name').textContent();
+    seen.version_label = await page.locator('#version-label').textContent();
+    seen.text_class = await page.locator('#held-back-count').getAttribute('class');
+    await shot(page, `held-back-${tile.name.replaceAll('/', '-')}`);
+    if (seen.on.rendered.length) {
+      // a held-back line's details: a click on the middle of its geometry
+      const middle = await page.evaluate(() => {
+        const coords = window.csrViewer.state.heldBack.features[0].geometry.coordinates;
+        return { id: window.csrViewer.state.heldBack.features[0].properties.id, at: coords[Math.floor(coords.length / 2)] };
+      });
+      const target = await project(page, middle.at);
+      await page.mouse.click(target.x, target.y);
+      await page.waitForFunction((id) => document.querySelector('#element-panel:not([hidden]) dl')?.innerText.includes(id), middle.id);
+      await page.waitForFunction(() => document.querySelector('#element ol, #element p.muted'));
+      seen.clicked_id = middle.id;
+      seen.element_text = await page.locator('#element').innerText();
+      await shot(page, 'held-back-element');
+      // the live map: the tile's latest version (no ?version)
+      seen.live = await heldBackAnswer(page, tile.name, () => page.locator('#live-button').click());
+    }
+    tiles[tile.name] = seen;
+  }
+  await page.locator('#held-back-toggle').uncheck();
+  await page.waitForTimeout(300);
+  await idle(page);
+  check('tiles', tiles);
+  check('off_again', { text: await page.locator('#held-back-count').textContent(), ...(await heldBackDrawn(page)) });
+}
+
 // --- ops -----------------------------------------------------------------------------------------
 
 async function ops(page) {
@@ -286,7 +368,7 @@ try {
   const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
   page.on('console', (m) => m.type() !== 'debug' && result.console.push(`${m.type()}: ${m.text()}`));
   page.on('pageerror', (e) => result.errors.push(String(e)));
-  await { viewer, ops }[scenario](page);
+  await { viewer, 'held-back': heldBack, ops }[scenario](page);
 } catch (err) {
   result.errors.push(String(err.stack || err));
   try {

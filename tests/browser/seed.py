@@ -1,18 +1,35 @@
 """Test data for the browser tests: a few versions of one tile written straight into the version
 store (``services.db.versions.write_tile_version``), so that the viewer has something to draw
-without running the whole pipeline."""
+without running the whole pipeline; and a tile version made by the real merge job from planted trip
+alignments, with lines held back from it (as ``tests/integration/test_held_back.py`` builds it)."""
 
 from __future__ import annotations
 
+import io
 import math
+import secrets
 
+import mercantile
+import numpy as np
 import sqlalchemy as sa
 from shapely.geometry import LineString, Polygon
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
+from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 from services.db import versions as vs
+from services.db.models import Trip, TripTileAlignment
+from services.reconstructions import instance_json, noise_json
+from services.settings import Settings
+from services.tile_frames import tile_frame
+from workers import tile_jobs
 
 M_PER_DEG_LAT = 111_320.0
+
+MERGED_ROAD_LENGTH_M = 200.0  # centred in the tile (~400 m wide at zoom 16 and Munich's latitude)
+MERGED_TRIPS = 4  # one may see the ghosts; three drive alongside without (SUPPRESS_MIN_PASSING = 3)
+DIVIDER_Y_M = 1.75  # the real dividers, either side of the trips' path (metres north of it)
+GHOST_DIVIDER_Y_M = 5.25  # the ghost divider, a lane further out (north)
+GHOST_BOUNDARY_Y_M = -5.25  # the ghost road boundary (south)
 
 
 def _road(lon0: float, lat0: float, half_m: float):
@@ -95,3 +112,87 @@ def seed_tile(
                 )
     finally:
         engine.dispose()
+
+
+def _npz(**arrays: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def seed_merged_tile(db_url: str, z: int, x: int, y: int, *, ghosts: bool) -> tuple[float, float]:
+    """Version 1 of tile z/x/y made by the real merge job (``compute_merge_tile`` +
+    ``persist_merge_tile``) from four planted trip alignments (``trip_tile_alignments`` rows, what
+    ``align_tile`` stores) along a straight west-east road in the tile's centre, each seeing its two
+    lane dividers. With ``ghosts`` one trip also sees a ghost divider (north) and a ghost road
+    boundary (south) that the three others drove alongside without seeing: the merge holds both
+    back. Returns the road's centre (lon, lat)."""
+    frame = tile_frame(z, x, y)
+    centre_lonlat = mercantile.ul(x + 0.5, y + 0.5, z)
+    centre_xy_m = frame.to_local(np.array([centre_lonlat]))[0]
+
+    def line_xy_m(y_m: float, x0_m: float = 0.0, x1_m: float = MERGED_ROAD_LENGTH_M) -> np.ndarray:
+        """A straight line ``(N, 2)`` at ``y_m`` north of the road, metre spacing, tile frame."""
+        x_m = np.arange(x0_m, x1_m + 1e-9, 1.0) - MERGED_ROAD_LENGTH_M / 2
+        return centre_xy_m + np.column_stack([x_m, np.full_like(x_m, y_m)])
+
+    path_xy_m = line_xy_m(0.0)
+    poses_xyyaw = np.column_stack([path_xy_m, np.zeros(len(path_xy_m))])
+    noise = {t: ElementNoise(0.05, 0.2, 100) for t in ElementType}
+    real = [
+        TripInstance(ElementType.LANE_DIVIDER, line_xy_m(y_m), DividerStyle.SOLID, 10)
+        for y_m in (DIVIDER_Y_M, -DIVIDER_Y_M)
+    ]
+    ghost = [
+        TripInstance(
+            ElementType.LANE_DIVIDER, line_xy_m(GHOST_DIVIDER_Y_M, 60.0, 140.0), DividerStyle.SOLID, 10
+        ),
+        TripInstance(ElementType.ROAD_BOUNDARY, line_xy_m(GHOST_BOUNDARY_Y_M, 50.0, 150.0), None, 10),
+    ]
+    engine = sa.create_engine(db_url)
+    sessions = sessionmaker(engine)
+    try:
+        with sessions.begin() as session:
+            for k in range(MERGED_TRIPS):
+                trip = Trip(
+                    id=f"seed-{secrets.token_hex(6)}",
+                    vehicle_id="veh-seed",
+                    trip_id=f"t{x}-{k}",
+                    content_sha256="0" * 64,
+                    status="aligned",
+                    schema_version="1.0",
+                    started_at=f"2026-11-0{k + 1}T08:00:00Z",
+                    n_frames=len(poses_xyyaw),
+                    body_bytes=1,
+                    json_bytes=1,
+                )
+                session.add(trip)
+                session.flush()
+                instances = real + ghost if ghosts and k == 0 else real
+                session.add(
+                    TripTileAlignment(
+                        trip_pk=trip.id,
+                        z=z,
+                        x=x,
+                        y=y,
+                        job_id="seed-align",
+                        origin_lat=frame.origin_lat,
+                        origin_lon=frame.origin_lon,
+                        arrays=_npz(
+                            frame_indices=np.arange(len(poses_xyyaw), dtype=np.int32),
+                            poses_xyyaw=poses_xyyaw,
+                            weights=np.ones(len(poses_xyyaw), np.float32),
+                            residuals_m=np.zeros(len(poses_xyyaw), np.float32),
+                        ),
+                        instances=[instance_json(i) for i in instances],
+                        noise=noise_json(noise),
+                        failed_reason=None,
+                    )
+                )
+        result = tile_jobs.compute_merge_tile(sessions, Settings(database_url=db_url), z, x, y)
+        assert not result.nothing_to_do and result.state is not None
+        with sessions.begin() as session:
+            tile_jobs.persist_merge_tile(session, "seed-merge", z, x, y, result)
+    finally:
+        engine.dispose()
+    return (centre_lonlat.lng, centre_lonlat.lat)

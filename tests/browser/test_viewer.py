@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from services.db.models import TripPoses
 from tests.browser.conftest import run_driver
-from tests.browser.seed import M_PER_DEG_LAT, seed_tile
+from tests.browser.seed import M_PER_DEG_LAT, seed_merged_tile, seed_tile
 from tests.integration.conftest import moving_trip
 
 pytestmark = pytest.mark.integration
@@ -93,6 +93,72 @@ def test_viewer(browser_ready, make_isolated) -> None:
     assert tracks == {"raw", "aligned"}, checks["tracks_rendered"]
     # corrections: the panel shows when the tile's match pairs can be listed (see docs/viewer.md)
     assert "corrections_visible" in checks
+
+
+def test_viewer_held_back_lines(browser_ready, make_isolated) -> None:
+    """The tile panel's "held-back lines" toggle against ``GET /v1/tiles/{z}/{x}/{y}/held-back``: a
+    version the real merge job made with two ghosts held back (drawn, counted, clickable), one it made
+    with none ("none held back"), and a version written without a topology state (the API's 409)."""
+    dep = make_isolated("embedded")
+    dep.start_server()
+    z, x, y = TILE
+    clean, ghosts = (z, x - 1, y), (z, x + 1, y)  # the seeded road's tile between them
+    north = 25 / M_PER_DEG_LAT  # click 25 m north of a merged road: on no line
+    clicks = {
+        clean: seed_merged_tile(dep.db_url, *clean, ghosts=False),
+        ghosts: seed_merged_tile(dep.db_url, *ghosts, ghosts=True),
+    }
+    clicks = {t: (lon, lat + north) for t, (lon, lat) in clicks.items()}
+    seed_tile(dep.db_url, *TILE, CENTRE)  # three versions written without a topology state
+    clicks[TILE] = (CENTRE[0], CENTRE[1] - 0.0005)
+    names = {t: "/".join(map(str, t)) for t in (clean, ghosts, TILE)}
+    with dep.admin() as http:
+        api = {t: http.get(f"/v1/tiles/{name}/held-back") for t, name in names.items()}
+    assert api[clean].status_code == 200 and api[clean].json()["features"] == []
+    held = api[ghosts].json()
+    assert api[ghosts].status_code == 200 and len(held["features"]) == 2, held  # a divider and a boundary
+    assert api[TILE].status_code == 409 and api[TILE].json()["error"] == "state_unavailable"
+
+    result = run_driver(
+        "held-back",
+        base=dep.base_url,
+        key=dep.admin_key,
+        tiles=[{"name": names[t], "click": clicks[t]} for t in (clean, ghosts, TILE)],
+    )
+    assert not result["errors"], result
+    seen = {name: result["checks"]["tiles"][name] for name in names.values()}
+    first = seen[names[clean]]
+    assert first["off"] == {"text": "", "rendered": [], "source": None}  # off: nothing asked, nothing drawn
+    assert first["tile_name"] == names[clean]
+    # on: the version the slider shows, none held back from it
+    assert first["on"]["path"] == f"/v1/tiles/{names[clean]}/held-back?version=1"
+    assert first["on"]["status"] == 200
+    assert (first["on"]["text"], first["on"]["rendered"], first["on"]["source"]) == ("none held back", [], 0)
+    # two held back: drawn on their own layer, counted, as the API answers
+    ghost = seen[names[ghosts]]
+    ids = sorted(f["id"] for f in held["features"])
+    assert ghost["on"]["path"] == f"/v1/tiles/{names[ghosts]}/held-back?version=1"
+    assert ghost["on"]["status"] == 200
+    assert ghost["on"]["text"] == f"{len(ids)} held back"
+    assert ghost["on"]["rendered"] == ids and ghost["on"]["source"] == len(ids)
+    # a held-back line's details: its own properties (it is in no version)
+    clicked = next(f for f in held["features"] if f["id"] == ghost["clicked_id"])
+    text = ghost["element_text"]
+    assert ghost["clicked_id"] in text and clicked["properties"]["type"] in text
+    passed = clicked["properties"]["passed_trips"]
+    assert f"held back: {passed} trips drove alongside without seeing it" in text
+    # the live map: the tile's latest version, without ?version
+    assert ghost["live"]["path"] == f"/v1/tiles/{names[ghosts]}/held-back"
+    assert (ghost["live"]["text"], ghost["live"]["rendered"]) == (f"{len(ids)} held back", ids)
+    # no readable state: the API's message, not "none held back"
+    unknown = seen[names[TILE]]
+    assert unknown["on"]["path"] == f"/v1/tiles/{names[TILE]}/held-back?version=3"
+    assert unknown["on"]["status"] == 409
+    assert unknown["on"]["text"] == f"unknown: {api[TILE].json()['message']}"
+    assert unknown["on"]["rendered"] == [] and unknown["on"]["source"] is None
+    assert unknown["version_label"].startswith("v3 of 3")
+    # off again: nothing drawn
+    assert result["checks"]["off_again"] == {"text": "", "rendered": [], "source": None}
 
 
 ADD_OFFSET = [0.1, -0.05, 0.002]  # metres, metres, radians: asserted with the added pair

@@ -1,6 +1,6 @@
 // The map viewer: the service's vector tiles on a plain background, a tile's version history with
-// the diff to the previous version, trip trajectories (raw GNSS vs aligned), element details, and
-// the human-correction actions (admin). All data comes from the CSR API; nothing from the internet.
+// the diff to the previous version, the lines the merge held back from it, trip trajectories (raw
+// GNSS vs aligned), element details, and the human-correction actions (admin). All data comes from the CSR API; nothing from the internet.
 import * as maplibregl from 'maplibre-gl';
 import 'maplibre-gl/dist/maplibre-gl.css';
 import './style.css';
@@ -21,6 +21,7 @@ const STYLE = {
 const FLAG_COLOR = '#f06595';
 const TRACK_COLORS = { raw: '#da77f2', aligned: '#69db7c' };
 const DIFF_COLORS = { added: '#40c057', modified: '#fab005', removed: '#fa5252' };
+const HELD_BACK_COLOR = '#adb5bd';
 
 const byType = (type, sourceLayer) => (sourceLayer === type ? null : ['==', ['get', 'type'], type]);
 const all = (...filters) => {
@@ -70,6 +71,7 @@ const state = {
   tile: null, // {z, x, y}
   versions: [], // of the selected tile, oldest first
   shownVersion: null,
+  heldBack: null, // the held-back lines drawn (a FeatureCollection), null while the toggle is off
   tracks: new Map(), // trip id -> its FeatureCollection
   pairs: [], // the selected tile's match pairs, as listed
 };
@@ -86,6 +88,7 @@ const map = new maplibregl.Map({
     sources: {
       version: { type: 'geojson', data: empty },
       diff: { type: 'geojson', data: empty },
+      'held-back': { type: 'geojson', data: empty },
       tracks: { type: 'geojson', data: empty },
       selection: { type: 'geojson', data: empty },
     },
@@ -107,6 +110,10 @@ function addStaticLayers() {
     });
   }
   for (const layer of elementLayers('version', 'version')) map.addLayer(layer);
+  map.addLayer({
+    id: 'held-back', type: 'line', source: 'held-back',
+    paint: { 'line-color': HELD_BACK_COLOR, 'line-width': 2.5, 'line-dasharray': [2, 2] },
+  });
   for (const [kind, color] of Object.entries(TRACK_COLORS)) {
     map.addLayer({
       id: `track-${kind}`, type: 'line', source: 'tracks', filter: ['==', ['get', 'kind'], kind],
@@ -169,7 +176,8 @@ function legend() {
   const item = (color, label, { fill, dash } = {}) =>
     el('li', {}, el('span', { class: `swatch${fill ? ' fill' : ''}`, style: `border-color:${color};${fill ? `background:${color}` : ''}${dash ? ';border-top-style:dashed' : ''}` }), label);
   for (const s of Object.values(STYLE)) ul.append(item(s.color, s.label, { fill: Boolean(s.fill) }));
-  ul.append(item(FLAG_COLOR, 'validator flag'), item(TRACK_COLORS.raw, 'trip: raw GNSS', { dash: true }), item(TRACK_COLORS.aligned, 'trip: aligned'));
+  ul.append(item(FLAG_COLOR, 'validator flag'), item(HELD_BACK_COLOR, 'held-back line (tile panel)', { dash: true }),
+    item(TRACK_COLORS.raw, 'trip: raw GNSS', { dash: true }), item(TRACK_COLORS.aligned, 'trip: aligned'));
 }
 
 const setMessage = (text, isError = false) => {
@@ -250,6 +258,7 @@ async function showVersion(index) {
   document.getElementById('version-label').textContent =
     `v${entry.version} of ${state.versions.length} · ${entry.status ?? ''} · ${entry.reason ?? ''} · ${fc.features.length} elements · ` +
     `+${counts.added} ~${counts.modified} −${counts.removed}` + (entry.created_at ? ` · ${entry.created_at.slice(0, 19)}` : '');
+  await loadHeldBack();
 }
 
 function showLive() {
@@ -257,6 +266,31 @@ function showLive() {
   map.getSource('diff').setData(empty);
   state.shownVersion = null;
   setLiveOpacity(1);
+  loadHeldBack();
+}
+
+let heldBackRequest = 0; // an answer to an older request (another tile or version) is dropped
+
+/** While the toggle is on: ``GET .../held-back`` of the shown version (the tile's latest on the live
+ * map), drawn dashed grey, with its count; a 409 (no readable state) says the lines are unknown. */
+async function loadHeldBack() {
+  const request = ++heldBackRequest;
+  const out = document.getElementById('held-back-count');
+  const show = (fc, text, isError = false) => {
+    if (request !== heldBackRequest) return;
+    state.heldBack = fc;
+    map.getSource('held-back').setData(fc || empty);
+    Object.assign(out, { textContent: text, className: isError ? 'error' : 'muted', title: fc ? `${fc.tile} v${fc.version}` : '' });
+  };
+  if (!document.getElementById('held-back-toggle').checked || !state.tile) return show(null, '');
+  out.textContent = 'loading…';
+  const query = state.shownVersion === null ? '' : `?version=${state.shownVersion}`;
+  try {
+    const fc = await api(`${tilePath(state.tile)}/held-back${query}`);
+    show(fc, fc.features.length ? `${fc.features.length} held back` : 'none held back');
+  } catch (err) {
+    show(null, err.status === 409 ? `unknown: ${err.message}` : `held-back lines: ${err.message}`, err.status !== 409);
+  }
 }
 
 const CHANGE_NAMES = { added: 'added', removed: 'removed', modified: 'modified', changed: 'modified' };
@@ -315,10 +349,13 @@ async function showElement(feature) {
   } catch (err) {
     box.dataset.error = err.message;
   }
-  const p = { ...feature.properties, ...(detail.properties || {}) };
+  // a held-back line is not in the version the API describes: its own properties come first
+  const heldBack = feature.properties?.status === 'held_back';
+  const p = heldBack ? { ...(detail.properties || {}), ...feature.properties } : { ...feature.properties, ...(detail.properties || {}) };
   const flags = Array.isArray(p.flags) ? p.flags.join(', ') : p.flags;
   const rows = [
     ['id', detail.id ?? id], ['type', p.type], ['style', p.style],
+    ['status', heldBack ? `held back: ${fmt(p.passed_trips, 0)} trips drove alongside without seeing it` : undefined],
     ['support', `${fmt(p.support_trips, 0)} trips, ${fmt(p.support_observations, 0)} observations`],
     ['uncertainty', p.uncertainty_m !== undefined ? `${fmt(p.uncertainty_m, 3)} m` : undefined],
     ['first seen', p.first_seen], ['last confirmed', p.last_confirmed], ['flags', flags && flags !== '[]' ? flags : 'none'],
@@ -532,7 +569,7 @@ async function toggleTrack(tripId, on) {
 
 // --- wiring --------------------------------------------------------------------------------------
 
-const ELEMENT_LAYER = /^(live-.*|version)-(?!flags)/;
+const ELEMENT_LAYER = /^(live-.*|version)-(?!flags)|^held-back$/;
 
 map.on('click', async (event) => {
   const { x, y } = event.point;
@@ -552,6 +589,7 @@ map.on('mousemove', (event) => {
 });
 document.getElementById('version-slider').addEventListener('input', (e) => showVersion(Number(e.target.value)).catch((err) => setMessage(err.message, true)));
 document.getElementById('live-button').addEventListener('click', showLive);
+document.getElementById('held-back-toggle').addEventListener('change', loadHeldBack);
 document.getElementById('trips-refresh').addEventListener('click', loadTrips);
 addForm.addEventListener('submit', addPair);
 addForm.elements.trip_j.addEventListener('change', mapSide);
