@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
+import ctypes.util
 import logging
 import math
 import os
@@ -36,7 +38,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -200,6 +202,21 @@ def _tail(path: Path, n: int = 20) -> str:
         return "(no log)"
 
 
+PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal the kernel sends a process when its parent dies
+
+
+def _stop_with_parent(parent_pid: int) -> Callable[[], None]:
+    """A ``preexec_fn``: the child gets SIGTERM when the demo dies, even by SIGKILL (Linux
+    ``prctl(PR_SET_PDEATHSIG)``); a demo already gone by then stops it at once. Without it a killed
+    demo leaves ``csr serve`` running on its port."""
+    def arm() -> None:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), signal.SIGTERM)
+    return arm
+
+
 def start_service(service_dir: Path, host: str, wanted_port: int) -> Service:
     import httpx
 
@@ -221,7 +238,8 @@ def start_service(service_dir: Path, host: str, wanted_port: int) -> Service:
     with open(log_path, "ab") as log:
         proc = subprocess.Popen(argv + ["serve", "--host", host, "--port", str(port), "--no-access-log"],
                                 env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+                                start_new_session=True,
+                                preexec_fn=_stop_with_parent(os.getpid()) if sys.platform == "linux" else None)
     url_host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     url_host = f"[{url_host}]" if ":" in url_host else url_host
     base_url = f"http://{url_host}:{port}"

@@ -5,6 +5,7 @@ the first port is taken (it falls back to a free one); then the serving mode, st
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -166,3 +167,28 @@ def test_demo_serves_until_ctrl_c(tmp_path):
             proc.kill()
             proc.wait()
         log.close()
+
+
+def test_a_killed_demo_does_not_leave_its_service_running(tmp_path):
+    """SIGKILL gives the demo no chance to stop ``csr serve``: the kernel does (parent-death signal)."""
+    port = free_port()
+    script = ("import sys, time; from pathlib import Path; from services.cli.demo import start_service; "
+              f"s = start_service(Path({str(tmp_path / 'service')!r}), '127.0.0.1', {port}); "
+              "print(s.proc.pid, flush=True); time.sleep(600)")
+    demo = subprocess.Popen([str(BIN / "python"), "-c", script], stdout=subprocess.PIPE, text=True, env=_env(),
+                            cwd=REPO)
+    serve_pid = None
+    try:
+        serve_pid = int(demo.stdout.readline())
+        assert _port_open(port), "the service did not start"
+        demo.kill()
+        demo.wait(timeout=10)
+        wait_until(lambda: not _port_open(port), timeout_s=30, interval_s=0.2,
+                   what="the service to stop after its demo was killed")
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+        if serve_pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(serve_pid, signal.SIGKILL)
