@@ -28,6 +28,7 @@ class SingleTripParams:
     GNSS_LATENCY_ESTIMATE: bool = True
     GNSS_LATENCY_WINDOW_S: float = 20.0
     GNSS_LATENCY_MAX_S: float = 0.5
+    GNSS_LATENCY_ROBUST_Z: float = 3.0  # kept when > 3 sigma, windows as clusters (0: chi-square test alone)
     # Width of the robust kernel, in sigmas. Stage 1 is Huber (convex: converges from the rigid
     # initial fit), stage 2 Cauchy (rejects GNSS jumps), warm-started from stage 1.
     GNSS_HUBER_K_SIGMAS: float = 1.5

@@ -99,6 +99,26 @@ def test_latency_and_odometry_scale_are_recovered():
     assert scale == pytest.approx(1 / 1.01, abs=5e-4)
 
 
+def test_correlated_gnss_error_is_not_taken_for_a_latency():
+    """Fixes time-tagged at the epoch (latency 0) with a slowly wandering error (Gauss-Markov bias,
+    as dgps/single fixes): counted as independent fixes, the chi-square test alone keeps a spurious
+    latency on many trips; with the windows as independent clusters it is 0 on nearly all."""
+    t = np.arange(0.0, 120.0, 0.1)
+    true, incr = _winding_drive(t, 12.0 + 5.0 * np.sin(t / 9.0), 0.5 * np.sin(t / 14.0))
+    spurious_chi2, spurious = 0, 0
+    for seed in range(12):
+        rng = np.random.default_rng(100 + seed)
+        bias = np.zeros((len(t), 2))
+        phi = np.exp(-0.1 / 60.0)  # tau 60 s, sigma 0.6 m per axis
+        for i in range(1, len(t)):
+            bias[i] = phi * bias[i - 1] + np.sqrt(1 - phi**2) * 0.6 * rng.standard_normal(2)
+        gnss = true[:, :2] + bias + rng.normal(scale=0.3, size=(len(t), 2))
+        inlier = np.ones(len(t), bool)
+        spurious_chi2 += estimate_latency_s(t, true, gnss, inlier, 20.0, 0.5, robust_z=0.0)[0] > 0
+        spurious += estimate_latency_s(t, true, gnss, inlier, 20.0, 0.5)[0] > 0
+    assert spurious <= 1 < spurious_chi2, (spurious, spurious_chi2)
+
+
 def test_keyframes_by_distance_and_time():
     t = np.arange(0.0, 60.0, 0.1)
     x = np.where(t < 30.0, t * 10.0, 300.0)  # drives 300 m, then stands 30 s
