@@ -547,7 +547,7 @@ def _load_state(latest: TileVersion | None) -> TopologyResult | None:
     try:
         tag, _frame, topology = pickle.loads(zlib.decompress(latest.state))
     except Exception:  # an unreadable or older state: rebuild
-        log.warning("tile version %s: topology state unreadable; rebuilding", latest.id, exc_info=True)
+        log.warning("tile version %s: topology state unreadable (the next merge rebuilds the topology)", latest.id, exc_info=True)
         return None
     return topology if tag == TOPOLOGY_STATE_VERSION else None
 
