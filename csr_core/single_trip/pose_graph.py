@@ -185,12 +185,10 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
         scale[i] = h / max(aa_w[i].sum(), 1e-12)
         cost[i] = float(bb.sum() - h * scale[i])
     lat, k = _refined_argmin(cost, grid, step_s)
-    # keep L only where it explains the data: the cost drop against L = 0 must exceed 3 sigma
-    # of a chi-square(1) on the residual variance (else L is unobservable: straight, constant speed)
+    # the two tests of the docstring (chi-square(1) at 3 sigma, then windows as clusters)
     dof = max(2 * len(idx) - 4 * n_w - 2, 1)
-    if cost[0] - cost[k] <= 9.0 * cost[k] / dof:
-        return 0.0, float(scale[0])
-    if n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb, h_w, aa_w, grid, step_s):
+    if cost[0] - cost[k] <= 9.0 * cost[k] / dof or (
+            n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb, h_w, aa_w, grid, step_s)):
         return 0.0, float(scale[0])
     return lat, float(scale[k])
 

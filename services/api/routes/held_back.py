@@ -20,33 +20,17 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
-from sqlalchemy.orm import Session
 
 from services.api.deps import Reader, SessionDep
 from services.api.errors import ApiError
+from services.api.routes.versions import version_or_404
 from services.db import versions as vs
-from services.db.models import TileVersion
 from services.tiles.http import CORS_HEADERS, LIVE_CACHE_CONTROL, PINNED_CACHE_CONTROL, check_tile
 from services.tiles.render import feature_collection, feature_json
 
 router = APIRouter(prefix="/v1", tags=["versions"])
 
 HELD_BACK_STATUS = "held_back"  # each feature's ``status``: not in the published map
-
-
-def _version_or_404(session: Session, z: int, x: int, y: int, version: int | None) -> TileVersion:
-    """The tile's version ``version`` (its latest when ``None``); 404 naming the tile, or the version."""
-    if not vs.has_version(session, z=z, x=x, y=y):
-        raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
-    if version is None:
-        row = vs.latest_version(session, z=z, x=x, y=y)
-    else:
-        row = vs.get_version(session, z=z, x=x, y=y, version=version)
-    if row is None:
-        raise ApiError(
-            404, "not_found", f"tile {z}/{x}/{y} has no version {version}", location="query.version"
-        )
-    return row
 
 
 @router.get(
@@ -71,7 +55,7 @@ def held_back_lines(
 
     with session.begin():
         check_tile(z, x, y)
-        row = _version_or_404(session, z, x, y, version)
+        row = version_or_404(session, z, x, y, version, "query.version")
         held = held_back_features(row)
         if held is None:
             raise ApiError(

@@ -30,7 +30,14 @@ def _history_or_404(session: Session, z: int, x: int, y: int) -> list[TileVersio
     return history
 
 
-def _version_or_404(session: Session, z: int, x: int, y: int, v: int, location: str) -> TileVersion:
+def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, location: str) -> TileVersion:
+    """Version ``v`` of the tile (its latest when ``None``); 404 naming the tile when it has no
+    versions, or the version when it has not that one."""
+    if v is None:
+        row = vs.latest_version(session, z=z, x=x, y=y)
+        if row is None:
+            raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
+        return row
     row = vs.get_version(session, z=z, x=x, y=y, version=v)
     if row is None:
         raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no version {v}", location=location)
@@ -69,7 +76,7 @@ def tile_version_geojson(
     """One version of a tile as GeoJSON; each feature's ``change`` against the live version before it."""
     with session.begin():
         check_tile(z, x, y)
-        row = _version_or_404(session, z, x, y, v, "path.v")
+        row = version_or_404(session, z, x, y, v, "path.v")
         features = vs.version_rows(session, row.id, include_removed)
         body = feature_collection(
             [
@@ -101,8 +108,8 @@ def tile_diff(
     """Per feature between two versions of the tile: added, removed, modified (before/after)."""
     with session.begin():
         check_tile(z, x, y)
-        _version_or_404(session, z, x, y, from_, "query.from")
-        _version_or_404(session, z, x, y, to, "query.to")
+        version_or_404(session, z, x, y, from_, "query.from")
+        version_or_404(session, z, x, y, to, "query.to")
         return vs.diff(session, z=z, x=x, y=y, from_version=from_, to_version=to)
 
 
