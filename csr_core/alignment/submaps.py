@@ -2,7 +2,8 @@
 
 1. Frame graph: nodes are frames (subsampled every ``keyframe_spacing_m`` of smoothed travel);
    edges join consecutive nodes of a trip and nodes of different trips closer than
-   ``frame_graph_distance_m`` whose headings differ by less than ``frame_graph_angle_rad``
+   :func:`frame_graph_distance_m` (half the trips' lateral BEV range unless set: their fields of
+   view overlap by half) whose headings differ by less than ``frame_graph_angle_rad``
    (modulo pi when ``pair_opposite_directions``: on a two-way road both directions see the same
    dividers and boundaries).
 2. Circles: an uncovered node is a centre; the nodes within ``submap_radius_m`` that the graph
@@ -30,6 +31,7 @@ from csr_core import se2
 from csr_core.alignment.geometry import arclength_m, resample_polyline
 from csr_core.alignment.landmarks import Landmarks, trip_landmarks
 from csr_core.alignment.params import AlignmentParams
+from csr_core.single_trip import bev_range_m
 from csr_core.types import ElementType, MapFeature, TripReconstruction
 
 DUPLICATE_M = 0.75  # pieces of a pre-built map closer than this are one element
@@ -104,6 +106,19 @@ def _distance_subsample(poses_xyyaw: np.ndarray, spacing_m: float) -> np.ndarray
     return np.flatnonzero(keep)
 
 
+def frame_graph_distance_m(trips: Sequence[TripReconstruction], params: AlignmentParams) -> float:
+    """Largest distance (metres) between frames of two trips joined in the frame graph:
+    ``params.frame_graph_distance_m`` when set, else the shortest lateral reach of the trips'
+    perception (the farther side of ``sensor_setup.bev_range_m``, else of where the trip's
+    detections lie). With a range of +-R, two frames R apart see a common strip at least R wide,
+    half of each one's view, so the sub-maps of the two carriageways of a divided road, or of the
+    two directions of a wide road, are paired."""
+    if params.frame_graph_distance_m is not None:
+        return float(params.frame_graph_distance_m)
+    reach = [max(-y_min, y_max) for (_, _, y_min, y_max) in (bev_range_m(t.trip) for t in trips)]
+    return float(min(reach))
+
+
 def build_frame_graph(trips: Sequence[TripReconstruction], params: AlignmentParams) -> FrameGraph:
     pos, yaw, tix, fix = [], [], [], []
     for k, tr in enumerate(trips):
@@ -118,7 +133,7 @@ def build_frame_graph(trips: Sequence[TripReconstruction], params: AlignmentPara
     rows = [np.flatnonzero(same)]
     cols = [np.flatnonzero(same) + 1]
     # frames of different trips within distance and angle
-    pairs = cKDTree(P).query_pairs(params.frame_graph_distance_m, output_type="ndarray")
+    pairs = cKDTree(P).query_pairs(frame_graph_distance_m(trips, params), output_type="ndarray")
     if len(pairs):
         a, b = pairs[:, 0], pairs[:, 1]
         dyaw = np.abs(se2.wrap_angle(Y[a] - Y[b]))

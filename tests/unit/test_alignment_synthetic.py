@@ -305,3 +305,48 @@ def test_an_unfused_prior_map_is_reduced_to_one_copy_of_each_element():
     lines = [f for f in reduced if not f.type.is_polygon]
     assert len(copies) > 4 * len(elements)
     assert len(lines) <= len([e for e in elements if not e[0].is_polygon]) + 4
+
+
+def test_the_two_directions_of_a_wide_road_are_paired_and_registered():
+    """Trips in the outer lanes of the two directions drive 10.5 m apart, each with its own GNSS
+    error. Their fields of view overlap (+-15 m), so the frame graph joins them and their
+    relative position is recovered; with the old fixed 6 m edges nothing paired them."""
+    from dataclasses import replace
+
+    from csr_core.alignment import AlignmentParams, align_trips
+    from csr_core.alignment.submaps import frame_graph_distance_m
+
+    rng = np.random.default_rng(5)
+    elements = truth_elements(300.0)
+    truth_a = truth_trajectory(1, False, rng, 300.0)
+    truth_b = truth_trajectory(1, True, rng, 300.0)
+    a = make_trip("va__a", truth_a, elements, rng, offset_xy=(0.2, 0.9))
+    b = make_trip("vb__b", truth_b, elements, rng, offset_xy=(-0.3, -0.8), yaw_err=0.002)
+    assert np.median(np.linalg.norm(truth_a[:, None, :2] - truth_b[None, :, :2], axis=2).min(axis=1)) > 10.0
+    before = _relative_errors(b.poses_xyyaw_world, truth_b, a.poses_xyyaw_world, truth_a)
+    assert np.median(before) > 1.0
+    params = AlignmentParams(fine=False)
+    assert 10.5 < frame_graph_distance_m([a, b], params) <= 15.0  # the reach of the detections (no sensor_setup)
+    res = align_trips([a, b], params=params)
+    assert res.failed == {}
+    after = _relative_errors(res.poses_xyyaw_world["vb__b"], truth_b, res.poses_xyyaw_world["va__a"], truth_a)
+    assert np.sqrt(np.mean(after**2)) < 0.15
+    apart = align_trips([a, b], params=replace(params, frame_graph_distance_m=6.0))
+    assert set(apart.failed) == {"va__a", "vb__b"}
+    assert all(reason.startswith("no_overlap") for reason in apart.failed.values())
+
+
+def test_the_frame_graph_distance_is_half_the_stated_lateral_bev_range():
+    from dataclasses import replace
+
+    from csr_core.alignment import AlignmentParams
+    from csr_core.alignment.submaps import frame_graph_distance_m
+
+    rng = np.random.default_rng(1)
+    trip = make_trip("va__a", truth_trajectory(0, False, rng, 100.0), truth_elements(100.0), rng)
+    stated = lambda y: replace(trip, trip=replace(trip.trip, sensor_setup={"bev_range_m": {"x": [-10, 30], "y": y}}))  # noqa: E731
+    wide, narrow = stated([-15, 15]), stated([-12, 8])
+    assert frame_graph_distance_m([wide], AlignmentParams()) == pytest.approx(15.0)
+    assert frame_graph_distance_m([wide, narrow], AlignmentParams()) == pytest.approx(12.0)  # the shortest reach
+    assert frame_graph_distance_m([trip], AlignmentParams()) < 15.0  # no stated range: where detections lie
+    assert frame_graph_distance_m([narrow], AlignmentParams(frame_graph_distance_m=6.0)) == 6.0
