@@ -1,4 +1,4 @@
-"""`csr bench [--set quick|standard|hard|full] [--out bench-out] [--write BENCHMARKS.md]`.
+"""`csr bench [--set quick|standard|standard-seeds|hard|full|toy] [--out bench-out] [--write BENCHMARKS.md]`.
 
 Simulates the set's scenarios (cached), runs `csr reconstruct` with the pipeline and both
 baselines, evaluates per contract section 6, prints the tables, writes figures to
@@ -16,8 +16,11 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark the pipeline and baselines on simulated scenarios")
+    from csr_core.bench.runner import SCENARIO_SETS
+
     p.add_argument(
-        "--set", dest="set_name", default="quick", choices=("quick", "standard", "hard", "full", "toy")
+        "--set", dest="set_name", default="quick", choices=SCENARIO_SETS,
+        help="standard: the five worlds, 10 trips x 1.5 km, seed 1; standard-seeds: the same at seeds 1-3",
     )
     p.add_argument("--out", default="bench-out", help="work folder: scenarios cache, runs, results.json")
     p.add_argument(
