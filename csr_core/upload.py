@@ -11,7 +11,7 @@ be finite and ``t`` strictly increasing.
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, Literal, NotRequired
+from typing import Annotated, Any, Literal, NotRequired, cast
 
 import numpy as np
 from annotated_types import Ge, Gt, Le, Len, Lt
@@ -137,7 +137,7 @@ def validate_upload_json(body: bytes | str) -> dict[str, Any]:
     Raises :class:`UploadError` naming the frame and field of the first problem.
     """
     try:
-        doc = _ADAPTER.validate_json(body)
+        doc = cast(dict[str, Any], _ADAPTER.validate_json(body))
     except ValidationError as exc:
         error = _error_from_pydantic(exc)
         if error.reason == "schema" and error.location.startswith("schema_version"):
@@ -152,7 +152,7 @@ def validate_upload(doc: Any) -> dict[str, Any]:
     """Validate an already parsed document (a dict), as :func:`validate_upload_json`."""
     _check_version(doc)
     try:
-        valid = _ADAPTER.validate_python(doc)
+        valid = cast(dict[str, Any], _ADAPTER.validate_python(doc))
     except ValidationError as exc:
         raise _error_from_pydantic(exc) from None
     _check_semantics(valid)

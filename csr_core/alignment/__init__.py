@@ -21,6 +21,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 import numpy as np
 
@@ -183,7 +184,8 @@ def _record(m: PairMatch, submaps: Sequence[Submap], trips: Sequence[TripReconst
     rel = m.relative_pose(si.world_T_submap, sj.world_T_submap)
     return MatchPairRecord(
         m.i, m.j, key(si), key(sj), (si.first_frame, si.last_frame), (sj.first_frame, sj.last_frame),
-        (float(m.centre_xy_world[0]), float(m.centre_xy_world[1])), tuple(float(v) for v in rel),
+        (float(m.centre_xy_world[0]), float(m.centre_xy_world[1])),
+        cast(tuple[float, float, float], tuple(float(v) for v in rel)),
         m.confidence, m.residual_rms_m, m.instance_matches, tuple(float(c) for c in m.match_confidences), ok,
         m.human,
     )

@@ -132,6 +132,7 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
             obj = eq4_objective(matches, s_node, e_a, e_b, noise.sigma_e_m, params)
             if best is None or obj > best[0]:
                 best = (obj, matches, shift)
+        assert best is not None  # shifts is never empty and the first hypothesis always sets best
         objective, matches, shift = best
         initial = np.array([shift[0], shift[1], 0.0])
     else:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Sequence
+from typing import cast
 
 import networkx as nx
 import numpy as np
@@ -74,7 +75,7 @@ def inter_trip_consistency(matched: Sequence[PairMatch], params: AlignmentParams
     """Keep the maximum consistent set of every pair of trips."""
     groups: dict[tuple[int, int], list[PairMatch]] = defaultdict(list)
     for p in matched:
-        groups[tuple(sorted((p.trip_i, p.trip_j)))].append(p)
+        groups[cast(tuple[int, int], tuple(sorted((p.trip_i, p.trip_j))))].append(p)
     out = []
     for group in groups.values():
         out += [group[n] for n in max_consistent_set(group, params)]

@@ -74,7 +74,7 @@ def trip_landmarks(trip: TripReconstruction, sightings: DashEnds | None = None) 
         return Landmarks.empty()
     m = len(count)
     mean = np.column_stack([np.bincount(label, pts[:, k], m) for k in range(2)]) / count[:, None]
-    dirs = np.column_stack([np.bincount(label, u[:, k], m) for k in range(2)])
+    dirs: np.ndarray = np.column_stack([np.bincount(label, u[:, k], m) for k in range(2)])
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1), 1e-12)[:, None]
     first = np.full(m, np.iinfo(np.int64).max)
     last = np.full(m, -1)

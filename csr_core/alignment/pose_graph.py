@@ -39,6 +39,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import gtsam
 import numpy as np
@@ -90,7 +91,7 @@ def gnss_weight(trip: TripReconstruction, lo: int, hi: int, deviation: np.ndarra
     table = np.array([params.gnss_status_weights.get(int(s), 0.0) for s in range(5)])
     w = table[np.clip(status, 0, 4)] * np.maximum(1.0 + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1], 0.0)
     w = np.where(status == 4, 0.0, w)
-    return float(max(np.mean(w), params.gnss_min_weight))
+    return float(max(float(np.mean(w)), params.gnss_min_weight))
 
 
 def _clip_information(info: np.ndarray, max_eig: float) -> np.ndarray:
@@ -240,16 +241,17 @@ def _huber_copy(g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: g
     for n in range(g.size()):
         f = g.at(n)
         if n in regs:
-            f = gtsam.BetweenFactorPose2(f.keys()[0], f.keys()[1], f.measured(),
+            reg = cast(gtsam.BetweenFactorPose2, f)  # registration factors are BetweenFactorPose2
+            f = gtsam.BetweenFactorPose2(f.keys()[0], f.keys()[1], reg.measured(),
                                          gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-                                                                        f.noiseModel()))
+                                                                        reg.noiseModel()))
         h.add(f)
     return h
 
 
 def _without(graph: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], inlier: np.ndarray) -> gtsam.NonlinearFactorGraph:
     """The graph without the registration factors that are not ``inlier``."""
-    rejected = {reg_idx[n] for n in np.flatnonzero(~inlier)}
+    rejected = {reg_idx[int(n)] for n in np.flatnonzero(~inlier)}
     keep = gtsam.NonlinearFactorGraph()
     for n in range(graph.size()):
         if n not in rejected:
@@ -332,7 +334,7 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
 
     def add(factor_index: int, col: int, xi: np.ndarray) -> None:
         """RHS of a measurement perturbation ``xi (3, 2)`` (columns: unit east, north shift)."""
-        f = graph.at(factor_index)
+        f = cast(gtsam.NoiseModelFactor, graph.at(factor_index))  # priors and between factors
         A, _ = f.linearize(values).jacobian()  # whitened, columns in f.keys() order
         rhs = A.T @ f.noiseModel().whiten(xi) if xi.ndim == 1 else A.T @ np.column_stack(
             [f.noiseModel().whiten(xi[:, c]) for c in range(xi.shape[1])])

@@ -117,6 +117,8 @@ def register_elements(
     closed_target = closed_target or [False] * len(target)
     # polygons (crosswalks, markings): their centroid, point to point (an outline matched point
     # to line slides onto the next parallel edge of a wide crosswalk); lines: vertices
+    fixed_foot: list[np.ndarray] | np.ndarray  # the rows, then stacked
+    fixed_normal: list[np.ndarray] | np.ndarray
     src, fixed_foot, fixed_normal = [], [], []
     for k, kp in matches:
         if closed_target[k]:

@@ -152,7 +152,8 @@ def split_circles(graph: FrameGraph, params: AlignmentParams) -> tuple[list[Circ
     """Greedy circles over the frame graph; returns circles and their member node indices."""
     tree = cKDTree(graph.positions_xy)
     covered = np.zeros(len(graph.positions_xy), bool)
-    circles, members = [], []
+    circles: list[Circle] = []
+    members: list[np.ndarray] = []
     R = params.submap_radius_m
     for v in range(len(graph.positions_xy)):
         if covered[v]:
@@ -317,7 +318,7 @@ def prior_patches(
                  f.type.is_polygon) for f in features]
     types = [f.type for f in features]
     bounds = element_bounds(prepared)
-    out = []
+    out: list[Submap] = []
     for c in circles:
         pose = np.array([c.centre_xy_world[0], c.centre_xy_world[1], c.heading_rad])
         inv = se2.inverse(pose)

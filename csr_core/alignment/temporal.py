@@ -12,7 +12,8 @@ corrected matches, starting from its previous pose.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import cast
 
 from csr_core.alignment.association import PairMatch, match_pair
 from csr_core.alignment.params import AlignmentParams, NoiseScales
@@ -27,8 +28,8 @@ def vote_instances(pairs: Sequence[PairMatch]) -> tuple[dict, dict]:
         for (a, b), c in zip(p.instance_matches, p.match_confidences, strict=False):
             fwd[a][b] += float(c)
             bwd[b][a] += float(c)
-    best_j = {a: max(v, key=v.get) for a, v in fwd.items()}
-    best_i = {b: max(v, key=v.get) for b, v in bwd.items()}
+    best_j = {a: max(v, key=cast(Callable[[int], float], v.get)) for a, v in fwd.items()}
+    best_i = {b: max(v, key=cast(Callable[[int], float], v.get)) for b, v in bwd.items()}
     return best_j, best_i
 
 
@@ -56,7 +57,7 @@ def temporal_consistency(matched: Sequence[PairMatch], submaps: Sequence[Submap]
                     used.add(kp)
                     continue
                 changed = True
-                kp_hat = j_of_instance.get(b_hat) if wrong_j else None
+                kp_hat = j_of_instance.get(cast(int, b_hat)) if wrong_j else None
                 if kp_hat is not None and kp_hat not in used and best_i.get(b_hat) == a \
                         and si.elements[k].type == sj.elements[kp_hat].type:
                     new.append((k, kp_hat))

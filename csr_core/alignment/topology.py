@@ -98,6 +98,7 @@ def sliding_window_vote(keys: Sequence[tuple], order: np.ndarray, votes: np.ndar
     groups: dict[tuple, list[int]] = {}
     for i, k in enumerate(keys):
         groups.setdefault(k, []).append(i)
+    idx: list[int] | np.ndarray  # a group's indices, then ordered in time
     for idx in groups.values():
         idx = np.asarray(idx)[np.argsort(np.asarray(order)[idx], kind="stable")]
         v = votes[idx].astype(float)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import networkx as nx
 import numpy as np
@@ -194,7 +195,9 @@ class WorldBuilder:
             c = g.nodes[e]["centerline_xy"]
             p_end, t_end = c[-1], geo.tangents(c)[-1]
             best, best_d = self._nearest_start(
-                p_end, starts, max_gap_m, lambda _gap, _d, t_start, t_end=t_end: float(np.dot(t_start, t_end)) < -0.5
+                p_end, starts, max_gap_m,
+                cast(Callable[[np.ndarray, float, np.ndarray], bool],
+                     lambda _gap, _d, t_start, t_end=t_end: float(np.dot(t_start, t_end)) < -0.5),
             )
             if best is None:
                 continue

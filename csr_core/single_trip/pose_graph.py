@@ -259,7 +259,7 @@ def estimate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gns
     angle = np.arctan2(d_odo[:, 1], d_odo[:, 0]) - np.arctan2(d_gnss[:, 1], d_gnss[:, 0])
     w = np.square(length) / (np.square(gnss_sigma_m[a]) + np.square(gnss_sigma_m[b]))
     mean = np.angle(np.sum(w * np.exp(1j * angle)))
-    angle = se2.wrap_angle(angle - mean)
+    angle = np.asarray(se2.wrap_angle(angle - mean))
     t_mid = np.interp(0.5 * (travel[a] + travel[b]), travel, timestamps_s)
     t_mid = t_mid - t_mid.mean()
     keep = np.ones(len(angle), bool)

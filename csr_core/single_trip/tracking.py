@@ -22,6 +22,7 @@ pairs (bounding boxes within reach), so a 1 km trip costs tens of milliseconds.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -130,7 +131,7 @@ def _segment_distance2(points: np.ndarray, polys: np.ndarray) -> np.ndarray:
         t *= t
         dx += t
         best = dx if best is None else np.minimum(best, dx, out=best)
-    return best
+    return cast(np.ndarray, best)
 
 
 def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
