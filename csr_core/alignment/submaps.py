@@ -2,8 +2,8 @@
 
 1. Frame graph: nodes are frames (subsampled every ``keyframe_spacing_m`` of smoothed travel);
    edges join consecutive nodes of a trip and nodes of different trips closer than
-   :func:`frame_graph_distance_m` (half the trips' lateral BEV range unless set: their fields of
-   view overlap by half) whose headings differ by less than ``frame_graph_angle_rad``
+   :func:`frame_graph_distance_m` (unless set, the trips' lateral perception reach: two frames
+   that far apart share half of their views) whose headings differ by less than ``frame_graph_angle_rad``
    (modulo pi when ``pair_opposite_directions``: on a two-way road both directions see the same
    dividers and boundaries).
 2. Circles: an uncovered node is a centre; the nodes within ``submap_radius_m`` that the graph

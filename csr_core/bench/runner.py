@@ -66,7 +66,7 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         ]
     if name == "standard":
         return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in WORLDS]
-    if name == "standard-seeds":  # the same worlds and fleets, three draws of traffic and noise
+    if name == "standard-seeds":  # the same worlds and fleet sizes, three draws of traffic and noise
         return [ScenarioSpec(w, 10, "standard", seed, 1500.0) for seed in STANDARD_SEEDS for w in WORLDS]
     if name == "hard":
         return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]

@@ -336,7 +336,7 @@ def test_the_two_directions_of_a_wide_road_are_paired_and_registered():
     assert all(reason.startswith("no_overlap") for reason in apart.failed.values())
 
 
-def test_the_frame_graph_distance_is_half_the_stated_lateral_bev_range():
+def test_the_frame_graph_distance_is_the_shortest_stated_lateral_reach():
     from dataclasses import replace
 
     from csr_core.alignment import AlignmentParams
