@@ -7,7 +7,8 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
-from csr_core.bench.runner import Record, scenario_set
+from csr_core.bench.runner import Record
+from csr_core.bench.sets import scenario_set
 from csr_core.bench.tables import table_ablation, table_cost, table_map, table_per_world, table_pose
 
 

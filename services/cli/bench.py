@@ -16,7 +16,7 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark the pipeline and baselines on simulated scenarios")
-    from csr_core.bench.runner import SCENARIO_SETS
+    from csr_core.bench.sets import SCENARIO_SETS
 
     p.add_argument(
         "--set", dest="set_name", default="quick", choices=SCENARIO_SETS,

@@ -1,0 +1,48 @@
+"""The benchmark's scenario sets (``csr bench --set``): which simulated fleets each names.
+Import-light (no numpy, no scipy): the ``csr`` command reads the set names at every start."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioSpec:
+    world: str
+    trips: int
+    profile: str = "standard"
+    seed: int = 1
+    trip_length_m: float | None = None
+
+    @property
+    def name(self) -> str:
+        length = f"-{int(self.trip_length_m)}m" if self.trip_length_m else ""
+        return f"{self.world}-{self.profile}-{self.trips}x{length}-s{self.seed}"
+
+
+#: names accepted by :func:`scenario_set` (``csr bench --set``)
+SCENARIO_SETS = ("quick", "standard", "standard-seeds", "hard", "full", "toy")
+#: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
+#: by half in aligned ATE, docs/alignment.md "Session 11"), so the reported figures average three
+STANDARD_SEEDS = (1, 2, 3)
+
+
+def scenario_set(name: str) -> list[ScenarioSpec]:
+    if name == "quick":
+        return [
+            ScenarioSpec("urban", 6, "standard", 1, 800.0),
+            ScenarioSpec("highway", 6, "standard", 1, 800.0),
+        ]
+    if name == "standard":
+        return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in WORLDS]
+    if name == "standard-seeds":  # the same worlds and fleet sizes, three draws of traffic and noise
+        return [ScenarioSpec(w, 10, "standard", seed, 1500.0) for seed in STANDARD_SEEDS for w in WORLDS]
+    if name == "hard":
+        return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]
+    if name == "toy":
+        return [ScenarioSpec("toy", 3, "toy", 1, 300.0)]
+    if name == "full":
+        return scenario_set("standard") + scenario_set("hard")
+    raise ValueError(f"unknown scenario set {name!r} ({', '.join(SCENARIO_SETS)})")
