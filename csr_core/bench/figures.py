@@ -200,3 +200,38 @@ def make_figures(records: Sequence[Record], out_dir: Path, stem: str) -> list[tu
             plot_error_heatmap(records, out_dir / f"{stem}_error_heatmap.png"),
         ),
     ]
+
+
+#: issue 5's aligned ATE target, drawn on the density figure
+ATE_TARGET_M = 0.10
+
+
+def plot_ate_by_density(records: Sequence[Record], path: Path) -> Path | None:
+    """Aligned ATE of every scenario of the set against how many trips drive each of its places
+    (``trips_per_place``), one marker per method: the figure to read issue 5's ">= 10 trips per
+    road" target against. None when fewer than two scenarios were scored."""
+    main = [r for r in records if r.ok and not r.variant]
+    if len({r.scenario for r in main}) < 2:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    markers = {"pipeline": "o", "gnss_only": "x", "roadmap_icp": "^"}
+    for method in dict.fromkeys(r.method for r in main):
+        rs = [r for r in main if r.method == method]
+        x = [r.ev.trips_per_place for r in rs]
+        y = [r.ev.evaluation.aligned.ate.rmse for r in rs]
+        ax.scatter(x, y, marker=markers.get(method, "s"), label=METHOD_NAMES.get(method, method), s=28)
+        if method == "pipeline":
+            for r, xi, yi in zip(rs, x, y, strict=True):
+                ax.annotate(f"{r.world} {r.scenario.rsplit('-', 1)[-1]}", (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
+    ax.axhline(ATE_TARGET_M, color="grey", lw=0.8, ls="--")
+    ax.text(ax.get_xlim()[0], ATE_TARGET_M, " issue 5 target", fontsize=7, va="bottom", color="grey")
+    ax.set_yscale("log")
+    ax.set_xlabel("trips per place (median over frames: trips whose true path passes within 8 m)")
+    ax.set_ylabel("aligned ATE RMSE [m]")
+    ax.legend(fontsize=7)
+    ax.set_title("Pose error against fleet density, one point per scenario", fontsize=10)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

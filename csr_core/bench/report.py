@@ -104,7 +104,9 @@ def render_section(
         ablation
         if ablation
         else (
-            "Not measured yet: the pipeline has no coarse/fine alignment stages in this build "
+            "Not run for this set (`csr bench --no-ablation`): the `standard-seeds` section has it."
+            if pipeline_stages and {"coarse", "fine"} <= set(pipeline_stages)
+            else "Not measured yet: the pipeline has no coarse/fine alignment stages in this build "
             f"(stages: `{pipeline_stages}`). `csr bench` runs `--no-fine` (coarse only) and `--no-coarse` "
             "(fine only) automatically as soon as the pipeline reports both stages."
         ),

@@ -16,7 +16,12 @@ import numpy as np
 from csr_core.bench.runner import Record
 from csr_core.metrics import MCD_TYPES, TABLE_TYPES, MapScores, TrajectoryScores
 
-BEGIN, END = "<!-- bench:begin -->", "<!-- bench:end -->"
+
+def section_markers(set_name: str) -> tuple[str, str]:
+    """The markers of one set's section of BENCHMARKS.md: each set has its own, so that
+    ``csr bench --set dense --write`` leaves the ``standard-seeds`` tables alone."""
+    return f"<!-- bench:{set_name}:begin -->", f"<!-- bench:{set_name}:end -->"
+
 METHOD_NAMES = {
     "pipeline": "CSR pipeline",
     "gnss_only": "GNSS-only",
@@ -190,6 +195,7 @@ def table_per_world(records: Sequence[Record]) -> str:
         "scenario",
         "method",
         "km",
+        "trips/place",
         "mCD",
         "compl.",
         "corr.",
@@ -206,6 +212,7 @@ def table_per_world(records: Sequence[Record]) -> str:
                     r.scenario,
                     METHOD_NAMES.get(r.method, r.method),
                     "-",
+                    "",
                     "failed",
                     "",
                     "",
@@ -223,6 +230,7 @@ def table_per_world(records: Sequence[Record]) -> str:
                 r.scenario,
                 METHOD_NAMES.get(r.method, r.method),
                 fmt(r.km, 1),
+                fmt(r.ev.trips_per_place, 0),
                 fmt(m.mcd),
                 fmt(_mean([m.per_type[t].completeness for t in MCD_TYPES]), 2),
                 fmt(_mean([m.per_type[t].correctness for t in MCD_TYPES]), 2),
@@ -235,7 +243,7 @@ def table_per_world(records: Sequence[Record]) -> str:
     return _table(header, rows)
 
 
-def replace_section(document: str, section: str, begin: str = BEGIN, end: str = END) -> str:
+def replace_section(document: str, section: str, begin: str, end: str) -> str:
     """Replace the text between ``begin`` and ``end`` (markers kept); append if absent. Everything
     outside the markers is preserved byte for byte."""
     block = f"{begin}\n{section.strip()}\n{end}"
@@ -246,6 +254,6 @@ def replace_section(document: str, section: str, begin: str = BEGIN, end: str = 
     return f"{document}{sep}{block}\n"
 
 
-def write_section(path: Path, section: str) -> None:
+def write_section(path: Path, section: str, set_name: str) -> None:
     text = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    path.write_text(replace_section(text, section))
+    path.write_text(replace_section(text, section, *section_markers(set_name)))

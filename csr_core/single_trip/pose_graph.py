@@ -168,8 +168,6 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
     b = g - mg[wid]
     bb = np.bincount(wid, (b * b).sum(1), n_w)
     grid = np.arange(0.0, max_s + 1e-9, step_s)  # a fix cannot come from the future
-    cost = np.empty(len(grid))
-    scale = np.empty(len(grid))
     h_w = np.empty((len(grid), n_w))  # per window: |sum a x b| (rotation-aligned cross-moment)
     aa_w = np.empty((len(grid), n_w))
     ox, oy = odom_xyyaw[:, 0], odom_xyyaw[:, 1]
@@ -181,16 +179,32 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
         dot = np.bincount(wid, (a * b).sum(1), n_w)
         aa_w[i] = np.bincount(wid, (a * a).sum(1), n_w)
         h_w[i] = np.hypot(cross, dot)
-        h = h_w[i].sum()
-        scale[i] = h / max(aa_w[i].sum(), 1e-12)
-        cost[i] = float(bb.sum() - h * scale[i])
-    lat, k = _refined_argmin(cost, grid, step_s)
+    # generalised least squares over the windows: each window's sums weighted by the inverse of
+    # its own residual variance, so a window with a multipath jump (or worse fixes) does not set
+    # the shared scale. The weights are read at the unweighted minimum, then once more at the
+    # weighted one.
+    weight = np.ones(n_w)
+    for _ in range(3):
+        bb_g, h_g, aa_g = bb * weight, h_w * weight, aa_w * weight
+        scale = h_g.sum(1) / np.maximum(aa_g.sum(1), 1e-12)
+        cost = bb_g.sum() - h_g.sum(1) * scale
+        lat, k = _refined_argmin(cost, grid, step_s)
+        weight = _window_weights(bb, h_w[k], aa_w[k], cnt)
+    bb, h_w, aa_w = bb_g, h_g, aa_g
     # the two tests of the docstring (chi-square(1) at 3 sigma, then windows as clusters)
     dof = max(2 * len(idx) - 4 * n_w - 2, 1)
     if cost[0] - cost[k] <= 9.0 * cost[k] / dof or (
             n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb, h_w, aa_w, grid, step_s)):
         return 0.0, float(scale[0])
     return lat, float(scale[k])
+
+
+def _window_weights(bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray, count_w: np.ndarray) -> np.ndarray:
+    """Inverse residual variance (1/m^2) of each window fitted on its own (rotation, translation and
+    scale: 4 parameters), normalised to a mean of 1; at least 1 cm of residual."""
+    resid = np.maximum(bb_w - h_w**2 / np.maximum(aa_w, 1e-12), 0.0) / np.maximum(2.0 * count_w - 4.0, 1.0)
+    w = 1.0 / np.maximum(resid, 1e-4)
+    return w / w.mean()
 
 
 def _refined_argmin(cost: np.ndarray, grid: np.ndarray, step_s: float) -> tuple[float, int]:

@@ -9,7 +9,7 @@ from pathlib import Path
 import orjson
 import pytest
 
-from csr_core.bench.tables import BEGIN, END, replace_section
+from csr_core.bench.tables import replace_section, section_markers
 
 pytestmark = pytest.mark.integration
 
@@ -17,12 +17,17 @@ CSR = [str(Path(sys.executable).parent / "csr")]
 OTHER = "# Benchmarks\n\nIntro.\n\n<!-- ingest:begin -->\ningest table\n<!-- ingest:end -->\n\nOutro.\n"
 
 
+BEGIN, END = section_markers("toy")
+
+
 def test_replace_section_touches_only_its_markers():
-    once = replace_section(OTHER, "first")
+    once = replace_section(OTHER, "first", BEGIN, END)
     assert once.startswith(OTHER) and f"{BEGIN}\nfirst\n{END}" in once
-    twice = replace_section(once, "second")
+    twice = replace_section(once, "second", BEGIN, END)
     assert twice.count(BEGIN) == 1 and "first" not in twice and "second" in twice
     assert twice.replace(f"{BEGIN}\nsecond\n{END}\n", "").rstrip("\n") == OTHER.rstrip("\n")
+    other_set = replace_section(twice, "dense figures", *section_markers("dense"))
+    assert "second" in other_set and "dense figures" in other_set
 
 
 def test_bench_toy_set_end_to_end(tmp_path):

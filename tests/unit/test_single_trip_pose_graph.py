@@ -99,6 +99,27 @@ def test_latency_and_odometry_scale_are_recovered():
     assert scale == pytest.approx(1 / 1.01, abs=5e-4)
 
 
+def test_a_multipath_jump_in_one_window_does_not_set_the_scale():
+    """The hard highway trip of docs/single-trip.md, session 12: a fast window (30 m/s, 600 m)
+    with a 6 m multipath excursion for 5 s outweighs the others in an ordinary least-squares
+    scale (weights ~ extent squared) and took the scale 1.3 % off and the latency to 0. Each
+    window weighted by its own residual variance, the jump's window counts little."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 100.0, 0.1)
+    speed = np.where((t > 20) & (t < 40), 30.0, 12.0 + 4.0 * np.sin(t / 7.0))
+    true, incr = _winding_drive(t, speed, 0.3 * np.sin(t / 11.0))
+    latency = 0.1
+    gnss = np.column_stack([np.interp(t - latency, t, true[:, 0]), np.interp(t - latency, t, true[:, 1])])
+    gnss += rng.normal(scale=0.05, size=gnss.shape)
+    jump = (t > 22.0) & (t < 27.0)  # inside the fast window, ramped like the simulator's multipath
+    ramp = np.minimum(1.0, np.minimum(t - 22.0, 27.0 - t) / 0.3)
+    gnss[jump] += np.outer(np.clip(ramp[jump], 0.0, 1.0), [4.5, 4.5])
+    odom = integrate_increments(np.zeros(3), incr * [1.01, 1.01, 1.0])
+    lat, scale = estimate_latency_s(t, odom, gnss, np.ones(len(t), bool), 20.0, 0.5)
+    assert scale == pytest.approx(1 / 1.01, abs=1e-3)
+    assert lat == pytest.approx(latency, abs=0.02)
+
+
 def test_correlated_gnss_error_is_not_taken_for_a_latency():
     """Fixes time-tagged at the epoch (latency 0) with a slowly wandering error (Gauss-Markov bias,
     as dgps/single fixes): counted as independent fixes, the chi-square test alone keeps a spurious

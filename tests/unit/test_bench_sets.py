@@ -1,0 +1,43 @@
+"""The bench's fleet-density figure (trips per place) and the ``dense`` set built on it."""
+
+import numpy as np
+import pytest
+
+from csr_core.bench.evaluate import SAME_ROAD_RADIUS_M, trips_per_place
+from csr_core.bench.sets import DENSE_TRIPS, WORLDS, scenario_set
+
+pytestmark = pytest.mark.unit
+
+
+def _straight(y_m: float, x0_m: float, x1_m: float) -> np.ndarray:
+    x = np.arange(x0_m, x1_m, 1.0)
+    return np.column_stack([x, np.full_like(x, y_m)])
+
+
+def test_trips_per_place_counts_the_trips_that_drive_within_the_radius():
+    # three trips on one two-way road (lanes 3.5 m apart) and one on a road 50 m away
+    paths = {
+        "a": _straight(0.0, 0.0, 200.0),
+        "b": _straight(3.5, 0.0, 200.0),
+        "c": _straight(0.0, 0.0, 200.0),
+        "far": _straight(50.0, 0.0, 200.0),
+    }
+    # frames of a, b, c see 3 trips, the far trip's frames 1: median over the four equal-length paths
+    assert trips_per_place(paths) == 3.0
+    assert trips_per_place({"far": paths["far"]}) == 1.0
+    # a road farther than the radius does not count
+    assert trips_per_place({"a": paths["a"], "x": _straight(SAME_ROAD_RADIUS_M + 0.5, 0.0, 200.0)}) == 1.0
+
+
+def test_trips_per_place_counts_only_where_the_trips_overlap():
+    # two trips that share the first 50 m of 200: most frames see only their own trip
+    paths = {"a": _straight(0.0, 0.0, 200.0), "b": np.vstack([_straight(0.0, 0.0, 50.0), _straight(30.0, 50.0, 200.0)])}
+    assert trips_per_place(paths) == 1.0
+    assert np.isnan(trips_per_place({}))
+
+
+def test_the_dense_set_is_every_world_at_its_dense_fleet_size():
+    specs = scenario_set("dense")
+    assert [s.world for s in specs] == list(WORLDS)
+    assert [s.trips for s in specs] == [DENSE_TRIPS[w] for w in WORLDS]
+    assert all(s.profile == "standard" and s.trips >= 20 for s in specs)
