@@ -36,7 +36,7 @@ def render_section(
     )
     ablation = table_ablation(records)
     parts = [
-        "## Accuracy and cost benchmark (`csr bench`)",
+        f"## Accuracy and cost benchmark (`csr bench --set {set_name}`)",
         "",
         f"Regenerate: `csr bench --set {set_name} --write BENCHMARKS.md` "
         f"(~{(run_s if run_s is not None else elapsed_s) / 60:.0f} min of `csr reconstruct` runs plus simulation "
