@@ -190,11 +190,10 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
         cost = bb_g.sum() - h_g.sum(1) * scale
         lat, k = _refined_argmin(cost, grid, step_s)
         weight = _window_weights(bb, h_w[k], aa_w[k], cnt)
-    bb, h_w, aa_w = bb_g, h_g, aa_g
     # the two tests of the docstring (chi-square(1) at 3 sigma, then windows as clusters)
     dof = max(2 * len(idx) - 4 * n_w - 2, 1)
     if cost[0] - cost[k] <= 9.0 * cost[k] / dof or (
-            n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb, h_w, aa_w, grid, step_s)):
+            n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb_g, h_g, aa_g, grid, step_s)):
         return 0.0, float(scale[0])
     return lat, float(scale[k])
 
