@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from csr_core.bench.evaluate import SAME_ROAD_RADIUS_M
 from csr_core.bench.runner import Record
 from csr_core.bench.tables import METHOD_NAMES
 from csr_core.metrics import CD_CAP_M, apply_se2, transform_features
@@ -228,7 +229,8 @@ def plot_ate_by_density(records: Sequence[Record], path: Path) -> Path | None:
     ax.axhline(ATE_TARGET_M, color="grey", lw=0.8, ls="--")
     ax.text(ax.get_xlim()[0], ATE_TARGET_M, " issue 5 target", fontsize=7, va="bottom", color="grey")
     ax.set_yscale("log")
-    ax.set_xlabel("trips per place (median over frames: trips whose true path passes within 8 m)")
+    ax.set_xlabel(f"trips per place (median over frames: trips whose true path passes within "
+                  f"{SAME_ROAD_RADIUS_M:g} m)")
     ax.set_ylabel("aligned ATE RMSE [m]")
     ax.legend(fontsize=7)
     ax.set_title("Pose error against fleet density, one point per scenario", fontsize=10)

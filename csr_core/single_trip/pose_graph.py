@@ -149,7 +149,9 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
     ``window_s``, each window with its own rotation and translation (the slowly varying GNSS
     bias and the odometry heading drift drop out) and one scale shared by all windows (closed
     form); L minimises the summed residual, refined by a parabola. Where speed and heading do
-    not change within a window, L has no effect there and is not seen.
+    not change within a window, L has no effect there and is not seen. The windows are summed as a
+    generalised least squares, each weighted by its own residual variance
+    (:func:`_window_weights`), so a window with a multipath excursion does not set the scale.
 
     L is kept only where it explains the data: a drop of the cost against L = 0 of more than 3
     sigma of a chi-square(1) on the residual variance, and L more than ``robust_z`` standard
@@ -181,21 +183,29 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
         h_w[i] = np.hypot(cross, dot)
     # generalised least squares over the windows: each window's sums weighted by the inverse of
     # its own residual variance, so a window with a multipath jump (or worse fixes) does not set
-    # the shared scale. The weights are read at the unweighted minimum, then once more at the
-    # weighted one.
-    weight = np.ones(n_w)
-    for _ in range(3):
-        bb_g, h_g, aa_g = bb * weight, h_w * weight, aa_w * weight
-        scale = h_g.sum(1) / np.maximum(aa_g.sum(1), 1e-12)
-        cost = bb_g.sum() - h_g.sum(1) * scale
-        lat, k = _refined_argmin(cost, grid, step_s)
+    # the shared scale. The weights are read at the unweighted minimum, then at the weighted one,
+    # twice.
+    bb_g, h_g, aa_g = bb, h_w, aa_w
+    scale, cost = _shared_scale_and_cost(bb_g, h_g, aa_g)
+    lat, k = _refined_argmin(cost, grid, step_s)
+    for _ in range(2):
         weight = _window_weights(bb, h_w[k], aa_w[k], cnt)
+        bb_g, h_g, aa_g = bb * weight, h_w * weight, aa_w * weight
+        scale, cost = _shared_scale_and_cost(bb_g, h_g, aa_g)
+        lat, k = _refined_argmin(cost, grid, step_s)
     # the two tests of the docstring (chi-square(1) at 3 sigma, then windows as clusters)
     dof = max(2 * len(idx) - 4 * n_w - 2, 1)
     if cost[0] - cost[k] <= 9.0 * cost[k] / dof or (
             n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb_g, h_g, aa_g, grid, step_s)):
         return 0.0, float(scale[0])
     return lat, float(scale[k])
+
+
+def _shared_scale_and_cost(bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per latency candidate (rows of ``h_w`` and ``aa_w``): the scale shared by all windows and
+    the summed residual at it (closed form)."""
+    scale = h_w.sum(1) / np.maximum(aa_w.sum(1), 1e-12)
+    return scale, bb_w.sum() - h_w.sum(1) * scale
 
 
 def _window_weights(bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray, count_w: np.ndarray) -> np.ndarray:
