@@ -41,15 +41,6 @@ def point_to_segments(points_xy: np.ndarray, seg_a: np.ndarray, seg_b: np.ndarra
     return foot, normal, u_raw, np.linalg.norm(points_xy - foot, axis=1)
 
 
-def principal_direction(points_xy: np.ndarray) -> np.ndarray:
-    """Unit vector of the largest spread of a point set."""
-    c = points_xy - points_xy.mean(axis=0)
-    if len(c) < 2:
-        return np.array([1.0, 0.0])
-    _, _, vt = np.linalg.svd(c, full_matrices=False)
-    return vt[0]
-
-
 def line_crossing(points_xy: np.ndarray, origin_xy: np.ndarray, direction_xy: np.ndarray) -> float:
     """Signed coordinate along ``normal = rot90(direction)`` where a polyline crosses the line
     through ``origin`` perpendicular to ``direction`` (NaN when it does not cross)."""

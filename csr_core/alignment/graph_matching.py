@@ -24,7 +24,6 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from csr_core.alignment.geometry import principal_direction
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.types import ElementType
 
@@ -90,26 +89,33 @@ def chamfer_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
     return np.minimum(a_to_b, b_to_a)
 
 
+def principal_directions(points: Sequence[np.ndarray]) -> np.ndarray:
+    """``(n, 2)`` unit vectors of the largest spread of each point set, all at once: the top
+    eigenvector of each 2 x 2 covariance in closed form, angle ``atan2(2 s_xy, s_xx - s_yy) / 2``
+    (the first right singular vector of the centred points, up to sign; (1, 0) for one point)."""
+    pts, starts, counts = _concat(points)
+    mean = np.add.reduceat(pts, starts, axis=0) / counts[:, None]
+    c = pts - np.repeat(mean, counts, axis=0)
+    sxx, syy, sxy = (np.add.reduceat(v, starts) for v in (c[:, 0] ** 2, c[:, 1] ** 2, c[:, 0] * c[:, 1]))
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    return np.column_stack([np.cos(angle), np.sin(angle)])
+
+
 def overlap_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
     """``(n_a, n_b)`` overlap ratio o_in/(o_in+o_out) along each ``a`` element's direction."""
-    out = np.zeros((len(a), len(b)))
     if len(a) == 0 or len(b) == 0:
-        return out
+        return np.zeros((len(a), len(b)))
+    pa, sa, ca = _concat(a.points)
     pb, sb, _ = _concat(b.points)
-    same = same_type(a, b)
-    for k, pk in enumerate(a.points):
-        if not same[k].any():
-            continue
-        d = principal_direction(pk)
-        sk = pk @ d
-        lo_k, hi_k = sk.min(), sk.max()
-        sl = pb @ d
-        lo_l, hi_l = np.minimum.reduceat(sl, sb), np.maximum.reduceat(sl, sb)
-        inter = np.maximum(0.0, np.minimum(hi_k, hi_l) - np.maximum(lo_k, lo_l))
-        total = (hi_k - lo_k) + (hi_l - lo_l)
-        ratio = np.where(total > 1e-9, 2.0 * inter / np.where(total > 1e-9, total, 1.0), 1.0)
-        out[k] = np.where(same[k], ratio, 0.0)
-    return out
+    direction = principal_directions(a.points)  # (n_a, 2)
+    s_own = np.einsum("ij,ij->i", pa, np.repeat(direction, ca, axis=0))  # a's points on their own axis
+    lo_k, hi_k = np.minimum.reduceat(s_own, sa)[:, None], np.maximum.reduceat(s_own, sa)[:, None]
+    s_b = pb @ direction.T  # (N_b, n_a): b's points on every a axis
+    lo_l, hi_l = np.minimum.reduceat(s_b, sb, axis=0).T, np.maximum.reduceat(s_b, sb, axis=0).T
+    inter = np.maximum(0.0, np.minimum(hi_k, hi_l) - np.maximum(lo_k, lo_l))
+    total = (hi_k - lo_k) + (hi_l - lo_l)
+    ratio = np.where(total > 1e-9, 2.0 * inter / np.where(total > 1e-9, total, 1.0), 1.0)
+    return np.where(same_type(a, b), ratio, 0.0)
 
 
 def node_similarity(a: ElementSet, b: ElementSet, noise: NoiseScales, params: AlignmentParams) -> np.ndarray:
@@ -184,17 +190,37 @@ def rrwm_match(s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: fl
         r_idx, c_idx = linear_sum_assignment(-rrwm(K, n1, n2, max_iter=params.rrwm_max_iter))  # Hungarian
         matches = [(int(i), int(j)) for i, j in zip(r_idx, c_idx, strict=False) if v[i, j]]
     matches = [(int(rows[i]), int(cols[j])) for i, j in matches]
-    # greedy pruning: drop a match while that raises the Eq. 4 objective
+    return _prune(matches, s_node, e_a, e_b, sigma_e, params)
+
+
+def _prune(matches: list[tuple[int, int]], s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: float,
+           params: AlignmentParams) -> list[tuple[int, int]]:
+    """Greedy pruning: drop the match whose removal raises the Eq. 4 objective most, while one
+    does. The objective without match ``q`` for all ``q`` at once, from the node terms and the
+    edge-similarity matrix of the current set (``eq4_objective`` term by term)."""
+    if len(matches) < 2:
+        return matches
+    k = np.array([m[0] for m in matches])
+    kp = np.array([m[1] for m in matches])
+    node = s_node[k, kp]
+    sim = np.exp(-0.5 * ((e_a[np.ix_(k, k)] - e_b[np.ix_(kp, kp)]) / sigma_e) ** 2)
+    np.fill_diagonal(sim, 0.0)
+    keep = np.ones(len(matches), bool)
     best = eq4_objective(matches, s_node, e_a, e_b, sigma_e, params)
-    while len(matches) > 1:
-        trials = [eq4_objective(matches[:q] + matches[q + 1 :], s_node, e_a, e_b, sigma_e, params)
-                  for q in range(len(matches))]
+    while keep.sum() > 1:
+        n = int(keep.sum()) - 1  # matches left after one more removal
+        node_sum = float(node[keep].sum())
+        edge_sum = float(sim[np.ix_(keep, keep)].sum())
+        row = sim[:, keep].sum(axis=1)  # each match's edge terms with the kept ones
+        edge = (edge_sum - 2.0 * row) / (n * (n - 1)) if n > 1 else np.zeros(len(matches))
+        trials = params.w_count * n + params.w_node * (node_sum - node) / n + params.w_edge * edge
+        trials = np.where(keep, trials, -np.inf)
         q = int(np.argmax(trials))
         if trials[q] <= best + 1e-9:
             break
-        best = trials[q]
-        matches.pop(q)
-    return matches
+        best = float(trials[q])
+        keep[q] = False
+    return [m for m, ok in zip(matches, keep, strict=True) if ok]
 
 
 def boundary_prealignment(a: ElementSet, b: ElementSet, direction_xy: np.ndarray, max_shift_m: float) -> np.ndarray:

@@ -40,6 +40,8 @@ from csr_core.types import ElementType, TripInstance
 MAP_MEMBER_KEY = "<map>"  # trip key of a map instance standing for its members (incremental update)
 
 
+NEAREST_BLOCK_SAMPLES = 10_000  # samples per block of the nearest-sample search
+
 @dataclass(frozen=True, slots=True)
 class Member:
     """One aligned trip instance taking part in fusion; ``sigma_m`` its lateral 1-sigma
@@ -119,22 +121,26 @@ def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, dire
     member, the lateral distance of ``a`` to it (along its nearest sample's tangent) and whether
     ``a`` lies inside its extent and is parallel to it. Returns ``(a, member, lateral_m, inside)``,
     ordered by ``a``, then member."""
-    tree = cKDTree(samples.points_xy)
-    pairs = tree.query_pairs(reach_m, output_type="ndarray")
     own = samples.owner
-    # pairs within one member never count: dropped before they are doubled (both directions)
-    pairs = pairs[own[pairs[:, 0]] != own[pairs[:, 1]]]
-    if len(pairs) == 0:
+    n_members = int(own.max()) + 1 if len(own) else 0
+    tree = cKDTree(samples.points_xy)
+    nearest_a, nearest_b = [], []
+    # in blocks of samples a: at ten trips a place a sample has a hundred or more neighbours
+    # within reach, and the arrays of all of them at once cost more to allocate than to use
+    for lo in range(0, len(own), NEAREST_BLOCK_SAMPLES):
+        block = cKDTree(samples.points_xy[lo : lo + NEAREST_BLOCK_SAMPLES])
+        near = block.sparse_distance_matrix(tree, reach_m, output_type="ndarray")
+        a, b, dist = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64), near["v"]
+        other = own[a] != own[b]  # pairs within one member never count
+        a, b, dist = a[other], b[other], dist[other]
+        if len(a):  # nearest sample of each other member, per sample a
+            nearest = _first_min_per_group(a * n_members + own[b], dist)
+            nearest_a.append(a[nearest])
+            nearest_b.append(b[nearest])
+    if not nearest_a:
         e = np.zeros(0, int)
         return e, e, np.zeros(0), np.zeros(0, bool)
-    rel = samples.points_xy[pairs[:, 0]] - samples.points_xy[pairs[:, 1]]
-    dist = np.hypot(rel[:, 0], rel[:, 1])  # once per pair: the same both ways
-    a = np.r_[pairs[:, 0], pairs[:, 1]]
-    b = np.r_[pairs[:, 1], pairs[:, 0]]
-    # nearest sample of each other member, per sample a
-    n_members = int(own.max()) + 1
-    nearest = _first_min_per_group(a * n_members + own[b], np.r_[dist, dist])
-    a, b = a[nearest], b[nearest]
+    a, b = np.concatenate(nearest_a), np.concatenate(nearest_b)
     rel = samples.points_xy[a] - samples.points_xy[b]
     tb = samples.tangents[b]
     along = rel[:, 0] * tb[:, 0] + rel[:, 1] * tb[:, 1]

@@ -10,9 +10,13 @@ from csr_core import se2
 from csr_core.alignment.association import match_pair
 from csr_core.alignment.graph_matching import (
     ElementSet,
+    _prune,
     edge_similarity,
     element_distances,
+    eq4_objective,
     node_similarity,
+    overlap_matrix,
+    principal_directions,
     rrwm,
     rrwm_match,
 )
@@ -156,3 +160,54 @@ def test_sliding_window_vote_drops_isolated_passes():
     keys = [("a", "b")] * 10
     out = sliding_window_vote(keys, np.arange(10), votes, half_window=2, min_fraction=0.5)
     assert out.tolist() == [1, 1, 0, 1, 0, 0, 0, 0, 0, 0]
+
+
+def _pruned_one_at_a_time(matches, s_node, e_a, e_b, sigma_e):
+    """Greedy pruning written out: every removal's Eq. 4 value from ``eq4_objective`` itself."""
+    matches = list(matches)
+    best = eq4_objective(matches, s_node, e_a, e_b, sigma_e, P)
+    while len(matches) > 1:
+        trials = [eq4_objective(matches[:q] + matches[q + 1 :], s_node, e_a, e_b, sigma_e, P)
+                  for q in range(len(matches))]
+        q = int(np.argmax(trials))
+        if trials[q] <= best + 1e-9:
+            break
+        best = trials[q]
+        matches.pop(q)
+    return matches
+
+
+def test_greedy_pruning_agrees_with_the_eq4_objective_removal_by_removal():
+    rng = np.random.default_rng(4)
+    n_pruned = 0
+    for _ in range(300):
+        n = int(rng.integers(2, 12))
+        e_a = rng.random((n, n)) * 20.0
+        e_a = e_a + e_a.T
+        e_b = e_a + rng.normal(0.0, rng.choice([0.1, 1.0, 3.0]), (n, n))
+        e_b = e_b + e_b.T
+        np.fill_diagonal(e_a, 0.0)
+        np.fill_diagonal(e_b, 0.0)
+        s_node = rng.random((n, n))
+        matches = [(k, int(kp)) for k, kp in enumerate(rng.permutation(n))][: int(rng.integers(2, n + 1))]
+        expected = _pruned_one_at_a_time(matches, s_node, e_a, e_b, 0.5)
+        assert _prune(list(matches), s_node, e_a, e_b, 0.5, P) == expected
+        n_pruned += len(expected) < len(matches)
+    assert n_pruned >= 30  # the cases exercise the pruning, not only its stop
+
+
+def test_principal_directions_are_the_svd_axes_and_overlap_uses_them():
+    rng = np.random.default_rng(5)
+    sets = [se2.transform_points(np.array([0.0, 0.0, rng.uniform(-3.0, 3.0)]),
+                                 rng.normal(0.0, 1.0, (int(rng.integers(2, 30)), 2)) * rng.uniform(0.2, 5.0, 2))
+            for _ in range(50)]
+    closed_form = principal_directions(sets)
+    for pts, d in zip(sets, closed_form, strict=True):
+        axis = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)[2][0]
+        assert abs(float(axis @ d)) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(principal_directions([np.array([[3.0, 4.0]])]), [[1.0, 0.0]])
+    # a 20 m divider and a 10 m piece of it, shifted 5 m along: half of the union overlaps
+    long_ = ElementSet((D,), (np.column_stack([np.arange(0.0, 20.1, 1.0), np.zeros(21)]),))
+    piece = ElementSet((D, B), (np.column_stack([np.arange(15.0, 25.1, 1.0), np.full(11, 0.1)]),
+                                np.column_stack([np.arange(0.0, 20.1, 1.0), np.full(21, 3.0)])))
+    np.testing.assert_allclose(overlap_matrix(long_, piece), [[2 * 5.0 / 30.0, 0.0]])

@@ -10,7 +10,12 @@ import pytest
 from gtsam.symbol_shorthand import K, S
 
 from csr_core.alignment.params import AlignmentParams
-from csr_core.alignment.pose_graph import optimize_submap_poses, scaled_chain_factor
+from csr_core.alignment.pose_graph import (
+    build_factor_graph,
+    gauss_newton,
+    optimize_submap_poses,
+    scaled_chain_factor,
+)
 from tests.unit.test_alignment_synthetic import (
     make_trip,
     submaps_every_20_frames,
@@ -91,3 +96,17 @@ def test_without_registrations_the_scale_stays_at_its_prior():
     trips, _, subs, _, _ = _two_trips_one_stretched(0.004)
     res = optimize_submap_poses(trips, subs, [], SCALED)
     assert abs(res.odom_scale_correction[0]) < 1e-3 and abs(res.odom_scale_correction[1]) < 1e-3
+
+
+def test_hand_gauss_newton_reaches_the_levenberg_marquardt_minimum_of_the_scaled_graph():
+    trips, _, subs, _, matches = _two_trips_one_stretched(0.004)
+    graph, initial, _, _, _ = build_factor_graph(trips, subs, matches, SCALED, with_scale=True)
+    lm = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams()).optimize()
+    gn = gauss_newton(graph, initial)
+    assert graph.error(gn) == pytest.approx(graph.error(lm), rel=1e-6)
+    assert graph.error(gn) < 0.01 * graph.error(initial)
+    for key in (K(0), K(1)):
+        assert gn.atVector(key)[0] == pytest.approx(lm.atVector(key)[0], abs=1e-6)
+    # at the minimum no step lowers the error: the values come back unchanged
+    again = gauss_newton(graph, gn)
+    assert graph.error(again) == pytest.approx(graph.error(gn), rel=1e-9)

@@ -203,3 +203,25 @@ def test_crosswalk_outlines_with_different_vertex_counts_still_associate() -> No
     outline = shapely.Polygon(rect).exterior
     out = shapely.points(res.features[0].points_xy_world)
     assert np.max(shapely.distance(out, outline)) < 0.15
+
+
+def test_nearest_offsets_do_not_depend_on_the_block_size(monkeypatch) -> None:
+    import csr_core.topology.association as association
+
+    rng = np.random.default_rng(11)
+    x = np.linspace(0.0, 60.0, 61)
+    members = [association.Member(f"veh-1__t{k:02d}", 0, TripInstance(LD, _noisy(_curve(x, lane * 3.5), rng, 0.05),
+                                                                       DividerStyle.SOLID, n_observations=10), 0.05)
+               for k in range(12) for lane in (0, 1)]
+    samples = association.sample_members(members, 1.0)
+    one_block = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
+    monkeypatch.setattr(association, "NEAREST_BLOCK_SAMPLES", 37)
+    small_blocks = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
+    for whole, blocked in zip(one_block, small_blocks, strict=True):
+        np.testing.assert_array_equal(whole, blocked)
+    a, member, lateral, inside = one_block
+    # every sample sees the other 11 copies of its own lane (the other lane is 3.5 m away) ...
+    assert set(np.bincount(a, minlength=len(samples.owner))) == {11}
+    assert np.all(member % 2 == samples.owner[a] % 2)
+    # ... a few centimetres across (two 5 cm noisy copies)
+    assert np.median(lateral[inside]) < 0.1
