@@ -75,7 +75,7 @@ class AlignmentParams:
     sigma_e_k: float = 3.0  # sigma_e = k * sqrt(2) * lateral sigma
     sigma_e_floor_m: float = 0.25
     tau_s: float = 0.3  # x_kk' = 0 iff s_kk' < tau_s
-    rrwm_max_iter: int = 20
+    rrwm_max_iter: int = 10
     max_elements_per_submap: int = 28  # keeps the (n1 n2)^2 affinity matrix small
     max_prealign_shift_m: float = 6.0
 

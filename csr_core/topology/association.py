@@ -38,9 +38,8 @@ from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, TripInstance
 
 MAP_MEMBER_KEY = "<map>"  # trip key of a map instance standing for its members (incremental update)
-
-
 NEAREST_BLOCK_SAMPLES = 10_000  # samples per block of the nearest-sample search
+
 
 @dataclass(frozen=True, slots=True)
 class Member:
@@ -128,7 +127,7 @@ def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, dire
     # in blocks of samples a: at ten trips a place a sample has a hundred or more neighbours
     # within reach, and the arrays of all of them at once cost more to allocate than to use
     for lo in range(0, len(own), NEAREST_BLOCK_SAMPLES):
-        block = cKDTree(samples.points_xy[lo : lo + NEAREST_BLOCK_SAMPLES])
+        block = tree if len(own) <= NEAREST_BLOCK_SAMPLES else cKDTree(samples.points_xy[lo : lo + NEAREST_BLOCK_SAMPLES])
         near = block.sparse_distance_matrix(tree, reach_m, output_type="ndarray")
         a, b, dist = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64), near["v"]
         other = own[a] != own[b]  # pairs within one member never count

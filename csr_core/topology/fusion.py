@@ -40,6 +40,8 @@ from csr_core.topology.association import MAP_MEMBER_KEY, Member
 from csr_core.topology.params import TopologyParams
 from csr_core.types import DividerStyle, ElementType
 
+CONSENSUS_BLOCK_SAMPLES = 10_000  # samples per block of the consensus count
+
 
 @dataclass(frozen=True, slots=True)
 class FusedInstance:
@@ -243,18 +245,19 @@ def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree
     over ``pts`` if the caller has one."""
     if n == 1:
         return np.ones(1)
-    pairs = (tree if tree is not None else cKDTree(pts)).query_pairs(float(gates.max()), output_type="ndarray")
-    if not len(pairs):
-        return np.bincount(own, minlength=n).astype(float)
-    pairs = pairs[own[pairs[:, 0]] != own[pairs[:, 1]]]
-    pa, pb = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-    rel = pts[pa] - pts[pb]
-    dist = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])  # as np.linalg.norm, once per pair
-    # (sample, other member) within the sample's member gate, seen from either end of a pair; once
-    near_a = dist <= gates[own[pa]]
-    near_b = dist <= gates[own[pb]]
-    uniq = _unique_ints(np.r_[pa[near_a] * n + own[pb[near_a]], pb[near_b] * n + own[pa[near_b]]])
-    return np.bincount(own[uniq // n], minlength=n).astype(float) + 1e-3 * np.bincount(own, minlength=n)
+    tree = tree if tree is not None else cKDTree(pts)
+    agreeing = np.zeros(n)
+    # in blocks of samples (as ``association.nearest_offsets``): at ten trips a place a sample
+    # has a hundred or more neighbours within the gate
+    for lo in range(0, len(pts), CONSENSUS_BLOCK_SAMPLES):
+        block = tree if len(pts) <= CONSENSUS_BLOCK_SAMPLES else cKDTree(pts[lo : lo + CONSENSUS_BLOCK_SAMPLES])
+        near = block.sparse_distance_matrix(tree, float(gates.max()), output_type="ndarray")
+        a, b = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
+        # (sample, other member) within the sample's member gate, once
+        ok = (own[a] != own[b]) & (near["v"] <= gates[own[a]])
+        uniq = _unique_ints(a[ok] * n + own[b[ok]])
+        agreeing += np.bincount(own[uniq // n], minlength=n)
+    return agreeing + 1e-3 * np.bincount(own, minlength=n)
 
 
 def _unique_ints(values: np.ndarray) -> np.ndarray:
