@@ -24,7 +24,7 @@ centroids are within the polygon gate.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +38,7 @@ from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, TripInstance
 
 MAP_MEMBER_KEY = "<map>"  # trip key of a map instance standing for its members (incremental update)
-NEAREST_BLOCK_SAMPLES = 10_000  # samples per block of the nearest-sample search
+NEIGHBOUR_BLOCK_SAMPLES = 10_000  # samples per block of the neighbour searches (``neighbour_pairs``)
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +114,23 @@ def _first_min_per_group(group: np.ndarray, value: np.ndarray) -> np.ndarray:
     return index[at_min[first]]
 
 
+def neighbour_pairs(points_xy: np.ndarray, owner: np.ndarray, radius_m: float,
+                    tree: cKDTree | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every ordered pair of samples ``(a, b)`` of different owners within ``radius_m``, with
+    their distance, as ``(a, b, distance_m)`` arrays, block by block of ``a`` (ascending blocks of
+    ``NEIGHBOUR_BLOCK_SAMPLES``). At ten trips a place a sample has a hundred or more neighbours,
+    and the arrays of all pairs at once cost more to allocate than to use. ``tree``: a KD-tree
+    over ``points_xy`` if the caller has one."""
+    tree = tree if tree is not None else cKDTree(points_xy)
+    for lo in range(0, len(points_xy), NEIGHBOUR_BLOCK_SAMPLES):
+        block = (tree if len(points_xy) <= NEIGHBOUR_BLOCK_SAMPLES
+                 else cKDTree(points_xy[lo : lo + NEIGHBOUR_BLOCK_SAMPLES]))
+        near = block.sparse_distance_matrix(tree, radius_m, output_type="ndarray")
+        a, b = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
+        other = owner[a] != owner[b]  # pairs within one owner never count
+        yield a[other], b[other], near["v"][other]
+
+
 def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, directed: bool,
                     max_angle_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For every sample ``a`` and every other member with a sample within ``reach_m``: that
@@ -122,16 +139,8 @@ def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, dire
     ordered by ``a``, then member."""
     own = samples.owner
     n_members = int(own.max()) + 1 if len(own) else 0
-    tree = cKDTree(samples.points_xy)
     nearest_a, nearest_b = [], []
-    # in blocks of samples a: at ten trips a place a sample has a hundred or more neighbours
-    # within reach, and the arrays of all of them at once cost more to allocate than to use
-    for lo in range(0, len(own), NEAREST_BLOCK_SAMPLES):
-        block = tree if len(own) <= NEAREST_BLOCK_SAMPLES else cKDTree(samples.points_xy[lo : lo + NEAREST_BLOCK_SAMPLES])
-        near = block.sparse_distance_matrix(tree, reach_m, output_type="ndarray")
-        a, b, dist = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64), near["v"]
-        other = own[a] != own[b]  # pairs within one member never count
-        a, b, dist = a[other], b[other], dist[other]
+    for a, b, dist in neighbour_pairs(samples.points_xy, own, reach_m):
         if len(a):  # nearest sample of each other member, per sample a
             nearest = _first_min_per_group(a * n_members + own[b], dist)
             nearest_a.append(a[nearest])

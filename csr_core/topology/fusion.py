@@ -36,11 +36,9 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import _robust_ends, polygon_area, resample_polyline
-from csr_core.topology.association import MAP_MEMBER_KEY, Member
+from csr_core.topology.association import MAP_MEMBER_KEY, Member, neighbour_pairs
 from csr_core.topology.params import TopologyParams
 from csr_core.types import DividerStyle, ElementType
-
-CONSENSUS_BLOCK_SAMPLES = 10_000  # samples per block of the consensus count
 
 
 @dataclass(frozen=True, slots=True)
@@ -245,16 +243,9 @@ def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree
     over ``pts`` if the caller has one."""
     if n == 1:
         return np.ones(1)
-    tree = tree if tree is not None else cKDTree(pts)
     agreeing = np.zeros(n)
-    # in blocks of samples (as ``association.nearest_offsets``): at ten trips a place a sample
-    # has a hundred or more neighbours within the gate
-    for lo in range(0, len(pts), CONSENSUS_BLOCK_SAMPLES):
-        block = tree if len(pts) <= CONSENSUS_BLOCK_SAMPLES else cKDTree(pts[lo : lo + CONSENSUS_BLOCK_SAMPLES])
-        near = block.sparse_distance_matrix(tree, float(gates.max()), output_type="ndarray")
-        a, b = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
-        # (sample, other member) within the sample's member gate, once
-        ok = (own[a] != own[b]) & (near["v"] <= gates[own[a]])
+    for a, b, dist in neighbour_pairs(pts, own, float(gates.max()), tree):
+        ok = dist <= gates[own[a]]  # (sample, other member) within the sample's member gate, once
         uniq = _unique_ints(a[ok] * n + own[b[ok]])
         agreeing += np.bincount(own[uniq // n], minlength=n)
     return agreeing + 1e-3 * np.bincount(own, minlength=n)

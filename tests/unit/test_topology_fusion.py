@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from csr_core.topology import generate_topology
-from csr_core.topology.fusion import project_on_polyline
+from csr_core.topology.fusion import _consensus, project_on_polyline
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 
 pytestmark = pytest.mark.unit
@@ -205,7 +205,7 @@ def test_crosswalk_outlines_with_different_vertex_counts_still_associate() -> No
     assert np.max(shapely.distance(out, outline)) < 0.15
 
 
-def test_nearest_offsets_do_not_depend_on_the_block_size(monkeypatch) -> None:
+def test_neighbour_searches_do_not_depend_on_the_block_size(monkeypatch) -> None:
     import csr_core.topology.association as association
 
     rng = np.random.default_rng(11)
@@ -214,9 +214,16 @@ def test_nearest_offsets_do_not_depend_on_the_block_size(monkeypatch) -> None:
                                                                        DividerStyle.SOLID, n_observations=10), 0.05)
                for k in range(12) for lane in (0, 1)]
     samples = association.sample_members(members, 1.0)
+    gates = np.full(len(members), 0.3)
     one_block = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
-    monkeypatch.setattr(association, "NEAREST_BLOCK_SAMPLES", 37)
+    consensus = _consensus(samples.points_xy, samples.owner, gates, len(members))
+    monkeypatch.setattr(association, "NEIGHBOUR_BLOCK_SAMPLES", 37)
     small_blocks = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
+    np.testing.assert_array_equal(_consensus(samples.points_xy, samples.owner, gates, len(members)), consensus)
+    # a sample agrees with at most the 11 other copies of its lane (never its own member, never
+    # the other lane), and most samples with most of them
+    per_sample = (consensus - 1e-3 * np.bincount(samples.owner)) / np.bincount(samples.owner)
+    assert per_sample.max() <= 11.0 + 1e-9 and np.median(per_sample) > 8.0
     for whole, blocked in zip(one_block, small_blocks, strict=True):
         np.testing.assert_array_equal(whole, blocked)
     a, member, lateral, inside = one_block
