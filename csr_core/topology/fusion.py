@@ -17,6 +17,9 @@ split. What multi-trip fusion adds:
   zero where it is off instead of bending the line;
 - peeling: what the fused line does not support (members mostly off it, runs of members off
   it) is handed back as ``detached`` pieces to be associated again (``instances.fuse_type``);
+- many lines per group (``fuse_group``): association chains partial overlaps, so at junctions
+  (turns overlap the lanes they leave and enter) a city's centrelines are one group; its lines
+  are fused one after the other, each from the member most of those left agree with;
 - statistics for validation and the map properties: the standard error of the profile per
   bin (model and empirical, the larger), the scatter of the trips around it in units of their
   sigma, and the share of weight held by trips the fit rejected.
@@ -33,6 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
+from scipy.sparse import csc_matrix
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import _robust_ends, polygon_area, resample_polyline
@@ -60,6 +64,8 @@ class FusedInstance:
     outlier_members: tuple[int, ...]  # members mostly rejected by the robust fit
     max_internal_gap_m: float  # longest unsupported stretch spanned inside
     member_scatter2: tuple[float, ...] = ()  # per member: mean (offset / sigma)^2 of its used samples (nan: none)
+    claimed: tuple[int, ...] = ()  # members whose geometry the line took (what is off it is in ``detached``)
+    detached_from: tuple[int, ...] = ()  # per ``detached`` piece: its member
 
 
 def arclength(points: np.ndarray) -> np.ndarray:
@@ -131,18 +137,26 @@ def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int,
 
 def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray,
                    anchored: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """The member most others agree with (x weight), prolonged at either end by the contiguous
-    part of the member that runs on past it furthest (the member must be within its gate of
-    the backbone near that end): partial overlaps chain, branches do not jump. The backbone is
-    smoothed, except an ``anchored`` seed (the map's fused line in an incremental update:
-    smoothing it again at every update would flatten curves a little more each time). Returns
-    the backbone and the index of its seed member."""
+    """The backbone of a group: grown (``_grow_from_seed``) from the member most others agree
+    with (x weight). Returns the backbone and the index of its seed member."""
     pts = np.concatenate(lines)
     own = np.repeat(np.arange(len(lines)), [len(p) for p in lines])
     tree = cKDTree(pts)
     seed = int(np.argmax(_consensus(pts, own, gates, len(lines), tree) * weights))
+    keep_seed = anchored is not None and bool(anchored[seed])
+    return _grow_from_seed(lines, gates, spacing, seed, keep_seed, tree, own, np.ones(len(lines), bool)), seed
+
+
+def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, seed: int, keep_seed: bool,
+                    tree: cKDTree, own: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """Member ``seed``'s line prolonged at either end by the contiguous part of the ``active``
+    member that runs on past it furthest (the member must be within its gate of the backbone
+    near that end): partial overlaps chain, branches do not jump. The backbone is smoothed,
+    except a ``keep_seed`` (the map's fused line in an incremental update: smoothing it again
+    at every update would flatten curves a little more each time). ``tree``: a KD-tree over all
+    lines' points, ``own`` their member."""
     backbone = lines[seed]
-    keep_seed = anchored is not None and bool(anchored[seed]) and len(backbone) >= 2
+    keep_seed = keep_seed and len(backbone) >= 2
     n_before = 0
     used = {seed}
     near_end = 3.0 * spacing
@@ -151,7 +165,8 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
             break
         # the members near either end (not yet used), projected on the backbone all at once
         cands_per_end = [sorted({int(own[h]) for h in tree.query_ball_point(backbone[-1 if end else 0],
-                                                                            near_end + float(gates.max()))} - used)
+                                                                            near_end + float(gates.max()))
+                                 if active[own[h]]} - used)
                          for end in (0, 1)]
         if not any(len(lines[k]) >= 2 for k in (*cands_per_end[0], *cands_per_end[1])):
             break
@@ -186,7 +201,7 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         backbone = np.vstack([backbone, ext]) if end else np.vstack([ext[::-1], backbone])
         n_before += 0 if end else len(ext)
     if keep_seed:
-        return _extend_straight(_smooth_around(backbone, n_before, len(lines[seed]), spacing), 3.0, spacing), seed
+        return _extend_straight(_smooth_around(backbone, n_before, len(lines[seed]), spacing), 3.0, spacing)
     backbone = resample_polyline(backbone, spacing)
     if len(backbone) >= 5:
         # smoothed with point-reflected ends (a straight line stays straight and keeps its
@@ -198,7 +213,7 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
         padded = np.vstack([head, backbone, tail])
         sm = gaussian_filter1d(padded, sigma, axis=0, mode="nearest")  # x and y, column by column
         backbone = resample_polyline(sm[len(head):len(head) + len(backbone)], spacing)
-    return _extend_straight(backbone, 3.0, spacing), seed
+    return _extend_straight(backbone, 3.0, spacing)
 
 
 def _project_members(lines: Sequence[np.ndarray], members: Sequence[int], frame: PolylineFrame
@@ -243,12 +258,23 @@ def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree
     over ``pts`` if the caller has one."""
     if n == 1:
         return np.ones(1)
-    agreeing = np.zeros(n)
+    return np.asarray(_agreement(pts, own, gates, n, tree).sum(axis=1)).ravel() + 1e-3 * np.bincount(own, minlength=n)
+
+
+def _agreement(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
+               ) -> csc_matrix:
+    """``(n, n)`` sparse: entry (i, j) the number of member i's samples with a sample of member
+    j within i's gate."""
+    rows, cols = [], []
     for a, b, dist in neighbour_pairs(pts, own, float(gates.max()), tree):
         ok = dist <= gates[own[a]]  # (sample, other member) within the sample's member gate, once
         uniq = _unique_ints(a[ok] * n + own[b[ok]])
-        agreeing += np.bincount(own[uniq // n], minlength=n)
-    return agreeing + 1e-3 * np.bincount(own, minlength=n)
+        rows.append(own[uniq // n])
+        cols.append(uniq % n)
+    if not rows:
+        return csc_matrix((n, n))
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    return csc_matrix((np.ones(len(r)), (r, c)), shape=(n, n))  # duplicates summed
 
 
 def _unique_ints(values: np.ndarray) -> np.ndarray:
@@ -319,13 +345,16 @@ def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.nda
     return centre + q[:, None] * axis, seed, kept
 
 
-def fuse_lines(members: Sequence[Member], element_type: ElementType, params: TopologyParams) -> list[FusedInstance]:
+def fuse_lines(members: Sequence[Member], element_type: ElementType, params: TopologyParams,
+               backbone_seed: tuple[np.ndarray, int] | None = None) -> list[FusedInstance]:
     """A group of line members -> fused polylines (usually one; a gap longer than
     ``MAX_GAP_M`` splits). Shapes: each member's ``points_xy_world (M, 2)`` in metres.
 
     Types in ``params.WHOLE_ELEMENT_TYPES`` (short and straight: stop lines) take a robust
     straight axis as backbone (``_straight_axis``); a member it rejects is an outlier of the
-    element (it neither shapes nor prolongs it), not a piece of another one."""
+    element (it neither shapes nor prolongs it), not a piece of another one.
+
+    ``backbone_seed``: the backbone and its seed member, if the caller grew it (``fuse_group``)."""
     sigma = np.array([m.sigma_m for m in members])
     w_member = 1.0 / sigma**2
     gate = np.array([params.gate_m(sg, sg) for sg in sigma])
@@ -334,7 +363,9 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
     whole = element_type in params.WHOLE_ELEMENT_TYPES
     fits = np.ones(len(members), bool)  # members whose samples speak for the geometry
-    if whole:
+    if backbone_seed is not None:
+        backbone, seed = backbone_seed
+    elif whole:
         backbone, seed, fits = _straight_axis(lines, gate, sigma, w_member, spacing, params)
     else:
         backbone, seed = _grow_backbone(lines, gate, spacing, w_member, anchored if anchored.any() else None)
@@ -390,6 +421,7 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     if not keep_m.any():
         keep_m[int(np.argmax(close_share))] = True
     detached: list[Member] = []
+    detached_from: list[int] = []
     min_run = max(int(params.MIN_OVERLAP_M / spacing), 2)
     # a member kept: its runs off the line; one not kept: all of it (those that fit the element)
     for k, a, b in zip(*_runs_per_member(fits[own] & (off | ~keep_m[own]), own), strict=True):
@@ -397,6 +429,7 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             m = members[k]
             detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
                                    m.sigma_m))
+            detached_from.append(k)
     in_share = np.bincount(own[inlier & ~off], minlength=n_m) / np.maximum(cnt, 1)
     outliers = [k for k in range(n_m) if keep_m[k] and (in_share[k] < 0.5 * close_share[k] or not fits[k])]
     use = inlier & keep_m[own] & ~off
@@ -454,8 +487,81 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             detached=tuple(detached), uncertainty_m=float(np.median(se[span[0]:span[-1] + 1][support[span[0]:span[-1] + 1]])),
             scatter_ratio=scatter, rejected_weight_share=rejected_share,
             outlier_members=tuple(k for k in outliers if k in span_members),
-            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2))
+            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2,
+            claimed=tuple(int(k) for k in np.flatnonzero(keep_m)), detached_from=tuple(detached_from)))
     return out
+
+
+def fuse_group(members: Sequence[Member], element_type: ElementType, params: TopologyParams
+               ) -> tuple[list[FusedInstance], list[Member]]:
+    """Every line of an associated group, one ``fuse_lines`` pass per line: the line grown from
+    the member most of the members left agree with, fitted to the members alongside it; the
+    members it takes leave the group, the rest wait for a later pass. A group chained through
+    junctions (centrelines: every lane runs on into the next one and turns into the crossing
+    ones) holds hundreds of lines; one per association round would take hundreds of rounds.
+
+    Returns the instances (``members`` etc. index ``members``) and the pieces of the taken
+    members that their line does not support (the other branch of a split: associated again).
+    Agreement is counted once (``_agreement``) and decremented as members leave; each pass
+    touches only the members within reach of its backbone."""
+    if element_type in params.WHOLE_ELEMENT_TYPES or len(members) == 1:
+        fused = fuse_lines(members, element_type, params)
+        if not fused and len(members) > 1:  # nothing fused: the members on their own
+            return [_in_group(f, np.array([k])) for k in range(len(members))
+                    for f in fuse_lines([members[k]], element_type, params)], []
+        return fused, list(fused[0].detached) if fused else []
+    n = len(members)
+    sigma = np.array([m.sigma_m for m in members])
+    weights = 1.0 / sigma**2
+    gates = np.array([params.gate_m(sg, sg) for sg in sigma])
+    spacing = 0.5 * params.BIN_M
+    lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
+    anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
+    pts = np.concatenate(lines)
+    own = np.repeat(np.arange(n), [len(p) for p in lines])
+    tree = cKDTree(pts)
+    agreement = _agreement(pts, own, gates, n, tree)
+    consensus = np.asarray(agreement.sum(axis=1)).ravel() + 1e-3 * np.bincount(own, minlength=n)
+    reach = params.WINDOW_GATES * float(gates.max())
+    active = np.ones(n, bool)
+    out: list[FusedInstance] = []
+    detached: list[Member] = []
+
+    def leave(gone: np.ndarray) -> None:
+        active[gone] = False
+        consensus[:] -= np.asarray(agreement[:, gone].sum(axis=1)).ravel()
+
+    while active.any():
+        seed = int(np.argmax(np.where(active, consensus * weights, -np.inf)))
+        backbone = _grow_from_seed(lines, gates, spacing, seed, bool(anchored[seed]), tree, own, active)
+        near = cKDTree(backbone).sparse_distance_matrix(tree, reach, output_type="ndarray")["j"]
+        local = np.union1d(_unique_ints(own[near])[active[_unique_ints(own[near])]], [seed])
+        fused = fuse_lines([members[k] for k in local], element_type, params,
+                           (backbone, int(np.searchsorted(local, seed)))) if len(backbone) >= 3 else []
+        if not fused:  # nothing alongside its backbone: the seed on its own
+            leave(np.array([seed]))
+            alone = fuse_lines([members[seed]], element_type, params)
+            out.extend(_in_group(f, np.array([seed])) for f in alone)
+            continue
+        claimed = local[list(fused[0].claimed)]
+        leave(np.union1d(claimed, [seed]))
+        out.extend(_in_group(f, local) for f in fused)
+        f0 = fused[0]
+        detached.extend(piece for piece, k in zip(f0.detached, f0.detached_from, strict=True)
+                        if local[k] in claimed and len(piece.instance.points_xy_world) >= 2)
+    return out, detached
+
+
+def _in_group(fused: FusedInstance, local: np.ndarray) -> FusedInstance:
+    """``fused`` (fitted to the members ``local`` of a group) with its member indices in the group."""
+    n_group = int(local.max()) + 1
+    scatter2 = np.full(n_group, np.nan)
+    scatter2[local[: len(fused.member_scatter2)]] = fused.member_scatter2
+    return replace(fused, members=tuple(int(local[k]) for k in fused.members),
+                   outlier_members=tuple(int(local[k]) for k in fused.outlier_members),
+                   claimed=tuple(int(local[k]) for k in fused.claimed),
+                   detached_from=tuple(int(local[k]) for k in fused.detached_from),
+                   member_scatter2=tuple(float(v) for v in scatter2))
 
 
 def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: PolylineFrame,

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from csr_core.se2 import compose, inverse
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member, associate_lines, associate_polygons
-from csr_core.topology.fusion import FusedInstance, fuse_lines, fuse_polygons
+from csr_core.topology.fusion import FusedInstance, fuse_group, fuse_lines, fuse_polygons
 from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
@@ -91,10 +91,12 @@ def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
 
 def fuse_type(members: Sequence[Member], element_type: ElementType, params: TopologyParams
               ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
-    """Associate and fuse all members of one type. Fusion peels off what the fused line does
-    not support (the other side of a corner a chain of boundaries went round, the other branch
-    of a split): those pieces are associated and fused again among themselves, round after
-    round, until nothing is left (after ``MAX_FUSION_ROUNDS`` the rest stand alone)."""
+    """Associate and fuse all members of one type. Each group gives all its lines at once
+    (``fusion.fuse_group``: a group chained through junctions holds many); what a line does not
+    support of the members it took (the other side of a corner a chain of boundaries went
+    round, the other branch of a split) is peeled off, and those pieces are associated and fused
+    again among themselves, round after round, until nothing is left (after
+    ``MAX_FUSION_ROUNDS`` the rest stand alone)."""
     out: list[tuple[FusedInstance, tuple[Member, ...]]] = []
     pending = list(members)
     for round_ in range(params.MAX_FUSION_ROUNDS + 1):
@@ -108,16 +110,14 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
         detached: list[Member] = []
         for g in groups:
             gm = [pending[k] for k in g]
-            fused = [fuse_polygons(gm, element_type, params)] if element_type.is_polygon else fuse_lines(gm, element_type, params)
-            for f in fused:
-                out.append((f, tuple(gm[k] for k in f.members)))
-            if last:
-                continue
-            if not fused and len(gm) > 1:  # nothing fused: try the members on their own
-                fused_singles = [(fuse_lines([m], element_type, params), m) for m in gm]
-                out.extend((f, (m,)) for fs, m in fused_singles for f in fs)
-            elif fused:
-                detached.extend(p for p in fused[0].detached if len(p.instance.points_xy_world) >= 2)
+            if element_type.is_polygon:
+                fused, pieces = [fuse_polygons(gm, element_type, params)], []
+            elif last:
+                fused, pieces = fuse_lines(gm, element_type, params), []
+            else:
+                fused, pieces = fuse_group(gm, element_type, params)
+            out.extend((f, tuple(gm[k] for k in f.members)) for f in fused)
+            detached.extend(pieces)
         pending = detached
     return out
 

@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import shapely
 
 from csr_core.topology import generate_topology
-from csr_core.topology.fusion import _consensus, project_on_polyline
+from csr_core.topology.association import associate_lines
+from csr_core.topology.fusion import _consensus, fuse_group, project_on_polyline
+from csr_core.topology.instances import make_members
+from csr_core.topology.params import DEFAULT
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 
 pytestmark = pytest.mark.unit
@@ -232,3 +236,82 @@ def test_neighbour_searches_do_not_depend_on_the_block_size(monkeypatch) -> None
     assert np.all(member % 2 == samples.owner[a] % 2)
     # ... a few centimetres across (two 5 cm noisy copies)
     assert np.median(lateral[inside]) < 0.1
+
+
+
+def _rounded(nodes: list[tuple[float, float]], corner_m: float = 10.0) -> np.ndarray:
+    """A path through ``nodes`` (metres), sampled every metre, its corners rounded (a quadratic
+    Bezier over ``corner_m`` either side): a lane centreline through a turn."""
+    out = [np.asarray(nodes[0], float)[None]]
+    for k in range(1, len(nodes)):
+        a, b = np.asarray(nodes[k - 1], float), np.asarray(nodes[k], float)
+        d = (b - a) / np.linalg.norm(b - a)
+        start = a + (corner_m * d if k > 1 else 0.0)
+        stop = b - (corner_m * d if k < len(nodes) - 1 else 0.0)
+        t = np.arange(1.0, np.linalg.norm(stop - start) + 1e-9, 1.0)[:, None]
+        out.append(start + t * d)
+        if k < len(nodes) - 1:
+            nxt = np.asarray(nodes[k + 1], float)
+            e = (nxt - b) / np.linalg.norm(nxt - b)
+            u = np.linspace(0.0, 1.0, 17)[1:-1, None]
+            p0, p2 = b - corner_m * d, b + corner_m * e
+            out.append((1 - u) ** 2 * p0 + 2 * u * (1 - u) * b + u**2 * p2)
+    return np.vstack(out)
+
+
+def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None:
+    """A 6 x 6 street grid: trips see parts of its twelve streets, and at junctions trips turning
+    from a street into the crossing one see the turn's centreline, which overlaps both streets:
+    every street and turn is one association group (as in a city). One fusion of that group
+    gives every street: each block two or more trips saw comes out as exactly one line on it,
+    supported by each of those trips (not one line per association round, the rest left as
+    single-trip copies); so does the whole topology generation."""
+    rng = np.random.default_rng(5)
+    block, size, n = 100.0, 500.0, 6
+    trips, seen = {}, {}
+    for k in range(96):
+        key = f"veh-1__t{k:02d}"
+        if k < 60:  # a part of one street, either way
+            street, c = k % (2 * n), block * (k % n)
+            a0 = float(rng.uniform(0.0, 0.4 * size))
+            a1 = float(rng.uniform(a0 + 0.5 * size, size))
+            along = np.arange(a0, a1, 1.0)
+            line = np.column_stack([along, np.full_like(along, c)]) if street < n else np.column_stack([np.full_like(along, c), along])
+            line = line[::-1] if rng.random() < 0.5 else line
+            for b in range(n - 1):  # the blocks whose middle it saw
+                if a0 <= (b + 0.25) * block and a1 >= (b + 0.75) * block:
+                    seen.setdefault((street, b), set()).add(key)
+        else:  # a turn at a junction: 25 m of a row, the corner, 25 m of a column
+            x, y = block * rng.integers(1, n - 1), block * rng.integers(1, n - 1)
+            line = _rounded([(x - 25.0, y), (x, y), (x, y + 25.0)])
+        trips[key] = [TripInstance(ElementType.CENTERLINE, _noisy(line, rng, 0.03, rng.normal(0.0, 0.05)),
+                                   None, n_observations=10)]
+
+    def one_line_per_block(lines: list[np.ndarray], trips_of_line: list[set[str]], among: set[str]) -> int:
+        checked = 0
+        for (street, b), keys in seen.items():
+            keys = keys & among
+            if len(keys) < 2:
+                continue
+            along = np.linspace((b + 0.25) * block, (b + 0.75) * block, 51)
+            c = np.full_like(along, block * (street % n))
+            middle = shapely.points(np.column_stack([along, c] if street < n else [c, along]))
+            on_it = [k for k, line in enumerate(lines)
+                     if np.median(shapely.distance(middle, shapely.LineString(line))) < 0.5]
+            assert len(on_it) == 1, (street, b, len(on_it))
+            assert np.max(shapely.distance(middle, shapely.LineString(lines[on_it[0]]))) < 0.15
+            assert trips_of_line[on_it[0]] >= keys
+            checked += 1
+        return checked
+
+    members = make_members(trips, _noise(trips), DEFAULT)[0][ElementType.CENTERLINE]
+    group = max(associate_lines(members, ElementType.CENTERLINE, DEFAULT), key=len)
+    assert len(group) >= 0.75 * len(members)
+    fused, _ = fuse_group([members[k] for k in group], ElementType.CENTERLINE, DEFAULT)
+    assert one_line_per_block([f.points_xy_world for f in fused],
+                              [{members[group[k]].trip_key for k in f.members} for f in fused],
+                              {members[k].trip_key for k in group}) >= 25
+    result = generate_topology(trips, _noise(trips))
+    lines = [f for f in result.features if f.type == ElementType.CENTERLINE]
+    assert one_line_per_block([f.points_xy_world for f in lines], [set(f.properties["trips"]) for f in lines],
+                              set(trips)) >= 30
