@@ -65,7 +65,12 @@ class LineSamples:
 
 
 def sample_members(members: Sequence[Member], spacing_m: float) -> LineSamples:
-    pts = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing_m) for m in members]
+    return sample_lines([m.instance.points_xy_world for m in members], spacing_m)
+
+
+def sample_lines(lines_xy: Sequence[np.ndarray], spacing_m: float) -> LineSamples:
+    """Polylines ``(M, 2)`` resampled every ``spacing_m``, flattened (``owner``: the line)."""
+    pts = [resample_polyline(np.asarray(xy, float), spacing_m) for xy in lines_xy]
     if not pts:
         z = np.zeros((0, 2))
         return LineSamples(z, z, np.zeros(0, int), np.zeros(0, bool), np.zeros(0, bool))

@@ -40,7 +40,13 @@ from scipy.sparse import csc_matrix
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import _robust_ends, polygon_area, resample_polyline
-from csr_core.topology.association import MAP_MEMBER_KEY, Member, neighbour_pairs
+from csr_core.topology.association import (
+    MAP_MEMBER_KEY,
+    Member,
+    neighbour_pairs,
+    sample_lines,
+    sample_members,
+)
 from csr_core.topology.params import TopologyParams
 from csr_core.types import DividerStyle, ElementType
 
@@ -540,16 +546,47 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
                            (backbone, int(np.searchsorted(local, seed)))) if len(backbone) >= 3 else []
         if not fused:  # nothing alongside its backbone: the seed on its own
             leave(np.array([seed]))
-            alone = fuse_lines([members[seed]], element_type, params)
-            out.extend(_in_group(f, np.array([seed])) for f in alone)
+            out.extend(_in_group(f, np.array([seed])) for f in fuse_lines([members[seed]], element_type, params))
             continue
-        claimed = local[list(fused[0].claimed)]
-        leave(np.union1d(claimed, [seed]))
+        # every member within reach was offered this line: the ones it took leave with their
+        # pieces off it peeled, the others leave whole, to be associated again with those pieces
+        leave(local)
         out.extend(_in_group(f, local) for f in fused)
-        f0 = fused[0]
-        detached.extend(piece for piece, k in zip(f0.detached, f0.detached_from, strict=True)
-                        if local[k] in claimed and len(piece.instance.points_xy_world) >= 2)
+        detached.extend(piece for piece in fused[0].detached if len(piece.instance.points_xy_world) >= 2)
     return out, detached
+
+
+def absorb_pieces(pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], params: TopologyParams
+                  ) -> tuple[list[tuple[int, int]], list[Member]]:
+    """Pieces peeled off in one round that are views of a line already fused: a piece with at
+    least ``DETACH_CLOSE_SHARE`` of its samples within its gate of one fused line, parallel to
+    it, joins that line's support (its geometry, fitted to many trips, stays). Lines of a group
+    are fused pass after pass in one round (``fuse_group``), so a piece peeled off an early line
+    finds the element it belongs to already fused by a later one; associated again on its own
+    it would be a second, shorter copy. Returns ``(piece index, line index)`` of the absorbed
+    and the pieces left."""
+    if not pieces or not lines_xy:
+        return [], list(pieces)
+    spacing = params.SAMPLE_SPACING_M
+    fused = sample_lines(lines_xy, spacing)
+    smp = sample_members(pieces, spacing)
+    gate = np.array([params.gate_m(m.sigma_m, m.sigma_m) for m in pieces])[smp.owner]
+    dist, nearest = cKDTree(fused.points_xy).query(smp.points_xy, distance_upper_bound=float(gate.max()))
+    ok = np.isfinite(dist)
+    nearest = np.where(ok, nearest, 0)
+    parallel = np.abs((smp.tangents * fused.tangents[nearest]).sum(1)) >= np.cos(params.MAX_ANGLE_RAD)
+    close = ok & (dist <= gate) & parallel
+    line_of = np.where(close, fused.owner[nearest], -1)
+    absorbed, rest = [], []
+    for k, piece in enumerate(pieces):
+        labels = line_of[smp.owner == k]
+        hits = labels[labels >= 0]
+        best = int(np.bincount(hits).argmax()) if len(hits) else -1
+        if best >= 0 and np.mean(labels == best) >= params.DETACH_CLOSE_SHARE:
+            absorbed.append((k, best))
+        else:
+            rest.append(piece)
+    return absorbed, rest
 
 
 def _in_group(fused: FusedInstance, local: np.ndarray) -> FusedInstance:

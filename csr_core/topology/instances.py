@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from csr_core.se2 import compose, inverse
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member, associate_lines, associate_polygons
-from csr_core.topology.fusion import FusedInstance, fuse_group, fuse_lines, fuse_polygons
+from csr_core.topology.fusion import FusedInstance, absorb_pieces, fuse_group, fuse_lines, fuse_polygons
 from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
@@ -108,6 +108,7 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
         else:
             groups = [[k] for k in range(len(pending))] if last else associate_lines(pending, element_type, params)
         detached: list[Member] = []
+        done = len(out)
         for g in groups:
             gm = [pending[k] for k in g]
             if element_type.is_polygon:
@@ -118,6 +119,12 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
                 fused, pieces = fuse_group(gm, element_type, params)
             out.extend((f, tuple(gm[k] for k in f.members)) for f in fused)
             detached.extend(pieces)
+        if detached:  # pieces that are views of a line fused this round join it
+            absorbed, rest = absorb_pieces(detached, [f.points_xy_world for f, _ in out[done:]], params)
+            for k, line in absorbed:
+                f, mem = out[done + line]
+                out[done + line] = (f, (*mem, detached[k]))
+            detached = rest
         pending = detached
     return out
 
