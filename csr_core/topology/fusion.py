@@ -70,8 +70,6 @@ class FusedInstance:
     outlier_members: tuple[int, ...]  # members mostly rejected by the robust fit
     max_internal_gap_m: float  # longest unsupported stretch spanned inside
     member_scatter2: tuple[float, ...] = ()  # per member: mean (offset / sigma)^2 of its used samples (nan: none)
-    claimed: tuple[int, ...] = ()  # members whose geometry the line took (what is off it is in ``detached``)
-    detached_from: tuple[int, ...] = ()  # per ``detached`` piece: its member
 
 
 def arclength(points: np.ndarray) -> np.ndarray:
@@ -351,6 +349,17 @@ def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.nda
     return centre + q[:, None] * axis, seed, kept
 
 
+def _member_lines(members: Sequence[Member], params: TopologyParams, spacing: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+    """Per member: lateral sigma, weight 1 / sigma^2, gate, its line resampled every
+    ``spacing`` and whether it is an anchored map line."""
+    sigma = np.array([m.sigma_m for m in members])
+    gates = np.array([params.gate_m(sg, sg) for sg in sigma])
+    lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
+    anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
+    return sigma, 1.0 / sigma**2, gates, lines, anchored
+
+
 def fuse_lines(members: Sequence[Member], element_type: ElementType, params: TopologyParams,
                backbone_seed: tuple[np.ndarray, int] | None = None) -> list[FusedInstance]:
     """A group of line members -> fused polylines (usually one; a gap longer than
@@ -361,12 +370,8 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     element (it neither shapes nor prolongs it), not a piece of another one.
 
     ``backbone_seed``: the backbone and its seed member, if the caller grew it (``fuse_group``)."""
-    sigma = np.array([m.sigma_m for m in members])
-    w_member = 1.0 / sigma**2
-    gate = np.array([params.gate_m(sg, sg) for sg in sigma])
     spacing = 0.5 * params.BIN_M
-    lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
-    anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
+    sigma, w_member, gate, lines, anchored = _member_lines(members, params, spacing)
     whole = element_type in params.WHOLE_ELEMENT_TYPES
     fits = np.ones(len(members), bool)  # members whose samples speak for the geometry
     if backbone_seed is not None:
@@ -427,7 +432,6 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     if not keep_m.any():
         keep_m[int(np.argmax(close_share))] = True
     detached: list[Member] = []
-    detached_from: list[int] = []
     min_run = max(int(params.MIN_OVERLAP_M / spacing), 2)
     # a member kept: its runs off the line; one not kept: all of it (those that fit the element)
     for k, a, b in zip(*_runs_per_member(fits[own] & (off | ~keep_m[own]), own), strict=True):
@@ -435,7 +439,6 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             m = members[k]
             detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
                                    m.sigma_m))
-            detached_from.append(k)
     in_share = np.bincount(own[inlier & ~off], minlength=n_m) / np.maximum(cnt, 1)
     outliers = [k for k in range(n_m) if keep_m[k] and (in_share[k] < 0.5 * close_share[k] or not fits[k])]
     use = inlier & keep_m[own] & ~off
@@ -493,23 +496,24 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
             detached=tuple(detached), uncertainty_m=float(np.median(se[span[0]:span[-1] + 1][support[span[0]:span[-1] + 1]])),
             scatter_ratio=scatter, rejected_weight_share=rejected_share,
             outlier_members=tuple(k for k in outliers if k in span_members),
-            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2,
-            claimed=tuple(int(k) for k in np.flatnonzero(keep_m)), detached_from=tuple(detached_from)))
+            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2))
     return out
 
 
 def fuse_group(members: Sequence[Member], element_type: ElementType, params: TopologyParams
                ) -> tuple[list[FusedInstance], list[Member]]:
-    """Every line of an associated group, one ``fuse_lines`` pass per line: the line grown from
-    the member most of the members left agree with, fitted to the members alongside it; the
-    members it takes leave the group, the rest wait for a later pass. A group chained through
-    junctions (centrelines: every lane runs on into the next one and turns into the crossing
-    ones) holds hundreds of lines; one per association round would take hundreds of rounds.
+    """The lines of an associated group that one round can fuse, one ``fuse_lines`` pass per
+    line: the line grown from the member most of the members left agree with and fitted to the
+    members within reach of it. Every member within reach leaves the group: the ones the line
+    took with their runs off it peeled off, the others whole (they wait for the next round, to
+    be associated again with those pieces, as when a group gave one line per round). Members
+    out of reach of every line so far give further lines. A group chained through junctions
+    (centrelines: every lane runs on into the next one and turns into the crossing ones) holds
+    hundreds of lines far apart; one line per round would leave most of them undone.
 
-    Returns the instances (``members`` etc. index ``members``) and the pieces of the taken
-    members that their line does not support (the other branch of a split: associated again).
-    Agreement is counted once (``_agreement``) and decremented as members leave; each pass
-    touches only the members within reach of its backbone."""
+    Returns the instances (``members`` etc. index ``members``) and the members and pieces for
+    the next round. Agreement is counted once (``_agreement``) and decremented as members
+    leave; each pass touches only the members within reach of its backbone."""
     if element_type in params.WHOLE_ELEMENT_TYPES or len(members) == 1:
         fused = fuse_lines(members, element_type, params)
         if not fused and len(members) > 1:  # nothing fused: the members on their own
@@ -517,12 +521,8 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
                     for f in fuse_lines([members[k]], element_type, params)], []
         return fused, list(fused[0].detached) if fused else []
     n = len(members)
-    sigma = np.array([m.sigma_m for m in members])
-    weights = 1.0 / sigma**2
-    gates = np.array([params.gate_m(sg, sg) for sg in sigma])
     spacing = 0.5 * params.BIN_M
-    lines = [resample_polyline(np.asarray(m.instance.points_xy_world, float), spacing) for m in members]
-    anchored = np.array([m.trip_key == MAP_MEMBER_KEY for m in members])
+    _, weights, gates, lines, anchored = _member_lines(members, params, spacing)
     pts = np.concatenate(lines)
     own = np.repeat(np.arange(n), [len(p) for p in lines])
     tree = cKDTree(pts)
@@ -596,8 +596,6 @@ def _in_group(fused: FusedInstance, local: np.ndarray) -> FusedInstance:
     scatter2[local[: len(fused.member_scatter2)]] = fused.member_scatter2
     return replace(fused, members=tuple(int(local[k]) for k in fused.members),
                    outlier_members=tuple(int(local[k]) for k in fused.outlier_members),
-                   claimed=tuple(int(local[k]) for k in fused.claimed),
-                   detached_from=tuple(int(local[k]) for k in fused.detached_from),
                    member_scatter2=tuple(float(v) for v in scatter2))
 
 
