@@ -560,11 +560,12 @@ def absorb_pieces(pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], para
                   ) -> tuple[list[tuple[int, int]], list[Member]]:
     """Pieces peeled off in one round that are views of a line already fused: a piece with at
     least ``DETACH_CLOSE_SHARE`` of its samples within its gate of one fused line, parallel to
-    it, joins that line's support (its geometry, fitted to many trips, stays). Lines of a group
-    are fused pass after pass in one round (``fuse_group``), so a piece peeled off an early line
-    finds the element it belongs to already fused by a later one; associated again on its own
-    it would be a second, shorter copy. Returns ``(piece index, line index)`` of the absorbed
-    and the pieces left."""
+    it, joins that line's support (its geometry, fitted to many trips, stays); its runs of at
+    least ``MIN_OVERLAP_M`` off the line (it runs on past the line's end) stay pieces. Lines of a
+    group are fused pass after pass in one round (``fuse_group``), so a piece peeled off an
+    early line finds the element it belongs to already fused by a later one; associated again
+    on its own it would be a second, shorter copy. Returns ``(piece index, line index)`` of the
+    absorbed and the pieces left."""
     if not pieces or not lines_xy:
         return [], list(pieces)
     spacing = params.SAMPLE_SPACING_M
@@ -575,17 +576,23 @@ def absorb_pieces(pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], para
     ok = np.isfinite(dist)
     nearest = np.where(ok, nearest, 0)
     parallel = np.abs((smp.tangents * fused.tangents[nearest]).sum(1)) >= np.cos(params.MAX_ANGLE_RAD)
-    close = ok & (dist <= gate) & parallel
-    line_of = np.where(close, fused.owner[nearest], -1)
+    line_of = np.where(ok & (dist <= gate) & parallel, fused.owner[nearest], -1)
+    min_run = max(int(round(params.MIN_OVERLAP_M / spacing)), 2)
     absorbed, rest = [], []
     for k, piece in enumerate(pieces):
-        labels = line_of[smp.owner == k]
+        mine = smp.owner == k
+        labels = line_of[mine]
         hits = labels[labels >= 0]
         best = int(np.bincount(hits).argmax()) if len(hits) else -1
-        if best >= 0 and np.mean(labels == best) >= params.DETACH_CLOSE_SHARE:
-            absorbed.append((k, best))
-        else:
+        if best < 0 or np.mean(labels == best) < params.DETACH_CLOSE_SHARE:
             rest.append(piece)
+            continue
+        absorbed.append((k, best))
+        points = smp.points_xy[mine]
+        for _, a, b in zip(*_runs_per_member(labels != best, np.zeros(len(labels), np.int64)), strict=True):
+            if b - a >= min_run:
+                rest.append(Member(piece.trip_key, piece.index, replace(piece.instance, points_xy_world=points[a:b]),
+                                   piece.sigma_m))
     return absorbed, rest
 
 

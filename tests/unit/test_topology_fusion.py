@@ -322,7 +322,8 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
 
 def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
     """``absorb_pieces``: a piece within its gate of a fused line and parallel to it joins that
-    line; one a lane away, one crossing it, and one only half along it stay pieces."""
+    line; one a lane away, one crossing it, and one only half along it stay pieces; one that
+    runs on past the line's end joins it and leaves what lies past the end as a piece."""
     from csr_core.topology.association import Member
     from csr_core.topology.fusion import absorb_pieces
 
@@ -339,6 +340,10 @@ def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
     crossing = piece(np.column_stack([np.full_like(xs, 40.0), xs - 35.0]))
     half = piece(np.column_stack([np.arange(60.0, 100.0, 1.0), np.zeros(40)]))
     on_other = piece(np.column_stack([xs, np.full_like(xs, 9.95)]))
-    absorbed, rest = absorb_pieces([along, lane_away, crossing, half, on_other], [line, other], DEFAULT)
-    assert absorbed == [(0, 0), (4, 1)]
-    assert rest == [lane_away, crossing, half]
+    runs_on = piece(np.column_stack([np.arange(40.0, 90.0, 1.0), np.zeros(50)]))  # 10 m past the end
+    absorbed, rest = absorb_pieces([along, lane_away, crossing, half, on_other, runs_on], [line, other], DEFAULT)
+    assert absorbed == [(0, 0), (4, 1), (5, 0)]
+    assert rest[:3] == [lane_away, crossing, half]
+    # what runs on past the line's end stays a piece, to be fused with whatever else goes on there
+    assert len(rest) == 4 and rest[3].trip_key == runs_on.trip_key
+    assert 8.0 <= np.ptp(rest[3].instance.points_xy_world[:, 0]) <= 10.0 and rest[3].instance.points_xy_world[:, 0].min() > 79.0
