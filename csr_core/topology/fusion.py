@@ -18,8 +18,9 @@ split. What multi-trip fusion adds:
 - peeling: what the fused line does not support (members mostly off it, runs of members off
   it) is handed back as ``detached`` pieces to be associated again (``instances.fuse_type``);
 - many lines per group (``fuse_group``): association chains partial overlaps, so at junctions
-  (turns overlap the lanes they leave and enter) a city's centrelines are one group; its lines
-  are fused one after the other, each from the member most of those left agree with;
+  (turns overlap the lanes they leave and enter) a city's centrelines are one group; in each
+  round its regions are fused one after the other, each from the member most of those left
+  agree with, and pieces that lie along a line of the same round join it (``absorb_pieces``);
 - statistics for validation and the map properties: the standard error of the profile per
   bin (model and empirical, the larger), the scatter of the trips around it in units of their
   sigma, and the share of weight held by trips the fit rejected.

@@ -91,12 +91,13 @@ def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
 
 def fuse_type(members: Sequence[Member], element_type: ElementType, params: TopologyParams
               ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
-    """Associate and fuse all members of one type. Each group gives all its lines at once
-    (``fusion.fuse_group``: a group chained through junctions holds many); what a line does not
-    support of the members it took (the other side of a corner a chain of boundaries went
-    round, the other branch of a split) is peeled off, and those pieces are associated and fused
-    again among themselves, round after round, until nothing is left (after
-    ``MAX_FUSION_ROUNDS`` the rest stand alone)."""
+    """Associate and fuse all members of one type. In each round a group gives a line for each
+    of its regions (``fusion.fuse_group``: a group chained through junctions holds many); what
+    a line does not support (the other side of a corner a chain of boundaries went round, the
+    other branch of a split) is peeled off and, unless it lies along a line fused in the same
+    round (``fusion.absorb_pieces``), associated and fused again with the members that waited,
+    round after round, until nothing is left (after ``MAX_FUSION_ROUNDS`` the rest stand
+    alone)."""
     out: list[tuple[FusedInstance, tuple[Member, ...]]] = []
     pending = list(members)
     for round_ in range(params.MAX_FUSION_ROUNDS + 1):
