@@ -542,7 +542,8 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
         seed = int(np.argmax(np.where(active, consensus * weights, -np.inf)))
         backbone = _grow_from_seed(lines, gates, spacing, seed, bool(anchored[seed]), tree, own, active)
         near = cKDTree(backbone).sparse_distance_matrix(tree, reach, output_type="ndarray")["j"]
-        local = np.union1d(_unique_ints(own[near])[active[_unique_ints(own[near])]], [seed])
+        within_reach = _unique_ints(own[near])
+        local = np.union1d(within_reach[active[within_reach]], [seed])
         fused = fuse_lines([members[k] for k in local], element_type, params,
                            (backbone, int(np.searchsorted(local, seed)))) if len(backbone) >= 3 else []
         if not fused:  # nothing alongside its backbone: the seed on its own

@@ -8,8 +8,8 @@ import pytest
 import shapely
 
 from csr_core.topology import generate_topology
-from csr_core.topology.association import associate_lines
-from csr_core.topology.fusion import _consensus, fuse_group, project_on_polyline
+from csr_core.topology.association import Member, associate_lines
+from csr_core.topology.fusion import _consensus, absorb_pieces, fuse_group, project_on_polyline
 from csr_core.topology.instances import make_members
 from csr_core.topology.params import DEFAULT
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
@@ -324,9 +324,6 @@ def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
     """``absorb_pieces``: a piece within its gate of a fused line and parallel to it joins that
     line; one a lane away, one crossing it, and one only half along it stay pieces; one that
     runs on past the line's end joins it and leaves what lies past the end as a piece."""
-    from csr_core.topology.association import Member
-    from csr_core.topology.fusion import absorb_pieces
-
     x = np.arange(0.0, 80.0, 1.0)
     line = np.column_stack([x, np.zeros_like(x)])
     other = np.column_stack([x, np.full_like(x, 10.0)])
