@@ -28,6 +28,7 @@ from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import (
     SplicedLine,
     resample_polyline,
+    runs_along_observations,
     splice_line,
     splice_polygon,
     unique_ids,
@@ -305,8 +306,18 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                     parts = _resplice_mixture(piece.observations, pieces.points_w[track.pieces], track_frames,
                                               pts_w, obs_id, offsets, end_free, original, params)
                 for part in parts:
-                    spliced.append((part.points_xy_world, part.lateral_residuals_m, part.along_residuals_m,
-                                    unique_ids(track_frames[part.observations])))
+                    kept = runs_along_observations(part.points_xy_world, pts_w, obs_id, part.observations,
+                                                   params.TRACK_MAX_ANGLE_RAD, params.TRACK_GATE_M,
+                                                   params.SPLICE_ACROSS_WINDOW_M)
+                    if len(kept) != 1 or len(kept[0]) != len(part.points_xy_world):
+                        log.debug("%s from %s: cut where it runs across its observations, %d parts left",
+                                  track.type.value, np.round(part.points_xy_world[0], 1), len(kept))
+                        n_dropped += not kept
+                    # residuals stay with the longest part (as for the parts within reach, below)
+                    for k, kept_xy in enumerate(sorted(kept, key=len, reverse=True)):
+                        spliced.append((kept_xy, part.lateral_residuals_m if k == 0 else part.lateral_residuals_m[:0],
+                                        part.along_residuals_m if k == 0 else part.along_residuals_m[:0],
+                                        unique_ids(track_frames[part.observations])))
         spliced = [(part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
                    for points_w, lat, alo, seen in spliced
                    for k, part in enumerate(sorted(_within_reach(points_w, path_tree, lateral_reach, track.type.is_polygon),

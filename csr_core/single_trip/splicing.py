@@ -546,6 +546,59 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     return [SplicedLine(line, lat, along_res, obs)]
 
 
+def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: np.ndarray, obs: np.ndarray,
+                            max_angle_rad: float, near_m: float, window_m: float) -> list[np.ndarray]:
+    """The parts of the spliced ``line_xy`` that run along its own observations ``obs`` (values of
+    ``obs_id``, the observation of each of the points ``points_w``); the whole line when all of
+    it does.
+
+    A splice is tangent to what it was spliced from. Where it crosses its observations it joined
+    pieces of different elements: in a junction a dashed divider's dashes, extended along their
+    chords to bridge the gaps, reach the dashes of a divider that crosses it, and the splice runs
+    on from one to the other, or across from the end of one dash to the end of another.
+    Observation segments within ``near_m`` of the line count as along it or across it (more than
+    ``max_angle_rad`` to the line's direction where they pass it; segment by segment, so a curved
+    observation of a curved element runs along, and the leg of an observation that leaves the
+    line, a boundary turning a corner, is not near it). A vertex is cut when, within
+    ``window_m`` of arclength either side, more observed length runs across than along; a stretch
+    with no observation near it (the gap between two dashes) is kept. A part left with less than
+    ``window_m`` of observed length along it (summed over the observations) is dropped: it only
+    joined two cut places."""
+    if len(line_xy) < 2 or len(points_w) < 2:
+        return [line_xy]
+    # the segments between consecutive points of one observation of ``obs``
+    of_part = np.zeros(int(obs_id.max()) + 1, dtype=bool)
+    of_part[obs] = True
+    start = np.flatnonzero(of_part[obs_id[:-1]] & (obs_id[:-1] == obs_id[1:]))
+    if len(start) == 0:
+        return [line_xy]
+    seg = points_w[start + 1] - points_w[start]
+    seg_len = np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1])
+    dist, nearest = cKDTree(line_xy).query(points_w[start] + 0.5 * seg, distance_upper_bound=near_m)
+    near = np.isfinite(dist)
+    if not near.any():
+        return [line_xy]
+    seg, seg_len, nearest = seg[near], seg_len[near], nearest[near]
+    at = np.minimum(nearest, len(line_xy) - 2)
+    tangent = line_xy[at + 1] - line_xy[at]
+    cos = np.abs((seg * tangent).sum(1)) / np.maximum(seg_len * np.hypot(tangent[:, 0], tangent[:, 1]), 1e-12)
+    across = cos < np.cos(max_angle_rad)
+    if not across.any():
+        return [line_xy]
+    # along and across length per vertex, summed over +-window_m of arclength
+    arc = _arclength(line_xy)
+    lo = np.searchsorted(arc, arc - window_m, side="left")
+    hi = np.searchsorted(arc, arc + window_m, side="right")
+    n = len(line_xy)
+    cum_across = np.r_[0.0, np.cumsum(np.bincount(nearest, seg_len * across, n))]
+    cum_along = np.r_[0.0, np.cumsum(np.bincount(nearest, seg_len * ~across, n))]
+    bad = (cum_across[hi] - cum_across[lo]) > (cum_along[hi] - cum_along[lo])
+    # the runs left; one with (almost) nothing observed along it joined two cut places
+    edges = np.flatnonzero(np.diff(np.r_[0, (~bad).astype(np.int8), 0]))
+    return [line_xy[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True)
+            if b - a >= 2 and cum_along[b] - cum_along[a] >= window_m]
+
+
 def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tuple[float, float]:
     if len(s) == 0:
         return 0.0, 0.0

@@ -275,3 +275,58 @@ def test_duplicate_polygons_keep_the_one_fused_from_whole_outlines():
     kept = [c[0].points_xy_world for c in out]
     assert len(kept) == 2
     assert any(k is whole for k in kept) and any(k is other for k in kept)
+
+
+def _dash_observations(dashes, n_frames, rng, sigma_m=0.03, spacing_m=0.5):
+    """Each dash ``(a (2,), b (2,))`` observed in ``n_frames`` frames: flat points, their observation."""
+    obs = []
+    for _ in range(n_frames):
+        for a, b in dashes:
+            n = int(np.hypot(*np.subtract(b, a)) / spacing_m) + 1
+            obs.append(np.linspace(a, b, n) + rng.normal(0.0, sigma_m, (n, 2)))
+    return np.concatenate(obs), np.repeat(np.arange(len(obs)), [len(o) for o in obs])
+
+
+def _runs_along(line, points, obs_id):
+    from csr_core.single_trip.params import DEFAULT
+    from csr_core.single_trip.splicing import runs_along_observations
+
+    return runs_along_observations(line, points, obs_id, np.unique(obs_id), DEFAULT.TRACK_MAX_ANGLE_RAD,
+                                   DEFAULT.TRACK_GATE_M, DEFAULT.SPLICE_ACROSS_WINDOW_M)
+
+
+def test_splice_along_its_dashes_is_kept_whole_gaps_included():
+    rng = np.random.default_rng(7)
+    dashes = [((x, 0.0), (x + 3.0, 0.0)) for x in np.arange(0.0, 45.0, 9.0)]  # 6 m gaps, unobserved
+    points, obs_id = _dash_observations(dashes, 6, rng)
+    line = np.column_stack([np.linspace(0.0, 39.0, 79), np.zeros(79)])
+    kept = _runs_along(line, points, obs_id)
+    assert len(kept) == 1 and len(kept[0]) == len(line)
+
+
+def test_splice_from_dash_end_to_dash_end_across_two_dividers_is_dropped():
+    # two dashed dividers 7 m apart, their dashes mixed in one track (a junction); the splice ran
+    # across from the end of a dash of one to the end of a dash of the other
+    rng = np.random.default_rng(8)
+    dashes = [((x, y), (x + 3.0, y)) for y in (0.0, 7.0) for x in np.arange(0.0, 30.0, 9.0)]
+    points, obs_id = _dash_observations(dashes, 6, rng)
+    line = np.column_stack([np.linspace(12.0, 12.5, 15), np.linspace(0.0, 7.0, 15)])
+    assert _runs_along(line, points, obs_id) == []
+
+
+def test_splice_running_on_past_its_end_is_cut_where_it_crosses_another_divider():
+    # divider A (dashes along y = 0, x 0-30) ends; the splice runs on at 60 degrees through a dash
+    # of divider B (along y = 4, x 28-40), mixed into A's track
+    rng = np.random.default_rng(9)
+    dashes = [((x, 0.0), (x + 3.0, 0.0)) for x in np.arange(0.0, 30.0, 9.0)] + [((28.0, 4.0), (40.0, 4.0))]
+    points, obs_id = _dash_observations(dashes, 6, rng)
+    head = np.column_stack([np.linspace(0.0, 30.0, 61), np.zeros(61)])
+    turn = np.array([np.cos(np.radians(60.0)), np.sin(np.radians(60.0))])
+    tail = (30.0, 0.0) + np.linspace(0.5, 5.5, 11)[:, None] * turn  # crosses B at 4.6 m
+    kept = _runs_along(np.vstack([head, tail]), points, obs_id)
+    longest = max(kept, key=len)
+    assert longest[0] == pytest.approx(head[0])
+    # the head, cut at most SPLICE_ACROSS_WINDOW_M + TRACK_GATE_M before B, not before A's last dash
+    assert longest[-1, 0] >= 30.0 and longest[-1, 1] < 2.0
+    for part in kept:  # nothing of the tail where it crosses B, nor beyond
+        assert not ((part[:, 1] > 3.0) & (part[:, 0] > 30.0)).any()
