@@ -11,6 +11,8 @@ moved with the correction of the frame nearest to it). Then ``generate_topology`
 
 - map scores per type exactly as contract section 6 (``csr_core.metrics.map_scores``), for the
   fused map and, for reference, for all trips' instances overlaid (no fusion);
+- the lane graph against the one the truth's centrelines give (``evaluate_lane_graph``):
+  connection and split / merge precision and recall;
 - the validator: an instance is *really wrong* when at least ``WRONG_SHARE`` of its 0.5 m
   samples are more than 0.5 m from the truth of its type (inside the evaluated corridor);
   *flagged* when it has a suspect flag (only instances mostly within 12 m of a true frame
@@ -40,6 +42,8 @@ from csr_core.scenario import (
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.topology import SUSPECT, TopologyResult, generate_topology, reposition_instances
+from csr_core.topology.evaluate_lane_graph import lane_graph_scores
+from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
@@ -211,7 +215,9 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
             "validator": validator_scores(result, truth_map, true_xy),
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
                            "splits": len(result.lane_graph.split_points_xy),
-                           "merges": len(result.lane_graph.merge_points_xy)}}
+                           "merges": len(result.lane_graph.merge_points_xy),
+                           "against_truth": lane_graph_scores(result.features, truth_map, true_xy,
+                                                              CORRIDOR_INSIDE_M, TopologyParams())}}
 
 
 def main(argv: list[str] | None = None) -> int:
