@@ -41,9 +41,8 @@ from csr_core.scenario import (
     read_scenario_meta,
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
-from csr_core.topology import SUSPECT, TopologyResult, generate_topology, reposition_instances
+from csr_core.topology import DEFAULT, SUSPECT, TopologyResult, generate_topology, reposition_instances
 from csr_core.topology.evaluate_lane_graph import lane_graph_scores
-from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
@@ -217,7 +216,7 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
                            "splits": len(result.lane_graph.split_points_xy),
                            "merges": len(result.lane_graph.merge_points_xy),
                            "against_truth": lane_graph_scores(result.features, truth_map, true_xy,
-                                                              CORRIDOR_INSIDE_M, TopologyParams())}}
+                                                              CORRIDOR_INSIDE_M, DEFAULT)}}
 
 
 def main(argv: list[str] | None = None) -> int:
