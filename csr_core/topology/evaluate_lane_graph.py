@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import resample_polyline
-from csr_core.topology.lane_graph import SUCCESSOR, LaneGraph, build_lane_graph
+from csr_core.topology.lane_graph import SUCCESSOR, LaneGraph, build_lane_graph, sampled_with_tangents
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
@@ -65,11 +65,9 @@ def _lane_samples(lane_graph: LaneGraph) -> tuple[np.ndarray, np.ndarray, np.nda
     pts, tans, ahead, from_start = [], [], [], []
     k = int(LOOKAHEAD_M / SPACING_M)
     for _, data in lane_graph.graph.nodes(data=True):
-        p = resample_polyline(np.asarray(data["points_xy_world"], float), SPACING_M)
+        p, t = sampled_with_tangents(data["points_xy_world"], SPACING_M)
         if len(p) < 2:
             continue
-        t = np.gradient(p, axis=0)
-        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
         pts.append(p)
         tans.append(t)
         ahead.append(p[np.minimum(np.arange(len(p)) + k, len(p) - 1)])

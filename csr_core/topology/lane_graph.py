@@ -160,6 +160,13 @@ def _midpoint(points: np.ndarray) -> np.ndarray:
     return np.array([np.interp(h, s, points[:, 0]), np.interp(h, s, points[:, 1])])
 
 
+def sampled_with_tangents(points_xy: np.ndarray, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A lane's polyline resampled every ``spacing_m`` (P, 2) and its unit tangents (P, 2)."""
+    p = resample_polyline(np.asarray(points_xy, float), spacing_m)
+    t = np.gradient(p, axis=0) if len(p) >= 2 else np.zeros_like(p)
+    return p, t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
 def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     """Left/right edges: for every lane sample, the other lanes' nearest samples beside it
     (same direction, lateral offset within the lane-width band); per lane and side the lane
@@ -167,11 +174,9 @@ def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     names = list(g.nodes)
     pts, tans, own = [], [], []
     for k, n in enumerate(names):
-        p = resample_polyline(np.asarray(g.nodes[n]["points_xy_world"], float), 2.0)
+        p, t = sampled_with_tangents(g.nodes[n]["points_xy_world"], 2.0)
         if len(p) < 2:
             continue
-        t = np.gradient(p, axis=0)
-        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
         pts.append(p)
         tans.append(t)
         own.append(np.full(len(p), k))
