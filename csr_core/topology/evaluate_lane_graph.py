@@ -26,19 +26,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import resample_polyline
-from csr_core.topology.lane_graph import SUCCESSOR, LaneGraph, build_lane_graph, sampled_with_tangents
+from csr_core.topology.lane_graph import (
+    SUCCESSOR,
+    LaneGraph,
+    build_lane_graph,
+    end_heading,
+    sampled_with_tangents,
+)
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
 MATCH_M = 2.0  # a connection is where the other graph has one within this
 MATCH_ANGLE_RAD = math.radians(30.0)
-HEADING_SPAN_M = 3.0
 LOOKAHEAD_M = 10.0
 SPACING_M = 0.5
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / max(float(np.linalg.norm(v)), 1e-12)
 
 
 def connections(lane_graph: LaneGraph) -> np.ndarray:
@@ -53,8 +54,7 @@ def connections(lane_graph: LaneGraph) -> np.ndarray:
         pv = resample_polyline(np.asarray(g.nodes[v]["points_xy_world"], float), SPACING_M)
         if len(pu) < 2 or len(pv) < 2:
             continue
-        k_in = max(1, min(len(pu) - 1, int(HEADING_SPAN_M / SPACING_M)))
-        rows.append(np.r_[pu[-1], _unit(pu[-1] - pu[-1 - k_in]), pv[min(len(pv) - 1, int(LOOKAHEAD_M / SPACING_M))]])
+        rows.append(np.r_[pu[-1], end_heading(pu, True), pv[min(len(pv) - 1, int(LOOKAHEAD_M / SPACING_M))]])
     return np.array(rows).reshape(-1, 6)
 
 

@@ -58,7 +58,8 @@ class LaneGraph:
         return [n for n, a in self.graph.nodes(data=True) if a["feature_id"] == feature_id]
 
 
-def _heading(points: np.ndarray, at_end: bool, span_m: float = 3.0) -> np.ndarray:
+def end_heading(points: np.ndarray, at_end: bool, span_m: float = 3.0) -> np.ndarray:
+    """Unit direction of a polyline over its last (``at_end``) or first ``span_m``."""
     s = arclength(points)
     if at_end:
         i = max(int(np.searchsorted(s, s[-1] - span_m)) - 1, 0)
@@ -79,8 +80,8 @@ def build_lane_graph(features: Sequence[MapFeature], params: TopologyParams) -> 
     total = [float(arclength(ln)[-1]) for ln in lines]
     starts = np.array([ln[0] for ln in lines]) if lines else np.zeros((0, 2))
     ends = np.array([ln[-1] for ln in lines]) if lines else np.zeros((0, 2))
-    h_start = [_heading(ln, False) for ln in lines]
-    h_end = [_heading(ln, True) for ln in lines]
+    h_start = [end_heading(ln, False) for ln in lines]
+    h_end = [end_heading(ln, True) for ln in lines]
     # 1. cut points: other lanes starting (split) or ending (merge) inside a centreline
     cuts: list[list[tuple[float, int, str]]] = [[] for _ in lines]
     tree_s = cKDTree(starts) if len(lines) else None
