@@ -7,7 +7,8 @@ Per trip, single-trip reconstruction (``csr_core.single_trip``) gives the instan
 instances carry perception and splicing errors only and the map scores are the fusion's own
 error floor; with ``--poses smoothed`` they are placed with each trip's own GNSS-smoothed poses
 (no multi-trip alignment); with ``--poses aligned`` by ``alignment.align_trips`` (each point
-moved with the correction of the frame nearest to it). Then ``generate_topology`` and:
+moved with the correction of the frame nearest to it; its match pairs go to the validator, as
+in the pipeline). Then ``generate_topology`` and:
 
 - map scores per type exactly as contract section 6 (``csr_core.metrics.map_scores``), for the
   fused map and, for reference, for all trips' instances overlaid (no fusion);
@@ -50,11 +51,13 @@ CORRIDOR_INSIDE_M = 12.0  # truth is kept within 15 m of true frames; judge 3 m 
 LOCAL_RADIUS_M = 50.0  # diagnostic: the map offset shared by the instances this close
 
 
-def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
+def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_out: list | None = None) -> dict:
     """trip key -> (instances, noise, poses used (N, 3), true poses (N, 3), started_at).
 
     ``poses``: ``truth`` (pose smoothing replaced by the true poses), ``smoothed`` (each trip's
-    own), ``aligned`` (``alignment.align_trips`` over all trips, instances moved with it)."""
+    own), ``aligned`` (``alignment.align_trips`` over all trips, instances moved with it; its
+    match pairs are appended to ``match_pairs_out`` when given, as the pipeline hands them to
+    the validator)."""
     import csr_core.single_trip as single_trip
     from csr_core.single_trip.pose_graph import SmoothedPoses
 
@@ -80,6 +83,8 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth") -> dict:
         from csr_core.alignment import align_trips
 
         aligned = align_trips(recs)
+        if match_pairs_out is not None:
+            match_pairs_out.extend(aligned.match_pairs)
         for rec in recs:
             k = rec.trip.key
             if k not in aligned.poses_xyyaw_world:
@@ -180,21 +185,32 @@ def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> 
             "beyond_local_offset": _recall_precision(w_local, fl)}
 
 
+def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | None) -> tuple[dict, tuple]:
+    """``trip_instances`` and the alignment's match pairs (``()`` unless ``poses="aligned"``),
+    read from the pickle ``cache`` if it exists, else computed and written there."""
+    if cache and Path(cache).exists():
+        stored = pickle.loads(Path(cache).read_bytes())
+        if "trips" in stored and "match_pairs" in stored:
+            return stored["trips"], tuple(stored["match_pairs"])
+        return stored, ()  # written before the match pairs were kept
+    pairs: list = []
+    data = trip_instances(scenario_dir, poses, pairs)
+    if cache:
+        Path(cache).write_bytes(pickle.dumps({"trips": data, "match_pairs": pairs}))
+    return data, tuple(pairs)
+
+
 def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None) -> dict:
     scenario_dir = Path(scenario_dir)
-    if cache and Path(cache).exists():
-        data = pickle.loads(Path(cache).read_bytes())
-    else:
-        data = trip_instances(scenario_dir, poses)
-        if cache:
-            Path(cache).write_bytes(pickle.dumps(data))
+    data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
     truth_map = geo_features_to_local(read_map_geojson(scenario_dir / "truth" / "map.geojson"), meta.frame)
     true_xy = np.concatenate([v[3][:, :2] for v in data.values()])
     t0 = time.perf_counter()
     result = generate_topology({k: v[0] for k, v in data.items()}, {k: v[1] for k, v in data.items()},
                                trip_times={k: v[4] for k, v in data.items()},
-                               paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()})
+                               paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()},
+                               match_pairs=match_pairs)
     seconds = time.perf_counter() - t0
     # contract section 6 "aligned" figures: one rigid SE(2) of all poses onto truth, applied to the map
     truth_T_est = metrics.umeyama_se2(np.concatenate([v[2][:, :2] for v in data.values()]), true_xy)

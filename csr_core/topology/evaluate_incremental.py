@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 import time
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import numpy as np
 from csr_core import metrics
 from csr_core.scenario import geo_features_to_local, read_map_geojson, read_scenario_meta
 from csr_core.topology import TopologyResult, generate_topology, update_topology
-from csr_core.topology.evaluate import trip_instances
+from csr_core.topology.evaluate import cached_trip_instances
 
 
 def _inputs(data: dict, keys: list[str]) -> dict:
@@ -32,12 +31,7 @@ def _inputs(data: dict, keys: list[str]) -> dict:
 
 def compare(scenario_dir: str | Path, start: int = 5, cache: str | None = None) -> dict:
     scenario_dir = Path(scenario_dir)
-    if cache and Path(cache).exists():
-        data = pickle.loads(Path(cache).read_bytes())
-    else:
-        data = trip_instances(scenario_dir, "aligned")
-        if cache:
-            Path(cache).write_bytes(pickle.dumps(data))
+    data, _ = cached_trip_instances(scenario_dir, "aligned", cache)
     keys = sorted(data)
     if not 1 <= start < len(keys):
         raise SystemExit(f"--start must be between 1 and {len(keys) - 1} (the scenario has {len(keys)} trips)")

@@ -4,8 +4,9 @@ properties, ids, and the final lane graph + validation pass."""
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -244,7 +245,7 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     t0 = time.perf_counter()
     cover = coverage_counts(features, trip_points, params.COVERAGE_RADIUS_M)
     passed = passing_counts(features, trip_paths or {}, params)
-    flags, quality = validate(features, cover, params, match_pairs)
+    flags, quality = validate(features, cover, params, match_pairs, trip_sigmas(members.values()))
     by_feature: dict[str, list[str]] = {}
     for fl in flags:
         if fl.feature_id is not None:
@@ -261,6 +262,16 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     return TopologyResult(published, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
                           {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed,
                           tuple(rejected_members), dict(trip_paths or {}))
+
+
+def trip_sigmas(member_groups: Iterable[Sequence[Member]]) -> dict[str, float]:
+    """Trip key -> RMS over its element types of its instances' lateral sigma (``Member.sigma_m``:
+    perception noise and alignment), for the residual a registration of two trips should have."""
+    per_trip: dict[str, dict[ElementType, float]] = {}
+    for group in member_groups:
+        for m in group:
+            per_trip.setdefault(m.trip_key, {})[m.instance.type] = m.sigma_m
+    return {k: math.sqrt(sum(v * v for v in s.values()) / len(s)) for k, s in per_trip.items()}
 
 
 def _ghost(support_trips: int, passed_trips: int, params: TopologyParams) -> bool:

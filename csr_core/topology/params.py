@@ -77,7 +77,10 @@ class TopologyParams:
     HIGH_VARIANCE_RATIO: float = 2.0  # trip scatter / expected sigma above this
     DISAGREE_WEIGHT_SHARE: float = 0.25  # rejected (outlier) trips hold this share of the weight
     GAP_MIN_M: float = 5.0  # unsupported run inside an instance, or break to a collinear one
-    HIGH_RESIDUAL_SIGMAS: float = 3.0  # match pair residual / ALIGNMENT_SIGMA_M above this
+    # a match pair's registration residual (RMS over many points) above this many times what the
+    # two trips' noise predicts (``validation.expected_pair_residual_m``): the sub-maps do not fit.
+    # An RMS of tens of residuals concentrates near its sigma; twice it is far outside the noise.
+    HIGH_RESIDUAL_SIGMAS: float = 2.0
     WIDTH_RUN_M: float = 5.0  # an implausible spacing must hold over this length
     # two estimates of one line differ by more than this many combined sigmas: not noise
     DUPLICATE_SIGMAS: float = 2.0

@@ -16,8 +16,9 @@ Per instance (thresholds from the noise model, see ``TopologyParams``):
   ``MIN_LANE_WIDTH_M``), at an offset that holds (varies less than that noise bound) over
   ``WIDTH_RUN_M`` (or half the instance) and over at least half of what lies beside it: one
   element in the map twice, one copy off;
-- ``high_residual_pair``: an alignment match pair whose residual exceeds
-  ``HIGH_RESIDUAL_SIGMAS`` x ``ALIGNMENT_SIGMA_M`` involves one of its trips near it.
+- ``high_residual_pair``: an alignment match pair whose registration residual exceeds
+  ``HIGH_RESIDUAL_SIGMAS`` x what the two trips' noise predicts (``expected_pair_residual_m``)
+  involves one of its trips near it.
 
 Informative (not suspect, severity 0): ``outlier_trip`` (the fused geometry ignores a minority
 trip), ``gap`` (an unsupported stretch of at least ``GAP_MIN_M`` inside the instance, or a break
@@ -143,7 +144,9 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         bad = (lat > noise) & near
         # per pair of features: the run of narrow samples, if the offset holds along it (a copy
         # is parallel: its offset varies less than the noise bound; branches that diverge do
-        # not); blame the clearly less supported one, else both
+        # not); blame the clearly less supported one, else both unless both are confirmed (two
+        # lines each seen by several trips are the road's own narrow spacing, a taper or a lane
+        # that ends, more often than one line twice)
         a, b, lat, noise = a[bad], b[bad], lat[bad], noise[bad]
         if not len(a):
             continue
@@ -164,7 +167,8 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
             lo, hi = np.percentile(lat[sel], [10, 90])
             if hi - lo > float(np.median(noise[sel])):
                 continue
-            if support[fa] <= 0.5 * support[fb] or not support[fb] <= 0.5 * support[fa]:
+            similar = not support[fb] <= 0.5 * support[fa]
+            if support[fa] <= 0.5 * support[fb] or (similar and support[fa] < params.MIN_SUPPORT_TRIPS):
                 out[idx[fa]] = max(out.get(idx[fa], 0.0), run)
     return out
 
@@ -202,14 +206,29 @@ def _breaks(features: Sequence[MapFeature], params: TopologyParams) -> set[int]:
     return out
 
 
+def expected_pair_residual_m(trip_key_i: str, trip_key_j: str, trip_sigma_m: Mapping[str, float],
+                             params: TopologyParams) -> float:
+    """The RMS residual a registration of two trips' sub-maps has from noise alone: their
+    lateral sigmas combined (``trip_sigma_m``: trip key -> RMS over its element types of
+    ``TopologyParams.trip_sigma_m``). A side not in it (the pre-built map) counts as the other."""
+    default = params.trip_sigma_m(None)
+    a, b = trip_sigma_m.get(trip_key_i), trip_sigma_m.get(trip_key_j)
+    a = a if a is not None else (b if b is not None else default)
+    b = b if b is not None else a
+    return math.hypot(a, b)
+
+
 def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], params: TopologyParams,
-             match_pairs: Sequence = ()) -> tuple[tuple[ValidationFlag, ...], dict[tuple[int, int], TileQuality]]:
+             match_pairs: Sequence = (), trip_sigma_m: Mapping[str, float] | None = None
+             ) -> tuple[tuple[ValidationFlag, ...], dict[tuple[int, int], TileQuality]]:
     """Flags per instance and quality per tile.
 
     ``features`` carry the fusion statistics in ``properties`` (support_trips, scatter_ratio,
     rejected_weight_share, outlier_trips, max_internal_gap_m, trips); ``coverage_trips[i]`` is the
     number of trips that passed feature i; ``match_pairs`` objects with ``centre_xy_world``,
-    ``residual_rms_m``, ``trip_key_i``, ``trip_key_j`` (``alignment.MatchPairRecord``).
+    ``residual_rms_m``, ``trip_key_i``, ``trip_key_j`` (``alignment.MatchPairRecord``);
+    ``trip_sigma_m``: trip key -> its instances' lateral sigma (``expected_pair_residual_m``;
+    missing trips take the default noise).
     """
     flags: list[ValidationFlag] = []
     narrow = _narrow_spacing(features, params)
@@ -221,8 +240,8 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
         p = np.asarray(f.points_xy_world, float)
         tx, ty = tile_of(p[len(p) // 2], params.TILE_SIZE_M)
         home[k] = (int(tx), int(ty))
-    bad_pairs = [mp for mp in match_pairs
-                 if float(mp.residual_rms_m) > params.HIGH_RESIDUAL_SIGMAS * params.ALIGNMENT_SIGMA_M]
+    bad_pairs = [mp for mp in match_pairs if float(mp.residual_rms_m) > params.HIGH_RESIDUAL_SIGMAS
+                 * expected_pair_residual_m(mp.trip_key_i, mp.trip_key_j, trip_sigma_m or {}, params)]
     for k, f in enumerate(features):
         pr = f.properties
         tile = home[k]

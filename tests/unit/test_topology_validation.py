@@ -67,3 +67,27 @@ def test_a_gap_is_reported_but_does_not_make_the_instance_suspect() -> None:
     assert [fl.kind for fl in flags] == ["gap"]
     assert "gap" not in SUSPECT and {"low_support", "implausible_lane_width"} <= SUSPECT
     assert all(q.score == 1.0 for q in quality.values())
+
+
+def test_two_confirmed_lines_at_a_narrow_spacing_are_not_blamed() -> None:
+    # similar support on both sides: the road's own narrow spacing (a taper), unless one is unconfirmed
+    confirmed = _kinds([_line("a", 0.0, support=4), _line("b", 1.0, support=3)])
+    single = _kinds([_line("a", 0.0, support=1), _line("b", 1.0, support=1)])
+    assert confirmed == {"a": set(), "b": set()}
+    assert "implausible_lane_width" in single["a"] and "implausible_lane_width" in single["b"]
+
+
+def test_a_high_residual_pair_is_judged_against_the_noise_of_its_two_trips() -> None:
+    from types import SimpleNamespace
+
+    line = _line("l", 0.0, support=2)
+    pair = SimpleNamespace(centre_xy_world=(20.0, 0.0), residual_rms_m=0.5, trip_key_i="t0", trip_key_j="t1")
+
+    def flagged(trip_sigma_m: dict[str, float]) -> bool:
+        flags, _ = validate([line], [2], DEFAULT, [pair], trip_sigma_m)
+        return any(fl.kind == "high_residual_pair" for fl in flags)
+
+    # expected residual: the two sigmas combined (0.14 m, 0.42 m); flagged above twice that
+    assert flagged({"t0": 0.1, "t1": 0.1})
+    assert not flagged({"t0": 0.3, "t1": 0.3})
+    assert flagged({"t0": 0.1})  # a side without noise estimates (the pre-built map) counts as the other
