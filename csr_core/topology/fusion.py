@@ -729,3 +729,73 @@ def fuse_polygons(members: Sequence[Member], element_type: ElementType, params: 
                          members=tuple(range(n)), detached=(), uncertainty_m=se, scatter_ratio=scatter,
                          rejected_weight_share=float(w_all[list(outliers)].sum() / w_all.sum()) if outliers else 0.0,
                          outlier_members=outliers, max_internal_gap_m=0.0)
+
+
+def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], params: TopologyParams
+                ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
+    """One element fused twice, once per round, becomes one line. A member within reach of a
+    round's line that the line did not take (less than ``DETACH_CLOSE_SHARE`` of it lies along
+    it: a trip's centreline that follows a lane and then turns off) waits for the next round
+    whole; the members that waited with it fuse there into a *twin*, the lane again plus the
+    turn. Lines are visited from the best supported (trips, then length): a line with at least
+    ``DETACH_CLOSE_SHARE`` of its samples within the association gate of one line already kept,
+    parallel to it, is that line again; its trips join that line's support (its geometry,
+    fitted to more trips, stays) and its runs of at least ``MIN_OVERLAP_M`` off it (the turn)
+    stay lines of their own. ``fused``: (instance, its members) of one type."""
+    n = len(fused)
+    if n < 2:
+        return list(fused)
+    spacing = params.SAMPLE_SPACING_M
+    smp = sample_lines([f.points_xy_world for f, _ in fused], spacing)
+    sigma = np.array([float(np.median([m.sigma_m for m in mem])) for _, mem in fused])
+    trips = [len({m.trip_key for m in mem}) for _, mem in fused]
+    length = np.bincount(smp.owner, minlength=n)
+    first_sample = np.r_[0, np.cumsum(length)[:-1]]
+    gate_max = params.gate_m(float(sigma.max()), float(sigma.max()))
+    pairs = cKDTree(smp.points_xy).query_pairs(gate_max, output_type="ndarray")
+    pairs = pairs[smp.owner[pairs[:, 0]] != smp.owner[pairs[:, 1]]]
+    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]  # sample a of one line near sample b of another
+    dist = np.linalg.norm(smp.points_xy[a] - smp.points_xy[b], axis=1)
+    la, lb = smp.owner[a], smp.owner[b]
+    gate = np.minimum(params.GATE_SIGMAS * np.hypot(sigma[la], sigma[lb]),
+                      params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M)  # ``params.gate_m``
+    parallel = np.abs((smp.tangents[a] * smp.tangents[b]).sum(1)) >= np.cos(params.MAX_ANGLE_RAD)
+    near = (dist <= gate) & parallel
+    a, la, lb, dist = a[near], la[near], lb[near], dist[near]
+    by_line = np.argsort(la, kind="stable")
+    starts = np.searchsorted(la[by_line], np.arange(n + 1))
+    kept = np.zeros(n, bool)
+    merged_into: dict[int, list[Member]] = {}
+    pieces: list[tuple[FusedInstance, tuple[Member, ...]]] = []
+    min_run = max(int(round(params.MIN_OVERLAP_M / spacing)), 2)
+    for k in sorted(range(n), key=lambda i: (-trips[i], -length[i])):
+        rows = by_line[starts[k]:starts[k + 1]]
+        rows = rows[kept[lb[rows]]]
+        if not len(rows):
+            kept[k] = True
+            continue
+        # per sample of line k: the nearest kept line within the gate
+        order = np.lexsort((dist[rows], a[rows]))
+        rows = rows[order]
+        first = np.r_[True, a[rows][1:] != a[rows][:-1]]
+        label = np.full(int(length[k]), -1)
+        label[a[rows][first] - first_sample[k]] = lb[rows][first]
+        hits = label[label >= 0]
+        best = int(np.bincount(hits).argmax())
+        # a line one trip saw is no evidence that another is the same element
+        if np.mean(label == best) < params.DETACH_CLOSE_SHARE or trips[best] < params.MIN_SUPPORT_TRIPS:
+            kept[k] = True
+            continue
+        f, mem = fused[k]
+        merged_into.setdefault(best, []).extend(mem)
+        points = smp.points_xy[first_sample[k]:first_sample[k] + length[k]]
+        for _, lo, hi in zip(*_runs_per_member(label != best, np.zeros(len(label), np.int64)), strict=True):
+            if hi - lo >= min_run:
+                pieces.append((replace(f, points_xy_world=points[lo:hi]), mem))
+    out = []
+    for k, (f, mem) in enumerate(fused):
+        if kept[k]:
+            seen = {(m.trip_key, m.index) for m in mem}
+            more = {(m.trip_key, m.index): m for m in merged_into.get(k, ()) if (m.trip_key, m.index) not in seen}
+            out.append((f, (*mem, *more.values())))
+    return out + pieces

@@ -15,7 +15,14 @@ from scipy.spatial import cKDTree
 from csr_core.se2 import compose, inverse
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member, associate_lines, associate_polygons
-from csr_core.topology.fusion import FusedInstance, absorb_pieces, fuse_group, fuse_lines, fuse_polygons
+from csr_core.topology.fusion import (
+    FusedInstance,
+    absorb_pieces,
+    fuse_group,
+    fuse_lines,
+    fuse_polygons,
+    merge_twins,
+)
 from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
@@ -98,7 +105,8 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
     other branch of a split) is peeled off and, unless it lies along a line fused in the same
     round (``fusion.absorb_pieces``), associated and fused again with the members that waited,
     round after round, until nothing is left (after ``MAX_FUSION_ROUNDS`` the rest stand
-    alone)."""
+    alone). Lines of a later round that are an earlier line again join it
+    (``fusion.merge_twins``)."""
     out: list[tuple[FusedInstance, tuple[Member, ...]]] = []
     pending = list(members)
     for round_ in range(params.MAX_FUSION_ROUNDS + 1):
@@ -128,6 +136,8 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
                 out[done + line] = (f, (*mem, detached[k]))
             detached = rest
         pending = detached
+    if not element_type.is_polygon and element_type not in params.WHOLE_ELEMENT_TYPES:
+        out = merge_twins(out, params)
     return out
 
 

@@ -344,3 +344,33 @@ def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
     # what runs on past the line's end stays a piece, to be fused with whatever else goes on there
     assert len(rest) == 4 and rest[3].trip_key == runs_on.trip_key
     assert 8.0 <= np.ptp(rest[3].instance.points_xy_world[:, 0]) <= 10.0 and rest[3].instance.points_xy_world[:, 0].min() > 79.0
+
+
+def test_a_line_fused_twice_becomes_one_and_its_turn_stays() -> None:
+    """``merge_twins``: a twin (the lane again, 0.2 m off, then a turn off it) gives its trips to
+    the better supported lane and keeps only the turn; a twin of a line one trip saw, and a
+    line a lane away, stay as they are."""
+    from csr_core.topology.fusion import FusedInstance, merge_twins
+
+    def fused(xy: np.ndarray, trips: range) -> tuple[FusedInstance, tuple[Member, ...]]:
+        mem = tuple(Member(f"veh-1__t{k:02d}", 0, TripInstance(ElementType.CENTERLINE, xy, None, n_observations=5), 0.2)
+                    for k in trips)
+        return FusedInstance(ElementType.CENTERLINE, xy, None, tuple(range(len(mem))), (), 0.05, 1.0, 0.0, (), 0.0), mem
+
+    x = np.arange(0.0, 100.5, 0.5)
+    lane = fused(np.column_stack([x, np.zeros_like(x)]), range(0, 6))
+    angle = np.linspace(0.0, np.pi / 2, 32)[1:]  # a right turn of 10 m radius at x = 100
+    turn = np.column_stack([100.0 + 10.0 * np.sin(angle), -10.0 + 10.0 * np.cos(angle) + 0.2])
+    xs = np.arange(40.0, 100.5, 0.5)
+    twin = fused(np.vstack([np.column_stack([xs, np.full_like(xs, 0.2)]), turn]), range(6, 9))
+    next_lane = fused(np.column_stack([x, np.full_like(x, 3.5)]), range(9, 12))
+    out = merge_twins([lane, twin, next_lane], DEFAULT)
+    assert len(out) == 3
+    (f_lane, m_lane), (f_next, m_next), (f_turn, m_turn) = out
+    assert f_lane is lane[0] and {m.trip_key for m in m_lane} == {f"veh-1__t{k:02d}" for k in range(9)}
+    assert f_next is next_lane[0] and m_next == next_lane[1]
+    # the turn is what is left of the twin: it starts near the lane's end and bends away
+    assert m_turn == twin[1] and f_turn.points_xy_world[0, 0] > 95.0 and f_turn.points_xy_world[-1, 1] < -8.0
+    # the best supported of two twins seen by one trip each is no evidence: both stay
+    single = merge_twins([(lane[0], lane[1][:1]), (twin[0], twin[1][:1])], DEFAULT)
+    assert len(single) == 2
