@@ -5,8 +5,9 @@ them by the same ``build_lane_graph``, so what is compared is what the fused cen
 connect, not how the builder reads a junction. Compared are *connections*: successor edges
 (where one lane hands over to another: a junction, a split, a merge; lanes are centrelines cut
 where others start or end on them), each as the point where it happens, the heading in, and
-where the lane it hands over to is ``LOOKAHEAD_M`` on (a turn lane leaves its through lane
-tangentially: only further on do the two part).
+where the lane it hands over to is ``LOOKAHEAD_M`` on, on into that lane's successors where it
+is shorter (a turn lane leaves its through lane tangentially: only further on do the two part;
+and the truth's lanes are cut into short pieces at every lanelet border).
 
 - precision: of the map's connections (inside the evaluated corridor), the share where the
   truth goes on the same way: a truth connection within ``MATCH_M``, heading in within
@@ -42,43 +43,71 @@ LOOKAHEAD_M = 10.0
 SPACING_M = 0.5
 
 
-def connections(lane_graph: LaneGraph) -> np.ndarray:
-    """``(C, 6)`` rows x, y, heading-in x, y, and the point ``LOOKAHEAD_M`` along the lane handed
-    over to (its end if shorter), of the successor edges (at the end of the lane handing over)."""
+class _Ahead:
+    """Where a lane goes ``LOOKAHEAD_M`` on from a point on it: walked along the lane and, past
+    its end, into each of its successors (a lane cut short by the next lane's start goes on
+    there), so one point per path; the lane's end if it has no successor. Lanes are resampled
+    once, every ``SPACING_M``."""
+
+    def __init__(self, lane_graph: LaneGraph) -> None:
+        self.graph = lane_graph.graph
+        self.lanes = {n: sampled_with_tangents(d["points_xy_world"], SPACING_M)[0]
+                      for n, d in self.graph.nodes(data=True)}
+
+    def points(self, lane: str, index: int, distance_m: float = LOOKAHEAD_M, depth: int = 0) -> list[np.ndarray]:
+        p = self.lanes[lane]
+        k = int(round(distance_m / SPACING_M))
+        if index + k < len(p):
+            return [p[index + k]]
+        nxt = [v for v in self.graph.successors(lane) if self.graph.edges[lane, v]["kind"] == SUCCESSOR]
+        if not nxt or depth >= 4:
+            return [p[-1]]
+        rest = distance_m - (len(p) - 1 - index) * SPACING_M
+        return [q for v in nxt if len(self.lanes[v]) >= 2 for q in self.points(v, 0, rest, depth + 1)] or [p[-1]]
+
+
+def connections(lane_graph: LaneGraph, ahead: _Ahead | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``(C, 4)`` rows x, y, heading-in x, y of the successor edges (at the end of the lane
+    handing over), and per edge the points ``LOOKAHEAD_M`` on along the lane handed over to
+    (``_Ahead``: on into its successors) ``(K, 2)``."""
+    ahead = ahead or _Ahead(lane_graph)
     g = lane_graph.graph
-    rows = []
+    rows, on = [], []
     for u, v, kind in g.edges(data="kind"):
         if kind != SUCCESSOR:
             continue
-        pu = resample_polyline(np.asarray(g.nodes[u]["points_xy_world"], float), SPACING_M)
-        pv = resample_polyline(np.asarray(g.nodes[v]["points_xy_world"], float), SPACING_M)
+        pu, pv = ahead.lanes[u], ahead.lanes[v]
         if len(pu) < 2 or len(pv) < 2:
             continue
-        rows.append(np.r_[pu[-1], end_heading(pu, True), pv[min(len(pv) - 1, int(LOOKAHEAD_M / SPACING_M))]])
-    return np.array(rows).reshape(-1, 6)
+        rows.append(np.r_[pu[-1], end_heading(pu, True)])
+        on.append(np.array(ahead.points(v, 0)))
+    return np.array(rows).reshape(-1, 4), on
 
 
-def _lane_samples(lane_graph: LaneGraph) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """All lanes sampled every ``SPACING_M``: points (P, 2), unit tangents (P, 2), the point
-    ``LOOKAHEAD_M`` further along the lane (its end if shorter) (P, 2), and the distance to the
-    lane's start (P,)."""
-    pts, tans, ahead, from_start = [], [], [], []
-    k = int(LOOKAHEAD_M / SPACING_M)
-    for _, data in lane_graph.graph.nodes(data=True):
+def _lane_samples(lane_graph: LaneGraph) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int]], np.ndarray]:
+    """All lanes sampled every ``SPACING_M``: points (P, 2), unit tangents (P, 2), each
+    sample's (lane, index), and the distance to the lane's start (P,)."""
+    pts, tans, where, from_start = [], [], [], []
+    for n, data in lane_graph.graph.nodes(data=True):
         p, t = sampled_with_tangents(data["points_xy_world"], SPACING_M)
         if len(p) < 2:
             continue
         pts.append(p)
         tans.append(t)
-        ahead.append(p[np.minimum(np.arange(len(p)) + k, len(p) - 1)])
+        where.extend((n, i) for i in range(len(p)))
         from_start.append(np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     if not pts:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    return np.concatenate(pts), np.concatenate(tans), np.concatenate(ahead), np.concatenate(from_start)
+        return np.zeros((0, 2)), np.zeros((0, 2)), [], np.zeros(0)
+    return np.concatenate(pts), np.concatenate(tans), where, np.concatenate(from_start)
 
 
-def _found(rows: np.ndarray, other_rows: np.ndarray,
-           other_lanes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+def _close(a: np.ndarray, b: np.ndarray) -> bool:
+    """Some point of ``a (K, 2)`` within ``MATCH_M`` of some point of ``b (L, 2)``."""
+    return bool((np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2) <= MATCH_M).any())
+
+
+def _found(rows: np.ndarray, rows_on: list[np.ndarray], other_rows: np.ndarray, other_on: list[np.ndarray],
+           other: LaneGraph, other_ahead: _Ahead) -> np.ndarray:
     """Per connection of ``rows``: does the other graph go on the same way there (a connection
     there, or a lane through the point, heading in alike and ``LOOKAHEAD_M`` on at the same
     place)."""
@@ -88,18 +117,16 @@ def _found(rows: np.ndarray, other_rows: np.ndarray,
         return out
     if len(other_rows):
         for i, hits in enumerate(cKDTree(other_rows[:, :2]).query_ball_point(rows[:, :2], MATCH_M)):
-            h = other_rows[hits]
-            out[i] = bool(((h[:, 2:4] @ rows[i, 2:4] >= cos_max)
-                           & (np.linalg.norm(h[:, 4:6] - rows[i, 4:6], axis=1) <= MATCH_M)).any())
-    pts, tans, ahead, from_start = other_lanes
+            out[i] = any(other_rows[h, 2:4] @ rows[i, 2:4] >= cos_max and _close(other_on[h], rows_on[i])
+                         for h in hits)
+    pts, tans, where, from_start = _lane_samples(other)
     if len(pts):
         for i, hits in enumerate(cKDTree(pts).query_ball_point(rows[:, :2], MATCH_M)):
             if out[i] or not hits:
                 continue
             hits = np.asarray(hits)
-            hits = hits[from_start[hits] >= MATCH_M]  # through the point, not starting at it
-            out[i] = bool(((tans[hits] @ rows[i, 2:4] >= cos_max)
-                           & (np.linalg.norm(ahead[hits] - rows[i, 4:6], axis=1) <= MATCH_M)).any())
+            hits = hits[(from_start[hits] >= MATCH_M) & (tans[hits] @ rows[i, 2:4] >= cos_max)]  # through the point
+            out[i] = any(_close(np.array(other_ahead.points(*where[h])), rows_on[i]) for h in hits)
     return out
 
 
@@ -126,10 +153,13 @@ def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFea
                 and inside(resample_polyline(np.asarray(f.points_xy_world, float), 2.0)).mean() >= 0.5]
     ours = build_lane_graph(features, params)
     truth = build_lane_graph(truth_cl, params)
-    c_ours, c_truth = connections(ours), connections(truth)
-    c_ours, c_truth = c_ours[inside(c_ours[:, :2])], c_truth[inside(c_truth[:, :2])]
-    right = _found(c_ours, c_truth, _lane_samples(truth))
-    got = _found(c_truth, c_ours, _lane_samples(ours))
+    ahead_ours, ahead_truth = _Ahead(ours), _Ahead(truth)
+    (c_ours, on_ours), (c_truth, on_truth) = connections(ours, ahead_ours), connections(truth, ahead_truth)
+    keep_ours, keep_truth = inside(c_ours[:, :2]), inside(c_truth[:, :2])
+    c_ours, on_ours = c_ours[keep_ours], [a for a, k in zip(on_ours, keep_ours, strict=True) if k]
+    c_truth, on_truth = c_truth[keep_truth], [a for a, k in zip(on_truth, keep_truth, strict=True) if k]
+    right = _found(c_ours, on_ours, c_truth, on_truth, truth, ahead_truth)
+    got = _found(c_truth, on_truth, c_ours, on_ours, ours, ahead_ours)
     out = {"lanes": ours.graph.number_of_nodes(), "truth_lanes": truth.graph.number_of_nodes(),
            "connections": int(len(c_ours)), "truth_connections": int(len(c_truth)),
            "connection_precision": float(right.mean()) if len(right) else float("nan"),

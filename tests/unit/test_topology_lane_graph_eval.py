@@ -44,3 +44,14 @@ def test_a_missing_turn_lane_and_a_wrong_one_are_counted():
     assert s["connection_recall"] == pytest.approx(0.5)  # a -> b kept, a -> c lost
     assert s["connection_precision"] < 1.0  # the split at 20 m has no truth counterpart
     assert s["split_recall"] == 0.0 and s["split_precision"] == 0.0
+
+
+def test_lanes_cut_shorter_than_the_lookahead_are_followed_into_their_successors():
+    # the truth's through lane in 5.5 m pieces (lanelet borders), ours in one: 10 m on is the same place
+    pieces = tuple(_cl(f"p{k}", (x, 0), (x + 5.5, 0)) for k, x in enumerate(np.arange(0.0, 99.0, 5.5)))
+    s = lane_graph_scores((_cl("ab", (0, 0), (100, 0)),), pieces, FRAMES, 12.0, TopologyParams())
+    assert s["truth_connections"] == 17
+    assert s["connection_recall"] == 1.0
+    # and the other way round: our lane in pieces against the truth in one
+    s = lane_graph_scores(pieces, (_cl("ab", (0, 0), (100, 0)),), FRAMES, 12.0, TopologyParams())
+    assert s["connection_precision"] == 1.0
