@@ -129,10 +129,9 @@ def build_lane_graph(features: Sequence[MapFeature], params: TopologyParams) -> 
         piece_at.append(pieces)
 
     def piece(i: int, s: float, ending: bool) -> str:
-        for a, b, name in piece_at[i]:
-            if (a < s <= b + 1e-6) if ending else (a - 1e-6 <= s < b):
-                return name
-        return piece_at[i][-1 if ending else 0][2]
+        """The piece of line ``i`` that ends (``ending``) or starts at the cut ``s``: the nearest
+        such bound (cuts closer than 1 m to each other were merged into one bound)."""
+        return min(piece_at[i], key=lambda p: abs((p[1] if ending else p[0]) - s))[2]
 
     # 3. successor links: end -> start, and through the cut points
     for i in range(len(lines)):

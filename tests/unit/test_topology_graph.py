@@ -116,6 +116,22 @@ def test_split_and_merge_are_in_the_lane_graph() -> None:
     assert lg.neighbour("left#0", "right") in main_lanes
 
 
+def test_a_split_just_after_a_merge_hands_over_from_the_right_pieces() -> None:
+    # a ramp joins the main lane at x = 99.6 and a turn lane leaves it at x = 100: the two cuts
+    # are one bound (closer than 1 m); the turn leaves from the piece ending there, not the next
+    x = np.arange(0.0, 200.0, 1.0)
+    main = _cl("main", np.column_stack([x, np.zeros_like(x)]))
+    r = np.arange(-60.0, 0.5, 1.0)
+    ramp = _cl("ramp", np.column_stack([99.6 + r, 0.004 * r**2]))
+    t = np.arange(0.0, 60.0, 1.0)
+    turn = _cl("turn", np.column_stack([100.0 + t, -0.004 * t**2]))
+    lg = build_lane_graph([main, ramp, turn], DEFAULT)
+    first, second = sorted(lg.lanes_of("main"))
+    assert set(lg.successors(first)) == {second, "turn#0"}
+    assert lg.successors(second) == []
+    assert second in lg.successors("ramp#0")  # (and the turn: it starts where the ramp ends)
+
+
 def test_tile_with_a_planted_bad_trip_is_flagged() -> None:
     rng = np.random.default_rng(14)
     trips = {}
