@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import cast
 
@@ -88,9 +88,14 @@ class AlignmentResult:
 
 
 def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None = None,
-                params: AlignmentParams = DEFAULT, corrections: MatchCorrections | None = None) -> AlignmentResult:
+                params: AlignmentParams = DEFAULT, corrections: MatchCorrections | None = None,
+                inspect_matches: Callable[[list[PairMatch], list[Submap]], list[PairMatch]] | None = None,
+                ) -> AlignmentResult:
     """Coarse-to-fine multi-trip alignment (Fig. 3), against ``prior_map`` when given, with the
-    map team's ``corrections`` of the sub-map association when given."""
+    map team's ``corrections`` of the sub-map association when given.
+
+    ``inspect_matches`` (diagnostics, ``evaluate_floor``): called with the accepted matches and
+    the sub-maps before the pose graph; what it returns goes to the pose graph instead."""
     if not trips:
         raise AlignmentFailed("no trips to align", reason="empty")
     if prior_map is not None:
@@ -126,6 +131,8 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
             matches = apply_corrections(matches, submaps, circles, noise, params, corrections)
         timings["associate_s"] = time.perf_counter() - clock - sum(timings.values())
         # 3. incremental pose graph optimisation with adaptive weights (Eq. 9-12)
+        if inspect_matches is not None:
+            matches = inspect_matches(matches, submaps)
         graph = optimize_submap_poses(trips, submaps, matches, params)
         inlier = graph.registration_inlier
         prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
