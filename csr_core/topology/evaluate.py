@@ -1,6 +1,7 @@
 """Measure topology generation on a scenario folder (contract section 5) against its truth.
 
     python -m csr_core.topology.evaluate SCENARIO_DIR [--poses truth|smoothed|aligned] [--cache FILE]
+        [--lane-graph-figure PNG [--bbox X0,X1,Y0,Y1]]
 
 Per trip, single-trip reconstruction (``csr_core.single_trip``) gives the instances; with
 ``--poses truth`` its pose smoothing is replaced by the trip's TRUE poses (truth/poses), so the
@@ -43,7 +44,7 @@ from csr_core.scenario import (
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.topology import DEFAULT, SUSPECT, TopologyResult, generate_topology, reposition_instances
-from csr_core.topology.evaluate_lane_graph import lane_graph_scores
+from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, lane_graph_scores, plot_comparison
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
@@ -200,7 +201,12 @@ def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | Non
     return data, tuple(pairs)
 
 
-def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None) -> dict:
+def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None,
+                      lane_graph_figure: str | Path | None = None,
+                      figure_bbox_xy: tuple[float, float, float, float] | None = None) -> dict:
+    """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
+    graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
+    ``figure_bbox_xy`` in the scenario's local frame if given)."""
     scenario_dir = Path(scenario_dir)
     data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
@@ -224,6 +230,9 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
         return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
                                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
 
+    if lane_graph_figure is not None:
+        plot_comparison(compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, DEFAULT),
+                        lane_graph_figure, figure_bbox_xy)
     return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est],
             "trips": len(data), "features": len(result.features), "rejected_members": len(result.rejected_members),
             "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
@@ -240,8 +249,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scenario")
     ap.add_argument("--poses", choices=("truth", "smoothed", "aligned"), default="truth")
     ap.add_argument("--cache", help="pickle of the trips' instances (written if missing)")
+    ap.add_argument("--lane-graph-figure", metavar="PNG", help="also draw the lane graph against the truth's")
+    ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figure to this box (metres, local frame)")
     args = ap.parse_args(argv)
-    r = evaluate_scenario(args.scenario, args.poses, args.cache)
+    bbox = None
+    if args.bbox:
+        try:
+            x0, x1, y0, y1 = (float(v) for v in args.bbox.split(","))
+        except ValueError:
+            ap.error(f"--bbox must be four numbers X0,X1,Y0,Y1, got {args.bbox!r}")
+        bbox = (x0, x1, y0, y1)
+    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox)
     print(json.dumps(r, indent=1))  # noqa: T201
     return 0
 

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -138,12 +140,28 @@ def _points_matched(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.isfinite(cKDTree(b).query(a, distance_upper_bound=MATCH_M)[0])
 
 
-def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
-                      corridor_m: float, params: TopologyParams) -> dict:
-    """Connection precision and recall, split / merge point precision and recall of the lane
-    graph of ``features`` against that of the truth's centrelines (both world frame). Only
-    what lies within ``corridor_m`` of ``inside_xy`` (the true frames) counts: truth
-    centrelines mostly inside it, and connections and points inside it."""
+@dataclass(frozen=True)
+class LaneGraphComparison:
+    """The two lane graphs and their connections inside the corridor: ``ours``/``truth_rows``
+    ``(C, 4)`` as :func:`connections`, ``*_on`` the points ``LOOKAHEAD_M`` on, ``right`` (ours
+    the truth has) and ``got`` (the truth's we have), and the truth centrelines compared."""
+
+    ours: LaneGraph
+    truth: LaneGraph
+    ours_rows: np.ndarray
+    ours_on: list[np.ndarray]
+    truth_rows: np.ndarray
+    truth_on: list[np.ndarray]
+    right: np.ndarray
+    got: np.ndarray
+    truth_centerlines: list[MapFeature]
+
+
+def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
+                        corridor_m: float, params: TopologyParams) -> LaneGraphComparison:
+    """The lane graph of ``features`` against that of the truth's centrelines (both world
+    frame). Only what lies within ``corridor_m`` of ``inside_xy`` (the true frames) counts:
+    truth centrelines mostly inside it, and connections inside it."""
     frames = cKDTree(inside_xy)
 
     def inside(xy: np.ndarray) -> np.ndarray:
@@ -160,8 +178,22 @@ def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFea
     c_truth, on_truth = c_truth[keep_truth], [a for a, k in zip(on_truth, keep_truth, strict=True) if k]
     right = _found(c_ours, on_ours, c_truth, on_truth, truth, ahead_truth)
     got = _found(c_truth, on_truth, c_ours, on_ours, ours, ahead_ours)
+    return LaneGraphComparison(ours, truth, c_ours, on_ours, c_truth, on_truth, right, got, truth_cl)
+
+
+def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
+                      corridor_m: float, params: TopologyParams) -> dict:
+    """Connection precision and recall, split / merge point precision and recall of the lane
+    graph of ``features`` against that of the truth's centrelines (``compare_lane_graphs``)."""
+    cmp = compare_lane_graphs(features, truth_map, inside_xy, corridor_m, params)
+    frames = cKDTree(inside_xy)
+
+    def inside(xy: np.ndarray) -> np.ndarray:
+        return frames.query(xy)[0] <= corridor_m if len(xy) else np.zeros(0, dtype=bool)
+
+    ours, truth, right, got = cmp.ours, cmp.truth, cmp.right, cmp.got
     out = {"lanes": ours.graph.number_of_nodes(), "truth_lanes": truth.graph.number_of_nodes(),
-           "connections": int(len(c_ours)), "truth_connections": int(len(c_truth)),
+           "connections": int(len(cmp.ours_rows)), "truth_connections": int(len(cmp.truth_rows)),
            "connection_precision": float(right.mean()) if len(right) else float("nan"),
            "connection_recall": float(got.mean()) if len(got) else float("nan")}
     for name in ("split", "merge"):
@@ -172,3 +204,47 @@ def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFea
         out[f"{name}_precision"] = float(_points_matched(a, b).mean()) if len(a) else float("nan")
         out[f"{name}_recall"] = float(_points_matched(b, a).mean()) if len(b) else float("nan")
     return out
+
+
+def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
+                    bbox_xy: tuple[float, float, float, float] | None = None) -> None:
+    """A picture of ``cmp``: the truth's centrelines (grey, wide), the map's lanes (blue, with
+    their direction), the truth's connections the map misses (red crosses, dotted to where they
+    go on) and the map's connections the truth does not have (orange circles, lines to where
+    they go on). ``bbox_xy``: (x_min, x_max, y_min, y_max) to zoom into."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 11))
+    for f in cmp.truth_centerlines:
+        p = np.asarray(f.points_xy_world, float)
+        ax.plot(p[:, 0], p[:, 1], color="0.8", lw=4, solid_capstyle="round", zorder=1)
+    for _, data in cmp.ours.graph.nodes(data=True):
+        p = np.asarray(data["points_xy_world"], float)
+        ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=0.9, zorder=2)
+        if len(p) >= 2:
+            ax.annotate("", p[-1], p[-2], arrowprops=dict(arrowstyle="->", color="tab:blue", lw=0.9), zorder=2)
+    for rows, on, ok, style in ((cmp.truth_rows, cmp.truth_on, cmp.got, dict(color="red", ls=":")),
+                                (cmp.ours_rows, cmp.ours_on, cmp.right, dict(color="orange", ls="-"))):
+        for r, ahead in zip(rows[~ok], [a for a, k in zip(on, ok, strict=True) if not k], strict=True):
+            for q in ahead:
+                ax.plot([r[0], q[0]], [r[1], q[1]], lw=1.0, zorder=3, **style)
+    miss, false = cmp.truth_rows[~cmp.got], cmp.ours_rows[~cmp.right]
+    ax.scatter(miss[:, 0], miss[:, 1], marker="x", color="red", s=70, zorder=4,
+               label=f"truth connection the map misses ({len(miss)} of {len(cmp.got)})")
+    ax.scatter(false[:, 0], false[:, 1], marker="o", facecolors="none", edgecolors="orange", s=70, zorder=4,
+               label=f"map connection the truth does not have ({len(false)} of {len(cmp.right)})")
+    ax.plot([], [], color="0.8", lw=4, label="truth centrelines")
+    ax.plot([], [], color="tab:blue", lw=0.9, label="map lanes")
+    if bbox_xy is not None:
+        ax.set_xlim(bbox_xy[0], bbox_xy[1])
+        ax.set_ylim(bbox_xy[2], bbox_xy[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"Lane graph connections: precision {cmp.right.mean():.2f}, recall {cmp.got.mean():.2f}")
+    fig.savefig(out_png, dpi=90, bbox_inches="tight")
+    plt.close(fig)

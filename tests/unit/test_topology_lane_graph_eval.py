@@ -55,3 +55,15 @@ def test_lanes_cut_shorter_than_the_lookahead_are_followed_into_their_successors
     # and the other way round: our lane in pieces against the truth in one
     s = lane_graph_scores(pieces, (_cl("ab", (0, 0), (100, 0)),), FRAMES, 12.0, TopologyParams())
     assert s["connection_precision"] == 1.0
+
+
+def test_the_comparison_is_drawn(tmp_path):
+    from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, plot_comparison
+
+    # the wrong turn of the test above: one truth connection missed, one map connection false
+    cmp = compare_lane_graphs((TRUTH[0], TRUTH[1], _cl("w", (20, 0), (28, -2), (34, -8), (36, -30))), TRUTH,
+                              FRAMES, 12.0, TopologyParams())
+    assert (~cmp.got).sum() == 1 and (~cmp.right).sum() >= 1
+    out = tmp_path / "lane_graph.png"
+    plot_comparison(cmp, out, (0.0, 100.0, -35.0, 35.0))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
