@@ -44,7 +44,7 @@ from csr_core.scenario import (
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.topology import DEFAULT, SUSPECT, TopologyResult, generate_topology, reposition_instances
-from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, lane_graph_scores, plot_comparison
+from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, plot_comparison
 from csr_core.types import ElementType, MapFeature
 
 WRONG_SHARE = 0.2
@@ -230,9 +230,9 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
         return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
                                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
 
+    lane_graph = compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, DEFAULT)
     if lane_graph_figure is not None:
-        plot_comparison(compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, DEFAULT),
-                        lane_graph_figure, figure_bbox_xy)
+        plot_comparison(lane_graph, lane_graph_figure, figure_bbox_xy)
     return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est],
             "trips": len(data), "features": len(result.features), "rejected_members": len(result.rejected_members),
             "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
@@ -240,8 +240,7 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
                            "splits": len(result.lane_graph.split_points_xy),
                            "merges": len(result.lane_graph.merge_points_xy),
-                           "against_truth": lane_graph_scores(result.features, truth_map, true_xy,
-                                                              CORRIDOR_INSIDE_M, DEFAULT)}}
+                           "against_truth": lane_graph.scores()}}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -142,9 +142,10 @@ def _points_matched(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LaneGraphComparison:
-    """The two lane graphs and their connections inside the corridor: ``ours``/``truth_rows``
-    ``(C, 4)`` as :func:`connections`, ``*_on`` the points ``LOOKAHEAD_M`` on, ``right`` (ours
-    the truth has) and ``got`` (the truth's we have), and the truth centrelines compared."""
+    """The two lane graphs and what of them lies inside the corridor: connections
+    ``ours_rows``/``truth_rows`` ``(C, 4)`` as :func:`connections`, ``*_on`` the points
+    ``LOOKAHEAD_M`` on, ``right`` (ours the truth has) and ``got`` (the truth's we have); split
+    and merge points; the truth centrelines compared."""
 
     ours: LaneGraph
     truth: LaneGraph
@@ -155,13 +156,27 @@ class LaneGraphComparison:
     right: np.ndarray
     got: np.ndarray
     truth_centerlines: list[MapFeature]
+    points_inside: dict[str, tuple[np.ndarray, np.ndarray]]  # "split"/"merge" -> (ours, truth)
+
+    def scores(self) -> dict:
+        """Connection precision and recall, split / merge point precision and recall."""
+        right, got = self.right, self.got
+        out = {"lanes": self.ours.graph.number_of_nodes(), "truth_lanes": self.truth.graph.number_of_nodes(),
+               "connections": int(len(self.ours_rows)), "truth_connections": int(len(self.truth_rows)),
+               "connection_precision": float(right.mean()) if len(right) else float("nan"),
+               "connection_recall": float(got.mean()) if len(got) else float("nan")}
+        for name, (a, b) in self.points_inside.items():
+            out[f"{name}s"], out[f"truth_{name}s"] = int(len(a)), int(len(b))
+            out[f"{name}_precision"] = float(_points_matched(a, b).mean()) if len(a) else float("nan")
+            out[f"{name}_recall"] = float(_points_matched(b, a).mean()) if len(b) else float("nan")
+        return out
 
 
 def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
                         corridor_m: float, params: TopologyParams) -> LaneGraphComparison:
     """The lane graph of ``features`` against that of the truth's centrelines (both world
     frame). Only what lies within ``corridor_m`` of ``inside_xy`` (the true frames) counts:
-    truth centrelines mostly inside it, and connections inside it."""
+    truth centrelines mostly inside it, and connections and split / merge points inside it."""
     frames = cKDTree(inside_xy)
 
     def inside(xy: np.ndarray) -> np.ndarray:
@@ -178,32 +193,17 @@ def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapF
     c_truth, on_truth = c_truth[keep_truth], [a for a, k in zip(on_truth, keep_truth, strict=True) if k]
     right = _found(c_ours, on_ours, c_truth, on_truth, truth, ahead_truth)
     got = _found(c_truth, on_truth, c_ours, on_ours, ours, ahead_ours)
-    return LaneGraphComparison(ours, truth, c_ours, on_ours, c_truth, on_truth, right, got, truth_cl)
+    points = {}
+    for name in ("split", "merge"):
+        a, b = getattr(ours, f"{name}_points_xy"), getattr(truth, f"{name}_points_xy")
+        points[name] = (a[inside(a)], b[inside(b)])
+    return LaneGraphComparison(ours, truth, c_ours, on_ours, c_truth, on_truth, right, got, truth_cl, points)
 
 
 def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
                       corridor_m: float, params: TopologyParams) -> dict:
-    """Connection precision and recall, split / merge point precision and recall of the lane
-    graph of ``features`` against that of the truth's centrelines (``compare_lane_graphs``)."""
-    cmp = compare_lane_graphs(features, truth_map, inside_xy, corridor_m, params)
-    frames = cKDTree(inside_xy)
-
-    def inside(xy: np.ndarray) -> np.ndarray:
-        return frames.query(xy)[0] <= corridor_m if len(xy) else np.zeros(0, dtype=bool)
-
-    ours, truth, right, got = cmp.ours, cmp.truth, cmp.right, cmp.got
-    out = {"lanes": ours.graph.number_of_nodes(), "truth_lanes": truth.graph.number_of_nodes(),
-           "connections": int(len(cmp.ours_rows)), "truth_connections": int(len(cmp.truth_rows)),
-           "connection_precision": float(right.mean()) if len(right) else float("nan"),
-           "connection_recall": float(got.mean()) if len(got) else float("nan")}
-    for name in ("split", "merge"):
-        a = getattr(ours, f"{name}_points_xy")
-        b = getattr(truth, f"{name}_points_xy")
-        a, b = a[inside(a)], b[inside(b)]
-        out[f"{name}s"], out[f"truth_{name}s"] = int(len(a)), int(len(b))
-        out[f"{name}_precision"] = float(_points_matched(a, b).mean()) if len(a) else float("nan")
-        out[f"{name}_recall"] = float(_points_matched(b, a).mean()) if len(b) else float("nan")
-    return out
+    """``compare_lane_graphs(...).scores()``."""
+    return compare_lane_graphs(features, truth_map, inside_xy, corridor_m, params).scores()
 
 
 def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
