@@ -200,12 +200,6 @@ def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapF
     return LaneGraphComparison(ours, truth, c_ours, on_ours, c_truth, on_truth, right, got, truth_cl, points)
 
 
-def lane_graph_scores(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
-                      corridor_m: float, params: TopologyParams) -> dict:
-    """``compare_lane_graphs(...).scores()``."""
-    return compare_lane_graphs(features, truth_map, inside_xy, corridor_m, params).scores()
-
-
 def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
                     bbox_xy: tuple[float, float, float, float] | None = None) -> None:
     """A picture of ``cmp``: the truth's centrelines (grey, wide), the map's lanes (blue, with

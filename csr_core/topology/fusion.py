@@ -757,8 +757,8 @@ def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], param
     a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]  # sample a of one line near sample b of another
     dist = np.linalg.norm(smp.points_xy[a] - smp.points_xy[b], axis=1)
     la, lb = smp.owner[a], smp.owner[b]
-    gate = np.minimum(params.GATE_SIGMAS * np.hypot(sigma[la], sigma[lb]),
-                      params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M)  # ``params.gate_m``
+    line_pairs, pair_of = np.unique(la * n + lb, return_inverse=True)  # the gate once per pair of lines
+    gate = np.array([params.gate_m(float(sigma[p // n]), float(sigma[p % n])) for p in line_pairs.tolist()])[pair_of]
     parallel = np.abs((smp.tangents[a] * smp.tangents[b]).sum(1)) >= np.cos(params.MAX_ANGLE_RAD)
     near = (dist <= gate) & parallel
     a, la, lb, dist = a[near], la[near], lb[near], dist[near]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from csr_core.topology.evaluate_lane_graph import lane_graph_scores
+from csr_core.topology.evaluate_lane_graph import compare_lane_graphs
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
@@ -22,7 +22,7 @@ FRAMES = np.array([(x, 0.0) for x in range(0, 101, 2)] + [(66.0, y) for y in ran
 
 
 def _scores(features):
-    return lane_graph_scores(features, TRUTH, FRAMES, 12.0, TopologyParams())
+    return compare_lane_graphs(features, TRUTH, FRAMES, 12.0, TopologyParams()).scores()
 
 
 def test_the_truth_scores_itself_perfectly():
@@ -49,16 +49,16 @@ def test_a_missing_turn_lane_and_a_wrong_one_are_counted():
 def test_lanes_cut_shorter_than_the_lookahead_are_followed_into_their_successors():
     # the truth's through lane in 5.5 m pieces (lanelet borders), ours in one: 10 m on is the same place
     pieces = tuple(_cl(f"p{k}", (x, 0), (x + 5.5, 0)) for k, x in enumerate(np.arange(0.0, 99.0, 5.5)))
-    s = lane_graph_scores((_cl("ab", (0, 0), (100, 0)),), pieces, FRAMES, 12.0, TopologyParams())
+    s = compare_lane_graphs((_cl("ab", (0, 0), (100, 0)),), pieces, FRAMES, 12.0, TopologyParams()).scores()
     assert s["truth_connections"] == 17
     assert s["connection_recall"] == 1.0
     # and the other way round: our lane in pieces against the truth in one
-    s = lane_graph_scores(pieces, (_cl("ab", (0, 0), (100, 0)),), FRAMES, 12.0, TopologyParams())
+    s = compare_lane_graphs(pieces, (_cl("ab", (0, 0), (100, 0)),), FRAMES, 12.0, TopologyParams()).scores()
     assert s["connection_precision"] == 1.0
 
 
 def test_the_comparison_is_drawn(tmp_path):
-    from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, plot_comparison
+    from csr_core.topology.evaluate_lane_graph import plot_comparison
 
     # the wrong turn of the test above: one truth connection missed, one map connection false
     cmp = compare_lane_graphs((TRUTH[0], TRUTH[1], _cl("w", (20, 0), (28, -2), (34, -8), (36, -30))), TRUTH,
