@@ -1,26 +1,29 @@
 """Measure single-trip reconstruction on a scenario folder (contract section 5) against its truth.
 
-    python -m csr_core.single_trip.evaluate SCENARIO_DIR [SCENARIO_DIR ...]
+    python -m csr_core.single_trip.evaluate SCENARIO_DIR [SCENARIO_DIR ...] [--true-poses] [--json]
 
 Per scenario, over all trips (trip-level figures, pooled):
 - ATE / RPE (10 m, contract section 6 definitions via ``csr_core.metrics``) of the smoothed
   poses and of the raw GNSS (frames without a fix take the last fix, as a receiver log would);
   no global alignment (raw figures).
 - jumps: frames whose raw GNSS is more than 5 m from truth; the largest smoothed error there.
-- instances: each trip's instances moved by the trip's own rigid offset (SE(2) least squares
-  of its smoothed onto its true positions), then scored per type with the contract map metric
-  (0.5 m samples, 0.5 m threshold) against the truth kept within 15 m of the trip's true
-  frames (the lateral reach of the BEV range); correctness and completeness pooled over trips
-  and over all types.
-- ``--true-poses``: the same with the pose smoothing replaced by the true poses (the element
+- instances, scored per type with the contract map metric (0.5 m samples, 0.5 m threshold)
+  against the truth kept within 15 m of the trip's true frames (the lateral reach of the BEV
+  range); correctness and completeness pooled over trips and over all types, twice:
+  - ``rigid`` (issue 4's figure): each trip's instances moved by the trip's own rigid offset
+    (SE(2) least squares of its smoothed onto its true positions);
+  - ``local`` (diagnostic): each instance moved instead by the rigid offset of the trip's poses
+    over the frames from ``local_offset_m / 2`` of travel before it was first seen to
+    ``local_offset_m / 2`` after it was last seen. The within-trip GNSS drift (a Gauss-Markov
+    bias of tens of seconds) is not a rigid offset of the whole trip, but it is nearly one over
+    a sub-map, and III-D aligns trips sub-map by sub-map.
+- ``true_poses``: the same with the pose smoothing replaced by the true poses (the element
   stages alone; the pose figures are then zero).
-- ``--local-offset-m R`` (diagnostic, not the issue's definition): each instance moved instead by
-  the rigid offset of the trip's poses over the frames from R/2 of travel before it was first seen
-  to R/2 after it was last seen: the within-trip GNSS drift (a Gauss-Markov bias of tens of
-  seconds) is not a rigid offset of the whole trip, but it is nearly one over a sub-map (III-D
-  aligns trips sub-map by sub-map).
 - speed: CPU seconds (``time.process_time``, one core; the host is shared) of
   ``reconstruct_trip`` per km of trip.
+
+``csr bench-single-trip`` runs this over the benchmark's fleets and writes BENCHMARKS.md's
+single-trip section.
 """
 
 from __future__ import annotations
@@ -28,11 +31,13 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from csr_core import metrics
+from csr_core.geo import LocalFrame
 from csr_core.scenario import (
     geo_features_to_local,
     list_trip_files,
@@ -45,9 +50,39 @@ from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses
-from csr_core.types import ElementType, GnssStatus, MapFeature
+from csr_core.types import ElementType, GnssStatus, MapFeature, Trip
 
 JUMP_M = 5.0
+LOCAL_OFFSET_M = 100.0  # about a sub-map's extent (a circle of 50 m radius, III-D)
+
+
+@dataclass(frozen=True, slots=True)
+class LoadedTrip:
+    trip: Trip
+    true_poses_xyyaw: np.ndarray  # (N, 3) world (the scenario's local plane)
+
+
+@dataclass(frozen=True, slots=True)
+class LoadedScenario:
+    """A scenario read once: its trips, their true poses and the truth map, in its local plane."""
+
+    name: str
+    frame: LocalFrame
+    trips: tuple[LoadedTrip, ...]
+    truth_map: tuple[MapFeature, ...]
+
+
+def load_scenario(scenario_dir: str | Path) -> LoadedScenario:
+    meta = read_scenario_meta(scenario_dir)
+    frame = meta.frame
+    truth_poses = read_poses_dir(Path(scenario_dir) / "truth" / "poses")
+    truth_map = geo_features_to_local(read_map_geojson(Path(scenario_dir) / "truth" / "map.geojson"), frame)
+    trips = []
+    for tf in list_trip_files(scenario_dir):
+        track = truth_poses[tf.key]
+        true_xy = frame.to_local(track.lonlat_deg)
+        trips.append(LoadedTrip(load_trip(tf), np.column_stack([true_xy, heading_deg_to_yaw_rad(track.heading_deg)])))
+    return LoadedScenario(meta.name, frame, tuple(trips), tuple(truth_map))
 
 
 def _forward_fill(xy: np.ndarray, has_fix: np.ndarray) -> np.ndarray:
@@ -70,26 +105,50 @@ def _local_offsets(instances, est_xy: np.ndarray, true_xy: np.ndarray, window_m:
     return out
 
 
-def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAULT, true_poses: bool = False,
-                      local_offset_m: float | None = None) -> dict:
-    """The figures above for one scenario. ``true_poses``: the pose smoothing is replaced by the
-    true poses, which isolates the element stages (tracking, splicing, ghost rejection) from the
-    pose error."""
-    meta = read_scenario_meta(scenario_dir)
-    frame = meta.frame
-    truth_poses = read_poses_dir(Path(scenario_dir) / "truth" / "poses")
-    truth_map = geo_features_to_local(read_map_geojson(Path(scenario_dir) / "truth" / "map.geojson"), frame)
+class _InstanceHits:
+    """Per type: samples within 0.5 m on the predicted side and on the truth side, pooled."""
+
+    def __init__(self) -> None:
+        self.hits = {t: np.zeros(4) for t in ElementType}  # correct, n_pred, complete, n_truth
+
+    def add(self, predicted: list[MapFeature], truth_map, true_xy: np.ndarray) -> None:
+        for etype in ElementType:
+            t_feats = [f for f in truth_map if f.type == etype]
+            p_feats = [f for f in predicted if f.type == etype]
+            samples, segs = metrics.truth_in_corridor(t_feats, true_xy)
+            if not len(samples) and not p_feats:
+                continue
+            d_pred = metrics.distances_to_segments(metrics.sample_features(p_feats), segs)
+            d_truth = metrics.distances_to_segments(samples, metrics._segments(metrics._as_chains(p_feats)))
+            self.hits[etype] += np.array([np.sum(d_pred <= metrics.MATCH_THRESHOLD_M), len(d_pred),
+                                          np.sum(d_truth <= metrics.MATCH_THRESHOLD_M), len(d_truth)], float)
+
+    def scores(self) -> dict:
+        total = np.sum(np.stack(list(self.hits.values())), axis=0)
+        return {
+            "correctness": float(total[0] / max(total[1], 1)),
+            "completeness": float(total[2] / max(total[3], 1)),
+            "per_type": {t.value: {"correctness": float(h[0] / h[1]) if h[1] else None,
+                                   "completeness": float(h[2] / h[3]) if h[3] else None}
+                         for t, h in self.hits.items() if h[1] or h[3]},
+        }
+
+
+def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT, true_poses: bool = False,
+                    local_offset_m: float = LOCAL_OFFSET_M) -> dict:
+    """The figures of the module docstring for one loaded scenario. ``true_poses``: the pose
+    smoothing is replaced by the true poses, which isolates the element stages (tracking,
+    splicing, ghost rejection) from the pose error."""
+    frame = scenario.frame
     ate_s, ate_g, rpe_s, rpe_g, jump_err, ate_local = [], [], [], [], [], []
-    hits = {t: np.zeros(4) for t in ElementType}  # correct, n_pred, complete, n_truth
+    rigid, local = _InstanceHits(), _InstanceHits()
     seconds, km = 0.0, 0.0
-    for tf in list_trip_files(scenario_dir):
-        trip = load_trip(tf)
-        true_xy = frame.to_local(truth_poses[tf.key].lonlat_deg)
+    for loaded in scenario.trips:
+        trip, true_xy = loaded.trip, loaded.true_poses_xyyaw[:, :2]
         fixed = None
         if true_poses:
-            yaw = heading_deg_to_yaw_rad(truth_poses[tf.key].heading_deg)
             n = len(true_xy)
-            fixed = SmoothedPoses(np.column_stack([true_xy, yaw]), np.zeros(n), np.zeros(n), np.ones(n, bool),
+            fixed = SmoothedPoses(loaded.true_poses_xyyaw.copy(), np.zeros(n), np.zeros(n), np.ones(n, bool),
                                   np.zeros(3))
         t0 = time.process_time()  # CPU seconds of this process: one core, unaffected by other load
         rec = reconstruct_trip(trip, frame, params, smoothed=fixed)
@@ -97,55 +156,48 @@ def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAU
         km += float(np.linalg.norm(np.diff(true_xy, axis=0), axis=1).sum()) / 1000.0
         est_xy = rec.poses_xyyaw_world[:, :2]
         gnss_xy = _forward_fill(frame.to_local(trip.gnss_lonlat_deg), trip.gnss_status != GnssStatus.NONE)
+        truth_T_est = metrics.umeyama_se2(est_xy, true_xy)
         ate_s.append(metrics.position_errors(est_xy, true_xy))
-        ate_local.append(metrics.position_errors(metrics.apply_se2(metrics.umeyama_se2(est_xy, true_xy), est_xy), true_xy))
+        ate_local.append(metrics.position_errors(metrics.apply_se2(truth_T_est, est_xy), true_xy))
         ate_g.append(metrics.position_errors(gnss_xy, true_xy))
         rpe_s.append(metrics.rpe_errors(est_xy, true_xy))
         rpe_g.append(metrics.rpe_errors(gnss_xy, true_xy))
         jumps = (ate_g[-1] > JUMP_M) & (trip.gnss_status != GnssStatus.NONE)
         jump_err.append(ate_s[-1][jumps])
-        # trip-level instances after the trip's own rigid offset
-        truth_T_est = metrics.umeyama_se2(est_xy, true_xy)
-        offsets = ([truth_T_est] * len(rec.instances) if local_offset_m is None
-                   else _local_offsets(rec.instances, est_xy, true_xy, local_offset_m))
-        pred = [MapFeature(i.type, metrics.apply_se2(T, i.points_xy_world), i.style)
-                for i, T in zip(rec.instances, offsets, strict=True)]
-        for etype in ElementType:
-            t_feats = [f for f in truth_map if f.type == etype]
-            p_feats = [f for f in pred if f.type == etype]
-            samples, segs = metrics.truth_in_corridor(t_feats, true_xy)
-            if not len(samples) and not p_feats:
-                continue
-            p_samples = metrics.sample_features(p_feats)
-            d_pred = metrics.distances_to_segments(p_samples, segs)
-            d_truth = metrics.distances_to_segments(samples, metrics._segments(metrics._as_chains(p_feats)))
-            hits[etype] += np.array([np.sum(d_pred <= metrics.MATCH_THRESHOLD_M), len(d_pred),
-                                     np.sum(d_truth <= metrics.MATCH_THRESHOLD_M), len(d_truth)], float)
+        for hits, offsets in ((rigid, [truth_T_est] * len(rec.instances)),
+                              (local, _local_offsets(rec.instances, est_xy, true_xy, local_offset_m))):
+            predicted = [MapFeature(i.type, metrics.apply_se2(T, i.points_xy_world), i.style)
+                         for i, T in zip(rec.instances, offsets, strict=True)]
+            hits.add(predicted, scenario.truth_map, true_xy)
 
-    def stats(parts: list[np.ndarray]) -> float:
+    def rms(parts: list[np.ndarray]) -> float:
         a = np.concatenate(parts) if parts else np.zeros(0)
         return float(np.sqrt(np.mean(a * a))) if len(a) else float("nan")
 
-    total = np.sum(np.stack(list(hits.values())), axis=0)
     je = np.concatenate(jump_err) if jump_err else np.zeros(0)
     return {
-        "scenario": meta.name,
+        "scenario": scenario.name,
+        "true_poses": true_poses,
         "trips": len(ate_s),
         "km": round(km, 2),
-        "ate_raw_gnss_m": stats(ate_g),
-        "ate_smoothed_m": stats(ate_s),
-        "ate_trip_aligned_m": stats(ate_local),
-        "rpe_raw_gnss_m": stats(rpe_g),
-        "rpe_smoothed_m": stats(rpe_s),
+        "ate_raw_gnss_m": rms(ate_g),
+        "ate_smoothed_m": rms(ate_s),
+        "ate_trip_aligned_m": rms(ate_local),
+        "rpe_raw_gnss_m": rms(rpe_g),
+        "rpe_smoothed_m": rms(rpe_s),
         "jump_frames": int(len(je)),
         "jump_max_smoothed_err_m": float(je.max()) if len(je) else float("nan"),
-        "correctness": float(total[0] / max(total[1], 1)),
-        "completeness": float(total[2] / max(total[3], 1)),
-        "per_type": {t.value: {"correctness": float(h[0] / h[1]) if h[1] else None,
-                               "completeness": float(h[2] / h[3]) if h[3] else None}
-                     for t, h in hits.items() if h[1] or h[3]},
+        "rigid": rigid.scores(),
+        "local": local.scores(),
+        "local_offset_m": local_offset_m,
         "seconds_per_km": seconds / max(km, 1e-9),
     }
+
+
+def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAULT, true_poses: bool = False,
+                      local_offset_m: float = LOCAL_OFFSET_M) -> dict:
+    """:func:`evaluate_loaded` on a scenario folder."""
+    return evaluate_loaded(load_scenario(scenario_dir), params, true_poses, local_offset_m)
 
 
 def pose_only(scenario_dir: str | Path, params: SingleTripParams = DEFAULT) -> dict:
@@ -174,12 +226,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="one JSON object per scenario")
     ap.add_argument("--true-poses", action="store_true",
                     help="replace the pose smoothing by the true poses (element stages alone)")
-    ap.add_argument("--local-offset-m", type=float, default=None,
-                    help="diagnostic: remove a rigid offset per instance over this much travel around it "
-                         "instead of the trip's own (the issue's figure is without this option)")
+    ap.add_argument("--local-offset-m", type=float, default=LOCAL_OFFSET_M,
+                    help="travel around an instance over which the 'local' figures remove the pose offset "
+                         f"(default {LOCAL_OFFSET_M:g}; the issue's figure is 'rigid', the trip's own offset)")
     args = ap.parse_args(argv)
-    cols = ("scenario", "trips", "km", "ate_raw_gnss_m", "ate_smoothed_m", "ate_trip_aligned_m", "rpe_raw_gnss_m", "rpe_smoothed_m",
-            "jump_frames", "jump_max_smoothed_err_m", "correctness", "completeness", "seconds_per_km")
+    cols = ("scenario", "trips", "km", "ate_raw_gnss_m", "ate_smoothed_m", "ate_trip_aligned_m", "rpe_raw_gnss_m",
+            "rpe_smoothed_m", "jump_frames", "jump_max_smoothed_err_m", "rigid", "local", "seconds_per_km")
     if not args.json:
         print("| " + " | ".join(cols) + " |")  # noqa: T201
         print("|" + "---|" * len(cols))  # noqa: T201
@@ -187,9 +239,17 @@ def main(argv: list[str] | None = None) -> int:
         r = evaluate_scenario(sc, true_poses=args.true_poses, local_offset_m=args.local_offset_m)
         if args.json:
             print(json.dumps(r))  # noqa: T201
-        else:
-            print("| " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |")  # noqa: T201
-            print("  per type: " + json.dumps(r["per_type"]))  # noqa: T201
+            continue
+        cells = []
+        for c in cols:
+            v = r[c]
+            if isinstance(v, dict):  # correctness / completeness
+                cells.append(f"{v['correctness']:.3f} / {v['completeness']:.3f}")
+            else:
+                cells.append(f"{v:.3f}" if isinstance(v, float) else str(v))
+        print("| " + " | ".join(cells) + " |")  # noqa: T201
+        for name in ("rigid", "local"):
+            print(f"  per type, {name}: " + json.dumps(r[name]["per_type"]))  # noqa: T201
     return 0
 
 

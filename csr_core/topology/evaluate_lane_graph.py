@@ -89,7 +89,10 @@ def connections(lane_graph: LaneGraph, ahead: _Ahead | None = None) -> tuple[np.
 def _lane_samples(lane_graph: LaneGraph) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int]], np.ndarray]:
     """All lanes sampled every ``SPACING_M``: points (P, 2), unit tangents (P, 2), each
     sample's (lane, index), and the distance to the lane's start (P,)."""
-    pts, tans, where, from_start = [], [], [], []
+    pts: list[np.ndarray] = []
+    tans: list[np.ndarray] = []
+    where: list[tuple[str, int]] = []
+    from_start: list[np.ndarray] = []
     for n, data in lane_graph.graph.nodes(data=True):
         p, t = sampled_with_tangents(data["points_xy_world"], SPACING_M)
         if len(p) < 2:
@@ -220,11 +223,11 @@ def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
         ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=0.9, zorder=2)
         if len(p) >= 2:
             ax.annotate("", p[-1], p[-2], arrowprops=dict(arrowstyle="->", color="tab:blue", lw=0.9), zorder=2)
-    for rows, on, ok, style in ((cmp.truth_rows, cmp.truth_on, cmp.got, dict(color="red", ls=":")),
-                                (cmp.ours_rows, cmp.ours_on, cmp.right, dict(color="orange", ls="-"))):
+    for rows, on, ok, color, ls in ((cmp.truth_rows, cmp.truth_on, cmp.got, "red", ":"),
+                                    (cmp.ours_rows, cmp.ours_on, cmp.right, "orange", "-")):
         for r, ahead in zip(rows[~ok], [a for a, k in zip(on, ok, strict=True) if not k], strict=True):
             for q in ahead:
-                ax.plot([r[0], q[0]], [r[1], q[1]], lw=1.0, zorder=3, **style)
+                ax.plot([r[0], q[0]], [r[1], q[1]], lw=1.0, zorder=3, color=color, ls=ls)
     miss, false = cmp.truth_rows[~cmp.got], cmp.ours_rows[~cmp.right]
     ax.scatter(miss[:, 0], miss[:, 1], marker="x", color="red", s=70, zorder=4,
                label=f"truth connection the map misses ({len(miss)} of {len(cmp.got)})")

@@ -119,6 +119,7 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
             groups = [[k] for k in range(len(pending))] if last else associate_lines(pending, element_type, params)
         detached: list[Member] = []
         done = len(out)
+        pieces: list[Member]
         for g in groups:
             gm = [pending[k] for k in g]
             if element_type.is_polygon:

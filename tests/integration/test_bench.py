@@ -68,3 +68,29 @@ def test_bench_toy_set_end_to_end(tmp_path):
     for r in results:
         assert r["returncode"] == 0 and r["km"] > 0.5 and r["peak_rss_mb"] > 10
         assert 0 < r["evaluation"]["aligned"]["ate_rmse"] < 3
+
+
+def test_bench_single_trip_toy_set_end_to_end(tmp_path):
+    doc = tmp_path / "BENCHMARKS.md"
+    doc.write_text(OTHER)
+    figs = tmp_path / "figs"
+    argv = CSR + ["bench-single-trip", "--sets", "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
+                  "--write", str(doc), "--figures", str(figs)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = doc.read_text()
+    begin, end = section_markers("single-trip")
+    assert text.startswith(OTHER) and text.count(begin) == 1 and text.count(end) == 1
+    assert "| toy |" in text and "csr bench-single-trip --write BENCHMARKS.md --sets toy" in text
+    png = figs / "bench_single_trip_instances.png"
+    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    results = orjson.loads((tmp_path / "bench" / "single-trip" / "results.json").read_bytes())
+    assert sorted(r["true_poses"] for r in results) == [False, True]
+    smoothed, true = sorted(results, key=lambda r: r["true_poses"])
+    assert true["ate_smoothed_m"] == 0.0 and true["rpe_smoothed_m"] == 0.0
+    assert 0.0 < smoothed["rpe_smoothed_m"] < smoothed["rpe_raw_gnss_m"] / 3
+    for r in results:  # the toy trips are clean: every instance within 0.5 m once the pose offset is gone
+        for kind in ("rigid", "local"):
+            assert r[kind]["correctness"] > 0.95 and r[kind]["completeness"] > 0.95, (kind, r[kind])
+    unknown = subprocess.run(CSR + ["bench-single-trip", "--sets", "nope"], capture_output=True, text=True)
+    assert unknown.returncode == 2 and "unknown set" in unknown.stderr
