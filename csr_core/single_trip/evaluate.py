@@ -19,6 +19,12 @@ Per scenario, over all trips (trip-level figures, pooled):
     a sub-map, and III-D aligns trips sub-map by sub-map.
 - ``true_poses``: the same with the pose smoothing replaced by the true poses (the element
   stages alone; the pose figures are then zero).
+- noise (item 5, with ``true_poses`` only, where a point's error is the perception's alone):
+  per line type, the lateral sigma the stage estimated (``TripReconstruction.noise``, mean
+  over trips) against the sigma of the detections' distances to the truth (1.4826 x the
+  median distance of their points, so ghosts and false positives do not count). The estimate
+  is of the frame-to-frame noise: the share of the error that an element keeps through all
+  the frames of a trip cannot be seen within the trip, so the estimate is expected lower.
 - speed: CPU seconds (``time.process_time``, one core; the host is shared) of
   ``reconstruct_trip`` per km of trip.
 
@@ -36,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from csr_core import metrics
+from csr_core import metrics, se2
 from csr_core.geo import LocalFrame
 from csr_core.scenario import (
     geo_features_to_local,
@@ -105,6 +111,20 @@ def _local_offsets(instances, est_xy: np.ndarray, true_xy: np.ndarray, window_m:
     return out
 
 
+NOISE_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
+
+
+def detection_distances_m(trip: Trip, poses_xyyaw: np.ndarray, truth_map, etype: ElementType) -> np.ndarray:
+    """Distance of every detected point of type ``etype`` (placed with ``poses_xyyaw``, the
+    true poses) to the truth of that type, capped at ``metrics.CD_CAP_M``; ``(P,)``."""
+    pts = [se2.transform_points(poses_xyyaw[k], e.points_xy_vehicle)
+           for k, frame_elements in enumerate(trip.elements) for e in frame_elements if e.type == etype]
+    segments = metrics._segments(metrics._as_chains([f for f in truth_map if f.type == etype]))
+    if not pts or not len(segments):
+        return np.zeros(0)
+    return metrics.distances_to_segments(np.vstack(pts), segments)
+
+
 class _InstanceHits:
     """Per type: samples within 0.5 m on the predicted side and on the truth side, pooled."""
 
@@ -142,6 +162,8 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
     frame = scenario.frame
     ate_s, ate_g, rpe_s, rpe_g, jump_err, ate_local = [], [], [], [], [], []
     rigid, local = _InstanceHits(), _InstanceHits()
+    estimated: dict[ElementType, list[float]] = {t: [] for t in NOISE_TYPES}
+    observed: dict[ElementType, list[np.ndarray]] = {t: [] for t in NOISE_TYPES}
     seconds, km = 0.0, 0.0
     for loaded in scenario.trips:
         trip, true_xy = loaded.trip, loaded.true_poses_xyyaw[:, :2]
@@ -164,6 +186,11 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         rpe_g.append(metrics.rpe_errors(gnss_xy, true_xy))
         jumps = (ate_g[-1] > JUMP_M) & (trip.gnss_status != GnssStatus.NONE)
         jump_err.append(ate_s[-1][jumps])
+        if true_poses:
+            for t in NOISE_TYPES:
+                if t in rec.noise and rec.noise[t].n_samples:
+                    estimated[t].append(rec.noise[t].lateral_sigma_m)
+                observed[t].append(detection_distances_m(trip, loaded.true_poses_xyyaw, scenario.truth_map, t))
         for hits, offsets in ((rigid, [truth_T_est] * len(rec.instances)),
                               (local, _local_offsets(rec.instances, est_xy, true_xy, local_offset_m))):
             predicted = [MapFeature(i.type, metrics.apply_se2(T, i.points_xy_world), i.style)
@@ -175,6 +202,13 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         return float(np.sqrt(np.mean(a * a))) if len(a) else float("nan")
 
     je = np.concatenate(jump_err) if jump_err else np.zeros(0)
+    noise = {}
+    for t in NOISE_TYPES:
+        d = np.concatenate(observed[t]) if observed[t] else np.zeros(0)
+        d = d[d < metrics.CD_CAP_M]  # at the cap: not a view of a true element (or beyond the truth kept)
+        if estimated[t] and len(d):
+            noise[t.value] = {"estimated_lateral_sigma_m": float(np.mean(estimated[t])),
+                              "observed_lateral_sigma_m": float(1.4826 * np.median(d))}
     return {
         "scenario": scenario.name,
         "true_poses": true_poses,
@@ -190,6 +224,7 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         "rigid": rigid.scores(),
         "local": local.scores(),
         "local_offset_m": local_offset_m,
+        "noise": noise,
         "seconds_per_km": seconds / max(km, 1e-9),
     }
 

@@ -89,6 +89,11 @@ def test_bench_single_trip_toy_set_end_to_end(tmp_path):
     smoothed, true = sorted(results, key=lambda r: r["true_poses"])
     assert true["ate_smoothed_m"] == 0.0 and true["rpe_smoothed_m"] == 0.0
     assert 0.0 < smoothed["rpe_smoothed_m"] < smoothed["rpe_raw_gnss_m"] / 3
+    # the toy's perception noise is white: the stage's lateral sigma per type is the detections' own
+    assert set(true["noise"]) == {"lane_divider", "road_boundary", "centerline"} and not smoothed["noise"]
+    for noise in true["noise"].values():
+        assert 0.8 < noise["estimated_lateral_sigma_m"] / noise["observed_lateral_sigma_m"] < 1.1, noise
+    assert "### Noise estimates" in text
     for r in results:  # the toy trips are clean: every instance within 0.5 m once the pose offset is gone
         for kind in ("rigid", "local"):
             assert r[kind]["correctness"] > 0.95 and r[kind]["completeness"] > 0.95, (kind, r[kind])

@@ -14,7 +14,9 @@ def _result(world: str, seed: int, correctness: float, *, true_poses: bool = Fal
             "true_poses": true_poses, "trips": 10, "km": 15.0, "ate_raw_gnss_m": 0.8, "ate_smoothed_m": 0.6,
             "ate_trip_aligned_m": 0.2, "rpe_raw_gnss_m": 0.2, "rpe_smoothed_m": rpe, "jump_frames": 0 if jump_err != jump_err else 12,
             "jump_max_smoothed_err_m": jump_err, "rigid": scores, "local": scores | {"correctness": 0.99},
-            "local_offset_m": 100.0, "seconds_per_km": 0.3}
+            "local_offset_m": 100.0, "seconds_per_km": 0.3,
+            "noise": {"lane_divider": {"estimated_lateral_sigma_m": 0.10, "observed_lateral_sigma_m": 0.12}}
+            if true_poses else {}}
 
 
 def test_a_target_is_met_only_when_every_seed_meets_it():
@@ -36,3 +38,10 @@ def test_a_jump_beyond_the_bound_is_marked_and_no_jump_is_not():
     jumps = text.split("### Hard profile")[1].split("###")[0]
     assert "| urban-hard-10x-1500m-s1 | 10 | 12 | 3.40 | **no** |" in jumps
     assert "| rural-hard-10x-1500m-s1 | 10 | 0 |  | yes |" in jumps
+
+
+def test_noise_estimates_are_tabled_from_the_true_pose_runs():
+    results = [_result("rural", 1, 0.99), _result("rural", 1, 0.99, true_poses=True),
+               _result("rural", 2, 0.99, true_poses=True)]
+    noise = render_section(results, None, None, 60.0).split("### Noise estimates")[1].split("###")[0]
+    assert "| rural | 0.100 / 0.120 |  |  |" in noise
