@@ -23,7 +23,7 @@ class ScenarioSpec:
 
 
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
-SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "full", "toy")
+SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "full", "toy")
 #: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
 #: by half in aligned ATE, docs/alignment.md "Session 11"), so the reported figures average three
 STANDARD_SEEDS = (1, 2, 3)
@@ -33,6 +33,10 @@ STANDARD_SEEDS = (1, 2, 3)
 #: that give each world a median of at least 10 (measured on seed 1: urban 10, highway 11,
 #: rural 12, roundabout 12, Karlsruhe 11)
 DENSE_TRIPS = {"urban": 40, "highway": 70, "rural": 40, "roundabout": 20, "karlsruhe": 20}
+#: ``validator``: issue 6's validator measurement on the hard profile (``csr bench-validator``),
+#: the six fleets of 8 trips x 1.5 km it has been measured on since session 8 (docs/topology.md),
+#: so that its figures compare across sessions: (world, seed)
+VALIDATOR_FLEETS = (("urban", 5), ("urban", 9), ("karlsruhe", 3), ("highway", 7), ("rural", 11), ("roundabout", 2))
 
 
 def scenario_set(name: str) -> list[ScenarioSpec]:
@@ -49,6 +53,8 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         return [ScenarioSpec(w, DENSE_TRIPS[w], "standard", 1, 1500.0) for w in WORLDS]
     if name == "hard":
         return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]
+    if name == "validator":
+        return [ScenarioSpec(w, 8, "hard", seed, 1500.0) for w, seed in VALIDATOR_FLEETS]
     if name == "toy":
         return [ScenarioSpec("toy", 3, "toy", 1, 300.0)]
     if name == "full":

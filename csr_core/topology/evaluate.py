@@ -1,7 +1,7 @@
 """Measure topology generation on a scenario folder (contract section 5) against its truth.
 
     python -m csr_core.topology.evaluate SCENARIO_DIR [--poses truth|smoothed|aligned] [--cache FILE]
-        [--lane-graph-figure PNG [--bbox X0,X1,Y0,Y1]]
+        [--lane-graph-figure PNG] [--validator-figure PNG] [--bbox X0,X1,Y0,Y1]
 
 Per trip, single-trip reconstruction (``csr_core.single_trip``) gives the instances; with
 ``--poses truth`` its pose smoothing is replaced by the trip's TRUE poses (truth/poses), so the
@@ -164,14 +164,15 @@ def _recall_precision(wrong: np.ndarray, flagged: np.ndarray) -> dict:
             "precision": float((wrong & flagged).sum() / max(flagged.sum(), 1))}
 
 
-def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray) -> dict:
+def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray,
+                     judged: list[tuple[MapFeature, bool, bool]] | None = None) -> dict:
     """Recall and precision of the suspect flags against really wrong instances (module
     docstring). Diagnostics: per flag kind, how many judged instances carry it (``flagged``),
     how many of those are really wrong (``wrong``), and the same for the instances whose only
     suspect flag it is (``alone``, ``alone_wrong``); ``beyond_local_offset``: the same recall and
     precision against instances still wrong once the offset shared by the map around them is
-    removed (``judge_instances``)."""
-    judged = judge_instances(result, truth_map, true_xy)
+    removed (``judge_instances``; ``judged``: its result, when already at hand)."""
+    judged = judge_instances(result, truth_map, true_xy) if judged is None else judged
     w = np.array([wr for _, wr, _ in judged], bool)
     w_local = np.array([wl for _, _, wl in judged], bool)
     kinds = [set(f.properties.get("flags", ())) for f, _, _ in judged]
@@ -203,10 +204,12 @@ def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | Non
 
 def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None,
                       lane_graph_figure: str | Path | None = None,
-                      figure_bbox_xy: tuple[float, float, float, float] | None = None) -> dict:
+                      figure_bbox_xy: tuple[float, float, float, float] | None = None,
+                      validator_figure: str | Path | None = None) -> dict:
     """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
     graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
-    ``figure_bbox_xy`` in the scenario's local frame if given)."""
+    ``figure_bbox_xy`` in the scenario's local frame if given); ``validator_figure``: a picture
+    of the judged instances, caught / missed / false alarm (``validator_figure.plot_validator``)."""
     scenario_dir = Path(scenario_dir)
     data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
@@ -233,10 +236,15 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
     lane_graph = compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, DEFAULT)
     if lane_graph_figure is not None:
         plot_comparison(lane_graph, lane_graph_figure, figure_bbox_xy)
+    judged = judge_instances(result, truth_map, true_xy)
+    if validator_figure is not None:
+        from csr_core.topology.validator_figure import plot_validator
+
+        plot_validator(judged, truth_map, true_xy, validator_figure, meta.name, figure_bbox_xy)
     return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est],
             "trips": len(data), "features": len(result.features), "rejected_members": len(result.rejected_members),
             "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
-            "validator": validator_scores(result, truth_map, true_xy),
+            "validator": validator_scores(result, truth_map, true_xy, judged),
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
                            "splits": len(result.lane_graph.split_points_xy),
                            "merges": len(result.lane_graph.merge_points_xy),
@@ -249,7 +257,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", choices=("truth", "smoothed", "aligned"), default="truth")
     ap.add_argument("--cache", help="pickle of the trips' instances (written if missing)")
     ap.add_argument("--lane-graph-figure", metavar="PNG", help="also draw the lane graph against the truth's")
-    ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figure to this box (metres, local frame)")
+    ap.add_argument("--validator-figure", metavar="PNG",
+                    help="also draw the judged instances: flagged and wrong, flagged and right, missed")
+    ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figures to this box (metres, local frame)")
     args = ap.parse_args(argv)
     bbox = None
     if args.bbox:
@@ -258,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             ap.error(f"--bbox must be four numbers X0,X1,Y0,Y1, got {args.bbox!r}")
         bbox = (x0, x1, y0, y1)
-    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox)
+    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox, args.validator_figure)
     print(json.dumps(r, indent=1))  # noqa: T201
     return 0
 

@@ -99,3 +99,24 @@ def test_bench_single_trip_toy_set_end_to_end(tmp_path):
             assert r[kind]["correctness"] > 0.95 and r[kind]["completeness"] > 0.95, (kind, r[kind])
     unknown = subprocess.run(CSR + ["bench-single-trip", "--sets", "nope"], capture_output=True, text=True)
     assert unknown.returncode == 2 and "unknown set" in unknown.stderr
+
+
+def test_bench_validator_toy_set_end_to_end(tmp_path):
+    doc = tmp_path / "BENCHMARKS.md"
+    doc.write_text(OTHER)
+    figs = tmp_path / "figs"
+    argv = CSR + ["bench-validator", "--set", "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
+                  "--write", str(doc), "--figures", str(figs)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = doc.read_text()
+    begin, end = section_markers("validator")
+    assert text.startswith(OTHER) and text.count(begin) == 1 and text.count(end) == 1
+    assert "| toy-toy-3x-300m-s1 | 3 |" in text and "csr bench-validator --write BENCHMARKS.md --set toy" in text
+    png = figs / "bench_validator_map.png"
+    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    (fleet,) = orjson.loads((tmp_path / "bench" / "validator" / "results.json").read_bytes())
+    v = fleet["validator"]
+    # the toy fleet is clean: every instance judged, none wrong, so nothing to catch and no false alarm
+    assert v["instances"] > 5 and v["wrong"] == 0 and v["flagged"] == 0 and fleet["mcd"] < 0.05
+    assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned.pkl"))  # the alignment cache

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from csr_core.bench.evaluate import SAME_ROAD_RADIUS_M, trips_per_place
-from csr_core.bench.sets import DENSE_TRIPS, WORLDS, scenario_set
+from csr_core.bench.sets import DENSE_TRIPS, VALIDATOR_FLEETS, WORLDS, scenario_set
 
 pytestmark = pytest.mark.unit
 
@@ -41,3 +41,10 @@ def test_the_dense_set_is_every_world_at_its_dense_fleet_size():
     assert [s.world for s in specs] == list(WORLDS)
     assert [s.trips for s in specs] == [DENSE_TRIPS[w] for w in WORLDS]
     assert all(s.profile == "standard" and s.trips >= 20 for s in specs)
+
+
+def test_the_validator_set_is_the_six_hard_fleets_it_has_been_measured_on():
+    specs = scenario_set("validator")
+    assert [(s.world, s.seed) for s in specs] == list(VALIDATOR_FLEETS)
+    assert all(s.profile == "hard" and s.trips == 8 and s.trip_length_m == 1500.0 for s in specs)
+    assert specs[0].name == "urban-hard-8x-1500m-s5"

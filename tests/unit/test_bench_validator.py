@@ -1,0 +1,34 @@
+"""The validator benchmark's pooling and section (``csr_core.bench.validator``)."""
+
+from __future__ import annotations
+
+import pytest
+
+from csr_core.bench.validator import pooled, render_section
+
+
+def _fleet(spec: str, instances: int, wrong: int, flagged: int, caught: int, per_flag: dict | None = None) -> dict:
+    v = {"instances": instances, "wrong": wrong, "flagged": flagged,
+         "recall": caught / max(wrong, 1), "precision": caught / max(flagged, 1), "per_flag": per_flag or {},
+         "beyond_local_offset": {"wrong": wrong, "flagged": flagged, "recall": caught / max(wrong, 1),
+                                 "precision": caught / max(flagged, 1)}}
+    return {"spec": spec, "world": spec.split("-")[0], "seed": 1, "trips": 8, "mcd": 0.1, "validator": v, "figure": None}
+
+
+def test_instances_are_pooled_not_fleets_averaged():
+    fleets = [_fleet("urban-hard-8x-1500m-s5", 400, 40, 100, 36), _fleet("rural-hard-8x-1500m-s11", 20, 16, 4, 4)]
+    total = pooled(fleets)
+    assert (total["wrong"], total["flagged"], total["caught"]) == (56, 104, 40)
+    assert total["recall"] == pytest.approx(40 / 56) and total["precision"] == pytest.approx(40 / 104)
+    # the mean of the fleets' recalls would be (0.9 + 0.25) / 2 = 0.575: a small fleet must not weigh as much
+
+
+def test_the_bound_is_reported_met_only_when_both_hold_and_nothing_wrong_is_not_a_score():
+    flags = {"low_support": {"flagged": 90, "wrong": 46, "alone": 70, "alone_wrong": 30}}
+    met = render_section([_fleet("urban-hard-8x-1500m-s5", 400, 50, 90, 46, flags)], None, None, 60.0)
+    assert "recall 0.920 (46 of 50" in met and "precision 0.511" in met and ": met.**" in met
+    assert "| low_support | 90 | 46 | 0.51 | 70 | 30 |" in met
+    low_precision = render_section([_fleet("urban-hard-8x-1500m-s5", 400, 50, 120, 46)], None, None, 60.0)
+    assert ": not met.**" in low_precision
+    clean = render_section([_fleet("toy-toy-3x-300m-s1", 11, 0, 0, 0)], None, None, 60.0)
+    assert "recall n/a (0 of 0" in clean and ": not met.**" in clean and "(no instance flagged)" in clean
