@@ -21,6 +21,7 @@ import numpy as np
 
 from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
 from csr_core.bench.sets import WORLDS, ScenarioSpec, scenario_set
+from csr_core.bench.tables import markdown_table
 
 SECTION = "single-trip"
 SETS = ("standard-seeds", "hard")
@@ -87,11 +88,6 @@ def _mark(ok: bool) -> str:
 def _fmt(v: float, digits: int = 3) -> str:
     return "" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
 
-
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def _world_order(world: str) -> int:
@@ -174,7 +170,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         f"{_fmt(s['true_correctness'])} / {_fmt(s['true_completeness'])}",
         _fmt(s["seconds_per_km"], 2), _mark(s["speed_ok"]),
     ] for s in summary]
-    lines += [_table(header, rows), ""]
+    lines += [markdown_table(header, rows), ""]
     lines += [
         "- *rigid* is issue 4's figure: each trip's instances moved by the trip's own rigid offset (SE(2) of its "
         "smoothed onto its true positions). *local 100 m*: each instance moved by the offset of the poses over "
@@ -191,7 +187,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     jump_rows = [[r["spec"], str(r["trips"]), str(r["jump_frames"]), _fmt(r["jump_max_smoothed_err_m"], 2),
                   _mark(not (r["jump_max_smoothed_err_m"] > JUMP_ERROR_MAX_M)), _fmt(r["ate_raw_gnss_m"]),
                   _fmt(r["ate_smoothed_m"])] for r in hard]
-    lines += [_table(["scenario", "trips", "frames with raw GNSS > 5 m off", "worst smoothed error there [m]",
+    lines += [markdown_table(["scenario", "trips", "frames with raw GNSS > 5 m off", "worst smoothed error there [m]",
                       "<= 3 m", "ATE raw [m]", "ATE smoothed [m]"], jump_rows) if hard else "(`hard` not run)", ""]
     lines += ["### Noise estimates (item 5): lateral sigma per type, estimated / observed [m]", ""]
     noise_types = ("lane_divider", "road_boundary", "centerline")
@@ -203,7 +199,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
             obs = _mean([r["noise"][t]["observed_lateral_sigma_m"] for r in rs if t in r.get("noise", {})])
             cells.append(f"{_fmt(est)} / {_fmt(obs)}" if math.isfinite(est) else "")
         noise_rows.append([world, *cells])
-    lines += [_table(["world", *noise_types], noise_rows) if noise_rows else "(no true-pose runs)", ""]
+    lines += [markdown_table(["world", *noise_types], noise_rows) if noise_rows else "(no true-pose runs)", ""]
     lines += ["With the true poses, so that a point's error is the perception's alone. *Estimated*: what the "
               "stage reports with the trip (`TripReconstruction.noise`, mean over trips and seeds), the sigma "
               "that sets Eq. 3's thresholds and Eq. 5-6's widths. *Observed*: 1.4826 x the median distance of "
@@ -223,7 +219,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
             f"{_fmt(r['local']['correctness'])} / {_fmt(r['local']['completeness'])}",
             _fmt(r["seconds_per_km"], 2),
         ])
-    lines += [_table(["scenario", "poses", "km", "ATE raw", "ATE smoothed", "ATE trip-aligned", "RPE raw",
+    lines += [markdown_table(["scenario", "poses", "km", "ATE raw", "ATE smoothed", "ATE trip-aligned", "RPE raw",
                       "RPE smoothed", "rigid correct. / compl.", "local 100 m", "CPU s/km"], per_rows), ""]
     lines += ["Pose columns in metres; with true poses they are zero by construction. CPU s/km is "
               "`time.process_time` of `reconstruct_trip` (one core) per km of trip, on a shared machine."]

@@ -55,7 +55,7 @@ def _mean(values: Sequence[float]) -> float:
     return float(v.mean()) if v.size else float("nan")
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
@@ -136,7 +136,7 @@ def table_map(records: Sequence[Record], aligned: bool = True) -> str:
             [name, fmt(v[0], 4), fmt(v[1], 4), fmt(v[2], 4), "", "", fmt(v[3], 4), "", ""]
             for name, v in PAPER_MAP.items()
         ]
-    return _table(header, rows)
+    return markdown_table(header, rows)
 
 
 def table_pose(records: Sequence[Record]) -> str:
@@ -148,7 +148,7 @@ def table_pose(records: Sequence[Record]) -> str:
         for aligned in (False, True):
             rows.append([METHOD_NAMES.get(m, m), "aligned" if aligned else "raw", *_pose_row(rs, aligned)])
     rows += [[name, "(paper)", *[fmt(x) for x in v], ""] for name, v in PAPER_POSE.items()]
-    return _table(header, rows)
+    return markdown_table(header, rows)
 
 
 def table_cost(records: Sequence[Record]) -> str:
@@ -165,7 +165,7 @@ def table_cost(records: Sequence[Record]) -> str:
     rows = [[METHOD_NAMES.get(m, m), *_cost_row([r for r in main if r.method == m])] for m in _methods(main)]
     rows.append(["CSR [paper]", "17.1 (0.285 min/km)", "", "", "", "27 (0.027 Gb/km, read as GB)", ""])
     rows.append(["traditional LiDAR [paper]", "352.9 (5.881 min/km)", "", "", "", "2400 (2.4 Gb/km)", ""])
-    return _table(header, rows)
+    return markdown_table(header, rows)
 
 
 def table_ablation(records: Sequence[Record]) -> str | None:
@@ -186,7 +186,7 @@ def table_ablation(records: Sequence[Record]) -> str | None:
                 fmt(paper[1]),
             ]
         )
-    return _table(["alignment", "RPE RMSE", "RPE ME", "paper RPE RMSE", "paper RPE ME"], rows)
+    return markdown_table(["alignment", "RPE RMSE", "RPE ME", "paper RPE RMSE", "paper RPE ME"], rows)
 
 
 def table_per_world(records: Sequence[Record]) -> str:
@@ -240,7 +240,7 @@ def table_per_world(records: Sequence[Record]) -> str:
                 fmt(r.run.wall_s, 1),
             ]
         )
-    return _table(header, rows)
+    return markdown_table(header, rows)
 
 
 def replace_section(document: str, section: str, begin: str, end: str) -> str:

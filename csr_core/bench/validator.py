@@ -20,6 +20,7 @@ import numpy as np
 
 from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
 from csr_core.bench.sets import ScenarioSpec, scenario_set
+from csr_core.bench.tables import markdown_table
 
 SECTION = "validator"
 RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
@@ -91,11 +92,6 @@ def _share(v: float) -> str:
     return f"{v:.3f}" if v == v else "n/a"
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
-
 
 def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
                    set_name: str = "validator") -> str:
@@ -135,7 +131,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         rows.append([r["spec"], str(r["trips"]), str(v["instances"]), str(v["wrong"]), str(v["flagged"]),
                      _share(v["recall"] if v["wrong"] else float("nan")),
                      _share(v["precision"] if v["flagged"] else float("nan")), f"{r['mcd']:.3f}"])
-    lines += [_table(["fleet", "trips", "instances", "wrong", "flagged", "recall", "precision", "map mCD [m]"], rows), ""]
+    lines += [markdown_table(["fleet", "trips", "instances", "wrong", "flagged", "recall", "precision", "map mCD [m]"], rows), ""]
     kinds: dict[str, np.ndarray] = {}
     for r in results:
         for kind, c in r["validator"]["per_flag"].items():
@@ -145,7 +141,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
                  for kind, c in sorted(kinds.items(), key=lambda kv: -kv[1][0])]
     lines += ["Per flag, pooled (an instance can carry several; *alone*: its only suspect flag; `gap` and "
               "`outlier_trip` are informative, not suspect):", "",
-              _table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
+              markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
               if flag_rows else "(no instance flagged)", ""]
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
