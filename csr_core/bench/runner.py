@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import orjson
 
@@ -92,6 +93,26 @@ def simulator_fingerprint() -> str:
     for path in sorted(sim_dir.rglob("*.py")):
         digest.update(path.read_bytes())
     return digest.hexdigest()[:8]
+
+
+_Item = TypeVar("_Item")
+_Result = TypeVar("_Result")
+
+
+def map_in_processes(fn: Callable[[_Item], _Result], items: Sequence[_Item], jobs: int,
+                     progress: Callable[[str], None] | None = None,
+                     label: Callable[[_Result], str] = str) -> list[_Result]:
+    """``[fn(item) for item in items]`` in ``jobs`` worker processes (results in ``items``
+    order), reporting "evaluated k/n: label(result)" as each one comes back."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    results: list[_Result] = []
+    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
+        for done, result in enumerate(pool.map(fn, items), 1):
+            results.append(result)
+            if progress:
+                progress(f"evaluated {done}/{len(items)}: {label(result)}")
+    return results
 
 
 def ensure_scenario(spec: ScenarioSpec, cache_dir: Path, fingerprint: str | None = None) -> Path:

@@ -13,13 +13,12 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
+from csr_core.bench.runner import ensure_scenario, map_in_processes, simulator_fingerprint
 from csr_core.bench.sets import WORLDS, ScenarioSpec, scenario_set
 from csr_core.bench.tables import markdown_table
 
@@ -67,13 +66,8 @@ def run_single_trip_bench(cache_dir: Path, sets: Sequence[str] = SETS, jobs: int
             if progress:
                 progress(f"scenario {spec.name}")
             work.append(Job(spec, ensure_scenario(spec, cache_dir, fingerprint), spec.profile != "hard"))
-    results: list[dict] = []
-    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for done, batch in enumerate(pool.map(_evaluate, work), 1):
-            results.extend(batch)
-            if progress:
-                progress(f"evaluated {done}/{len(work)}: {batch[0]['spec']}")
-    return results
+    batches = map_in_processes(_evaluate, work, jobs, progress, label=lambda batch: batch[0]["spec"])
+    return [r for batch in batches for r in batch]
 
 
 def _mean(values: Sequence[float]) -> float:

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
+from csr_core.bench.runner import ensure_scenario, map_in_processes, simulator_fingerprint
 from csr_core.bench.sets import ScenarioSpec, scenario_set
 from csr_core.bench.tables import markdown_table
 
@@ -66,13 +65,7 @@ def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "valida
             figure, drawn = figure_dir / "bench_validator_map.png", True
         scenario = ensure_scenario(spec, cache_dir, fingerprint)
         work.append(Job(spec, scenario, work_dir / f"{scenario.name}-aligned.pkl", figure))
-    results = []
-    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for done, r in enumerate(pool.map(_evaluate, work), 1):
-            results.append(r)
-            if progress:
-                progress(f"evaluated {done}/{len(work)}: {r['spec']}")
-    return results
+    return map_in_processes(_evaluate, work, jobs, progress, label=lambda r: r["spec"])
 
 
 def pooled(results: Sequence[dict], key: str | None = None) -> dict:

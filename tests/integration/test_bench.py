@@ -70,17 +70,25 @@ def test_bench_toy_set_end_to_end(tmp_path):
         assert 0 < r["evaluation"]["aligned"]["ate_rmse"] < 3
 
 
-def test_bench_single_trip_toy_set_end_to_end(tmp_path):
+def _bench_command_on_toy(tmp_path, command: str, set_option: str, section: str) -> tuple[str, Path]:
+    """Run ``csr COMMAND SET_OPTION toy`` writing a BENCHMARKS.md that already holds other
+    sections; check that only its own section was written, once. Returns the text and the
+    figures folder."""
     doc = tmp_path / "BENCHMARKS.md"
     doc.write_text(OTHER)
     figs = tmp_path / "figs"
-    argv = CSR + ["bench-single-trip", "--sets", "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
+    argv = CSR + [command, set_option, "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
                   "--write", str(doc), "--figures", str(figs)]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = doc.read_text()
-    begin, end = section_markers("single-trip")
+    begin, end = section_markers(section)
     assert text.startswith(OTHER) and text.count(begin) == 1 and text.count(end) == 1
+    return text, figs
+
+
+def test_bench_single_trip_toy_set_end_to_end(tmp_path):
+    text, figs = _bench_command_on_toy(tmp_path, "bench-single-trip", "--sets", "single-trip")
     assert "| toy |" in text and "csr bench-single-trip --write BENCHMARKS.md --sets toy" in text
     png = figs / "bench_single_trip_instances.png"
     assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
@@ -102,16 +110,7 @@ def test_bench_single_trip_toy_set_end_to_end(tmp_path):
 
 
 def test_bench_validator_toy_set_end_to_end(tmp_path):
-    doc = tmp_path / "BENCHMARKS.md"
-    doc.write_text(OTHER)
-    figs = tmp_path / "figs"
-    argv = CSR + ["bench-validator", "--set", "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
-                  "--write", str(doc), "--figures", str(figs)]
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    text = doc.read_text()
-    begin, end = section_markers("validator")
-    assert text.startswith(OTHER) and text.count(begin) == 1 and text.count(end) == 1
+    text, figs = _bench_command_on_toy(tmp_path, "bench-validator", "--set", "validator")
     assert "| toy-toy-3x-300m-s1 | 3 |" in text and "csr bench-validator --write BENCHMARKS.md --set toy" in text
     png = figs / "bench_validator_map.png"
     assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
