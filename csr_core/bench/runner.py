@@ -83,16 +83,23 @@ def run_measured(argv: Sequence[str]) -> CommandRun:
     )
 
 
-def simulator_fingerprint() -> str:
-    """8 hex digits of a hash of the simulator's sources: the scenario cache is keyed by it, so a
-    changed simulator never serves stale scenarios."""
+def sources_fingerprint(*packages: str) -> str:
+    """8 hex digits of a hash of the sources of ``csr_core``'s ``packages`` (e.g. ``"sim"``):
+    a cache keyed by it never serves results of other code."""
     import hashlib
 
-    sim_dir = Path(__file__).resolve().parents[1] / "sim"
+    core = Path(__file__).resolve().parents[1]
     digest = hashlib.sha1()
-    for path in sorted(sim_dir.rglob("*.py")):
-        digest.update(path.read_bytes())
+    for package in packages:
+        for path in sorted((core / package).rglob("*.py")):
+            digest.update(path.read_bytes())
     return digest.hexdigest()[:8]
+
+
+def simulator_fingerprint() -> str:
+    """The simulator's :func:`sources_fingerprint`: the scenario cache is keyed by it, so a
+    changed simulator never serves stale scenarios."""
+    return sources_fingerprint("sim")
 
 
 _Item = TypeVar("_Item")

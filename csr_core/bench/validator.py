@@ -17,7 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from csr_core.bench.runner import ensure_scenario, map_in_processes, simulator_fingerprint
+from csr_core.bench.runner import (
+    ensure_scenario,
+    map_in_processes,
+    simulator_fingerprint,
+    sources_fingerprint,
+)
 from csr_core.bench.sets import ScenarioSpec, scenario_set
 from csr_core.bench.tables import markdown_table
 
@@ -49,9 +54,10 @@ def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "valida
                         figure_for: str | None = "karlsruhe", figure_dir: Path | None = None,
                         progress: Callable[[str], None] | None = None) -> list[dict]:
     """Every fleet of ``set_name`` (simulated unless cached in ``cache_dir``; the single-trip and
-    alignment results cached in ``work_dir``), evaluated in ``jobs`` processes. The first fleet of
+    alignment results cached in ``work_dir``, keyed by those stages' sources), evaluated in ``jobs`` processes. The first fleet of
     world ``figure_for`` (or the first fleet, if the set has none) is also drawn into ``figure_dir``."""
     fingerprint = simulator_fingerprint()
+    code = sources_fingerprint("single_trip", "alignment")  # what the cached alignments depend on
     work_dir.mkdir(parents=True, exist_ok=True)
     work, drawn = [], False
     specs = scenario_set(set_name)
@@ -64,7 +70,7 @@ def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "valida
         if figure_dir is not None and not drawn and (figure_for is None or spec.world == figure_for):
             figure, drawn = figure_dir / "bench_validator_map.png", True
         scenario = ensure_scenario(spec, cache_dir, fingerprint)
-        work.append(Job(spec, scenario, work_dir / f"{scenario.name}-aligned.pkl", figure))
+        work.append(Job(spec, scenario, work_dir / f"{scenario.name}-aligned-{code}.pkl", figure))
     return map_in_processes(_evaluate, work, jobs, progress, label=lambda r: r["spec"])
 
 

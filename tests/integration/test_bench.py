@@ -118,4 +118,4 @@ def test_bench_validator_toy_set_end_to_end(tmp_path):
     v = fleet["validator"]
     # the toy fleet is clean: every instance judged, none wrong, so nothing to catch and no false alarm
     assert v["instances"] > 5 and v["wrong"] == 0 and v["flagged"] == 0 and fleet["mcd"] < 0.05
-    assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned.pkl"))  # the alignment cache
+    assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned-*.pkl"))  # the alignment cache
