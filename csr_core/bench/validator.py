@@ -43,19 +43,21 @@ def _evaluate(job: Job) -> dict:
     """One fleet (a worker process): the topology evaluation with the aligned poses."""
     from csr_core.topology.evaluate import evaluate_scenario
 
+    cached = job.cache.exists()
     r = evaluate_scenario(job.scenario_dir, poses="aligned", cache=str(job.cache), validator_figure=job.figure,
                           figure_bbox_xy=None)
     return {"spec": job.spec.name, "world": job.spec.world, "seed": job.spec.seed, "trips": r["trips"],
             "mcd": r["fused"]["mcd"], "validator": r["validator"],
-            "figure": str(job.figure) if job.figure else None}
+            "figure": str(job.figure) if job.figure else None, "cached": cached}
 
 
 def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "validator", jobs: int = 2,
                         figure_for: str | None = "karlsruhe", figure_dir: Path | None = None,
                         progress: Callable[[str], None] | None = None) -> list[dict]:
     """Every fleet of ``set_name`` (simulated unless cached in ``cache_dir``; the single-trip and
-    alignment results cached in ``work_dir``, keyed by those stages' sources), evaluated in ``jobs`` processes. The first fleet of
-    world ``figure_for`` (or the first fleet, if the set has none) is also drawn into ``figure_dir``."""
+    alignment results cached in ``work_dir``, keyed by those stages' sources), evaluated in
+    ``jobs`` processes. The first fleet of world ``figure_for`` (or the first fleet, if the set
+    has none) is also drawn into ``figure_dir``."""
     fingerprint = simulator_fingerprint()
     code = sources_fingerprint("single_trip", "alignment")  # what the cached alignments depend on
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -95,6 +97,8 @@ def _share(v: float) -> str:
 def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
                    set_name: str = "validator") -> str:
     """The markdown of BENCHMARKS.md's validator section."""
+    n_cached = sum(bool(r.get("cached")) for r in results)
+    cached = f", {n_cached} of {len(results)} fleets' alignments from the cache" if n_cached else ""
     import os
 
     total = pooled(results)
@@ -106,8 +110,9 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     lines = [
         "## Validator (issue 6, `csr bench-validator`)",
         "",
-        f"Regenerate: `{regenerate}` ({elapsed_s / 60:.0f} min on this machine; scenarios cached in "
-        f"`bench-out/scenarios`, alignments in `bench-out/validator`). Measured "
+        f"Regenerate: `{regenerate}` ({elapsed_s / 60:.0f} min on this machine{cached}; scenarios cached in "
+        f"`bench-out/scenarios`, alignments in `bench-out/validator`, keyed by the single-trip and alignment "
+        f"sources). Measured "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Set `{set_name}`: "
         f"{fleets} (simulator sources fingerprint `{simulator_fingerprint()}`). "
         "Each fleet: single-trip stage, `align_trips`, `generate_topology` with the alignment's match pairs (as "
