@@ -83,7 +83,6 @@ def _fmt(v: float, digits: int = 3) -> str:
     return "" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
 
 
-
 def _world_order(world: str) -> int:
     return WORLDS.index(world) if world in WORLDS else len(WORLDS)
 
@@ -106,13 +105,11 @@ def world_summary(results: Sequence[dict]) -> list[dict]:
         ratio = [r["rpe_smoothed_m"] / r["rpe_raw_gnss_m"] for r in rs]
         rows.append({
             "world": world,
-            "seeds": len(rs),
             "rpe_ratio": _mean(ratio),
             "rpe_ok": all(x <= RPE_RATIO_MAX for x in ratio),
             "ate_smoothed_m": _mean([r["ate_smoothed_m"] for r in rs]),
             "ate_raw_gnss_m": _mean([r["ate_raw_gnss_m"] for r in rs]),
             "ate_ok": all(r["ate_smoothed_m"] <= r["ate_raw_gnss_m"] for r in rs),
-            "ate_trip_aligned_m": _mean([r["ate_trip_aligned_m"] for r in rs]),
             **{f"{kind}_{m}": _mean([r[kind][m] for r in rs]) for kind in ("rigid", "local")
                for m in ("correctness", "completeness")},
             **{f"{kind}_min_{m}": min(r[kind][m] for r in rs) for kind in ("rigid", "local")
