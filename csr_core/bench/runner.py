@@ -83,16 +83,18 @@ def run_measured(argv: Sequence[str]) -> CommandRun:
     )
 
 
-def sources_fingerprint(*packages: str) -> str:
-    """8 hex digits of a hash of the sources of ``csr_core``'s ``packages`` (e.g. ``"sim"``):
-    a cache keyed by it never serves results of other code."""
+def sources_fingerprint(*parts: str) -> str:
+    """8 hex digits of a hash of ``csr_core``'s sources named by ``parts``, each a package
+    (``"sim"``: all its modules) or a module (``"types.py"``): a cache keyed by it never serves
+    results of other code."""
     import hashlib
 
     core = Path(__file__).resolve().parents[1]
     digest = hashlib.sha1()
-    for package in packages:
-        for path in sorted((core / package).rglob("*.py")):
-            digest.update(path.read_bytes())
+    for part in parts:
+        path = core / part
+        for source in ([path] if path.is_file() else sorted(path.rglob("*.py"))):
+            digest.update(source.read_bytes())
     return digest.hexdigest()[:8]
 
 

@@ -29,6 +29,11 @@ from csr_core.bench.tables import markdown_table
 SECTION = "validator"
 RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
 PRECISION_MIN = 0.5
+#: what the cached per-fleet instances depend on: the single-trip stage, the alignment, the
+#: instances moved with it (``topology.instances.reposition_instances``) and the core's types,
+#: frames and upload decoding
+ALIGNMENT_CACHE_SOURCES = ("single_trip", "alignment", "topology/instances.py", "types.py", "se2.py", "geo.py",
+                           "upload.py", "scenario.py")
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,11 +60,11 @@ def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "valida
                         figure_for: str | None = "karlsruhe", figure_dir: Path | None = None,
                         progress: Callable[[str], None] | None = None) -> list[dict]:
     """Every fleet of ``set_name`` (simulated unless cached in ``cache_dir``; the single-trip and
-    alignment results cached in ``work_dir``, keyed by those stages' sources), evaluated in
+    alignment results cached in ``work_dir``, keyed by ``ALIGNMENT_CACHE_SOURCES``), evaluated in
     ``jobs`` processes. The first fleet of world ``figure_for`` (or the first fleet, if the set
     has none) is also drawn into ``figure_dir``."""
     fingerprint = simulator_fingerprint()
-    code = sources_fingerprint("single_trip", "alignment")  # what the cached alignments depend on
+    code = sources_fingerprint(*ALIGNMENT_CACHE_SOURCES)
     work_dir.mkdir(parents=True, exist_ok=True)
     work, drawn = [], False
     specs = scenario_set(set_name)
@@ -111,8 +116,8 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         "## Validator (issue 6, `csr bench-validator`)",
         "",
         f"Regenerate: `{regenerate}` ({elapsed_s / 60:.0f} min on this machine{cached}; scenarios cached in "
-        f"`bench-out/scenarios`, alignments in `bench-out/validator`, keyed by the single-trip and alignment "
-        f"sources). Measured "
+        f"`bench-out/scenarios`, alignments in `bench-out/validator`, keyed by the sources they come from). "
+        f"Measured "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Set `{set_name}`: "
         f"{fleets} (simulator sources fingerprint `{simulator_fingerprint()}`). "
         "Each fleet: single-trip stage, `align_trips`, `generate_topology` with the alignment's match pairs (as "
