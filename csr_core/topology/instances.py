@@ -10,6 +10,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from csr_core.se2 import compose, inverse
@@ -63,19 +64,26 @@ class TopologyResult:
         return [f for f in self.flags if f.feature_id == feature_id]
 
 
+def _total_turning_rad(points_xy: np.ndarray, smoothing_m: float) -> float:
+    """Total absolute heading change of a 1 m resampled line after Gaussian smoothing of its
+    points with sigma ``smoothing_m`` (metres = samples) along it."""
+    smooth = gaussian_filter1d(points_xy, smoothing_m, axis=0, mode="nearest")
+    d = np.diff(smooth, axis=0)
+    return float(np.abs(np.diff(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))).sum())
+
+
 def is_zigzag(points_xy: np.ndarray, params: TopologyParams) -> bool:
-    """A line that oscillates sideways (a splice that hopped between neighbouring elements):
-    mean absolute turning above ``ZIGZAG_TURN_RAD_PER_M`` and ``ZIGZAG_TURN_RATIO`` times its
-    net turning, over at least ``ZIGZAG_MIN_LENGTH_M`` (2 m resampling)."""
-    p = resample_polyline(np.asarray(points_xy, float), 2.0)
-    length = 2.0 * (len(p) - 1)
+    """A line that oscillates sideways (a splice that hopped between neighbouring elements, a
+    wobbling centreline): over at least ``ZIGZAG_MIN_LENGTH_M``, more than
+    ``ZIGZAG_TURN_RAD_PER_M`` of turning per metre that smoothing over ``ZIGZAG_SMOOTHING_M``
+    removes (total turning at 1 m minus at that scale). A corner, a bend or a roundabout keeps its
+    turning at both scales; noise of a few centimetres adds well under 0.01 rad/m."""
+    p = resample_polyline(np.asarray(points_xy, float), 1.0)
+    length = float(len(p) - 1)
     if length < params.ZIGZAG_MIN_LENGTH_M:
         return False
-    d = np.diff(p, axis=0)
-    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    total = float(np.abs(np.diff(heading)).sum())
-    net = max(abs(float(heading[-1] - heading[0])), 0.3)
-    return total / length > params.ZIGZAG_TURN_RAD_PER_M and total / net > params.ZIGZAG_TURN_RATIO
+    excess = _total_turning_rad(p, 1.0) - _total_turning_rad(p, params.ZIGZAG_SMOOTHING_M)
+    return excess / length > params.ZIGZAG_TURN_RAD_PER_M
 
 
 def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],

@@ -38,10 +38,12 @@ class TopologyParams:
     POLYGON_GATE_M: float = 1.0  # polygons: centroid distance beyond the overlap test
 
     # --- implausible members (left out of fusion) ----------------------------------------------------
-    # a trip instance that zig-zags: turning of more than this per metre on average while its
-    # total turning is several times its net turning (roads curve, they do not oscillate)
+    # a trip instance that zig-zags: more than this turning per metre on average that smoothing
+    # over ``ZIGZAG_SMOOTHING_M`` removes (roads curve, they do not oscillate: the turning of a
+    # corner, a bend or a roundabout survives the smoothing, a sideways wobble with a wavelength
+    # of ten-odd metres does not)
     ZIGZAG_TURN_RAD_PER_M: float = 0.05
-    ZIGZAG_TURN_RATIO: float = 3.0
+    ZIGZAG_SMOOTHING_M: float = 4.0  # Gaussian sigma along the line; the fine scale is 1 m
     ZIGZAG_MIN_LENGTH_M: float = 30.0
 
     # --- fusion -------------------------------------------------------------------------------------

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import shapely
 
+from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology import generate_topology
 from csr_core.topology.association import Member, associate_lines
 from csr_core.topology.fusion import _consensus, absorb_pieces, fuse_group, project_on_polyline
-from csr_core.topology.instances import make_members
+from csr_core.topology.instances import is_zigzag, make_members
 from csr_core.topology.params import DEFAULT
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 
@@ -187,6 +188,29 @@ def test_a_zigzag_trip_instance_is_left_out() -> None:
     res = generate_topology(trips, _noise(trips))
     assert len(res.features) == 1 and res.features[0].properties["support_trips"] == 3
     assert [m.trip_key for m in res.rejected_members] == ["veh-1__t03"]
+
+
+def _drive(segments: list[tuple[float, float]], step_m: float = 0.5) -> np.ndarray:
+    """A line from (length m, curvature 1/m) pieces, heading integrated from the origin."""
+    kappa = np.concatenate([np.full(int(length / step_m), k) for length, k in segments])
+    heading = np.concatenate([[0.0], np.cumsum(kappa * step_m)])
+    return np.vstack([[0.0, 0.0], np.cumsum(step_m * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+
+
+def test_a_roundabout_pass_and_corners_are_road_shapes_not_zigzags() -> None:
+    """Roads curve, and a line through a roundabout turns right, left round the island and right
+    again: 3.4 rad over 58 m with little net turning (the rule before this one, turning per metre
+    and total / net turning, rejected such lines). With centimetres of noise it keeps its turning
+    when smoothed and is not rejected, nor is a boundary with corners; a sideways wobble of 0.7 m
+    every 12 m is."""
+    rng = np.random.default_rng(11)
+    roundabout = _drive([(10.0, 0.0), (7.0, -0.1), (24.0, 1.0 / 12.0), (7.0, -0.1), (10.0, 0.0)])
+    corners = resample_polyline(np.array([[0.0, 0.0], [20.0, 0.0], [35.0, -8.0], [50.0, -12.0], [58.0, -25.0]]), 0.5)
+    for line in (roundabout, corners):
+        assert not is_zigzag(line + rng.normal(0.0, 0.03, line.shape), DEFAULT)
+    x = np.arange(0.0, 60.0, 0.5)
+    wobble = np.column_stack([x, 0.7 * np.sin(2 * np.pi * x / 12.0)])
+    assert is_zigzag(wobble + rng.normal(0.0, 0.03, wobble.shape), DEFAULT)
 
 
 def test_crosswalk_outlines_with_different_vertex_counts_still_associate() -> None:
