@@ -298,7 +298,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
             guide = poses[t0:t1 + 1, :2]
             mixed_above = params.INSTANCE_MAX_SIGMA_RATIO * params.NOISE_PRIOR_LATERAL_M
-            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original):
+            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original,
+                                     follow_bends=track.type == ElementType.LANE_DIVIDER):
                 lat = piece.lateral_residuals_m
                 parts = [piece]
                 if len(lat) >= params.NOISE_MIN_SAMPLES and robust_sigma(lat) > mixed_above:

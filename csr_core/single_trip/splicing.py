@@ -31,6 +31,9 @@ from csr_core.single_trip.params import SingleTripParams
 
 _INT16_MAX = int(np.iinfo(np.int16).max)
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)  # _cluster_sd: cells touching by a side or a corner
+_MAX_GROWTH_CURVATURE = 0.1  # grow_backbone follows bends of at least 10 m radius (as _extend_ends)
+_BEND_MIN_RADIUS_M = 6.0  # no marking turns tighter than a car's turning circle
+_BEND_SHAPE_TOL_M = 0.5  # an observation continuing a bend lies on its circle this close
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,10 +188,13 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     return np.concatenate([head[::-1], line, tail])
 
 
-def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: float
-                 ) -> tuple[float, float, float, float] | None:
-    """End point and unit tangent (x, y, tx, ty) at the tail (or head) of a polyline given as
-    two lists of floats, the tangent over its last ``tangent_m``; None where degenerate."""
+def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: float, bends: bool = True
+                 ) -> tuple[float, float, float, float, float] | None:
+    """End point, unit tangent and curvature (x, y, tx, ty, kappa) at the tail (or head) of a
+    polyline given as two lists of floats: the tangent over its last ``tangent_m``, the
+    curvature (1/m, positive turning left in the direction of the tangent) from the heading
+    change between that chord and the ``tangent_m`` before it (0 where the line is shorter, or
+    without ``bends``: the chord's direction, no curvature); None where degenerate."""
     n = len(bbx)
     bx, by = (bbx[-1], bby[-1]) if at_tail else (bbx[0], bby[0])
     j, step = (n - 2, -1) if at_tail else (1, 1)
@@ -198,15 +204,70 @@ def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: f
     tn = math.hypot(tx, ty)
     if tn < 1e-9:
         return None
-    return bx, by, tx / tn, ty / tn
+    tx, ty = tx / tn, ty / tn
+    if not bends:
+        return bx, by, tx, ty, 0.0
+    kappa = 0.0
+    i = j
+    while 0 < i < n - 1 and math.hypot(bbx[j] - bbx[i], bby[j] - bby[i]) < tangent_m:
+        i += step
+    px, py = bbx[j] - bbx[i], bby[j] - bby[i]
+    pn = math.hypot(px, py)
+    if pn >= tangent_m / 2:
+        turn = math.atan2(px * ty - py * tx, px * tx + py * ty)  # from the chord before to the end chord
+        kappa = min(max(turn / (0.5 * (tn + pn)), -_MAX_GROWTH_CURVATURE), _MAX_GROWTH_CURVATURE)
+        # on an arc the tangent at the end is turned from the chord by half the chord's turning
+        # (the chord spans a dash gap on a dashed line: metres)
+        c, s = math.cos(0.5 * kappa * tn), math.sin(0.5 * kappa * tn)
+        tx, ty = c * tx - s * ty, s * tx + c * ty
+    return bx, by, tx, ty, kappa
+
+
+def _tail_points(bbx: list[float], bby: list[float], at_tail: bool, span_m: float) -> np.ndarray:
+    """The points of a backbone (two lists of floats) within ``span_m`` of its tail (or head)."""
+    n = len(bbx)
+    bx, by = (bbx[-1], bby[-1]) if at_tail else (bbx[0], bby[0])
+    j, step = (n - 2, -1) if at_tail else (1, 1)
+    while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < span_m:
+        j += step
+    idx = range(j, n) if at_tail else range(0, j + 1)
+    return np.column_stack([[bbx[k] for k in idx], [bby[k] for k in idx]])
+
+
+def _bend_continuation(tail_xy: np.ndarray, obs_xy: np.ndarray, beyond: np.ndarray, end_xy: np.ndarray,
+                       max_gap_m: float) -> np.ndarray:
+    """``beyond`` (indices of an observation's points past a backbone end) if they continue the
+    backbone round a bend: one circle fits the backbone's last points ``tail_xy`` and them
+    within ``_BEND_SHAPE_TOL_M`` (the observation bends with the line: a piece of another element
+    crossing it, or of a parallel one, does not), turning no tighter than ``_BEND_MIN_RADIUS_M``,
+    with the nearest of them within ``max_gap_m`` of the end ``end_xy``. Empty if not."""
+    if len(beyond) < 2 or len(tail_xy) < 3:
+        return beyond[:0]
+    cand = obs_xy[beyond]
+    if float(np.min(np.hypot(cand[:, 0] - end_xy[0], cand[:, 1] - end_xy[1]))) > max_gap_m:
+        return beyond[:0]
+    pts = np.vstack([tail_xy, cand])
+    mu = pts.mean(0)
+    q = pts - mu
+    # algebraic (Kasa) circle fit: x^2 + y^2 + D x + E y + F = 0, least squares
+    a = np.column_stack([q, np.ones(len(q))])
+    (d, e, f), *_ = np.linalg.lstsq(a, -(q * q).sum(1), rcond=None)
+    r2 = 0.25 * (d * d + e * e) - f
+    if not np.isfinite(r2) or r2 <= _BEND_MIN_RADIUS_M ** 2:
+        return beyond[:0]
+    residual = np.abs(np.hypot(q[:, 0] + 0.5 * d, q[:, 1] + 0.5 * e) - math.sqrt(r2))
+    return beyond if float(residual.max()) <= _BEND_SHAPE_TOL_M else beyond[:0]
 
 
 def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
-                  lateral_gate_m: float = 1.0, lateral_gate_slope: float = 0.15) -> np.ndarray:
+                  lateral_gate_m: float = 1.0, lateral_gate_slope: float = 0.15, max_gap_m: float = 15.0,
+                  follow_bends: bool = False) -> np.ndarray:
     """An ordered polyline covering an element of any shape from its observations (each an
     ordered polyline, in time order): the first one, extended at either end by the points of
     later ones that lie beyond it along its end tangent (over the last ``tangent_m``) and near
-    that tangent line. Observations are oriented like the previous one first."""
+    the circular arc that continues its end with the curvature of its last two ``tangent_m``
+    (a dashed line through a junction bends between its dashes: a straight tangent misses the
+    next dash by metres). Observations are oriented like the previous one first."""
     polys = [points_w[a:b + 1] for a, b in obs_ends]
     ref = None
     bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
@@ -227,17 +288,20 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
         (x_first, y_first), (x_last, y_last) = p[0].tolist(), p[-1].tolist()
         for at_tail in (True, False):
             if at_tail not in tangents:
-                tangents[at_tail] = _end_tangent(bbx, bby, at_tail, tangent_m)
+                tangents[at_tail] = _end_tangent(bbx, bby, at_tail, tangent_m, follow_bends)
             tangent = tangents[at_tail]
             if tangent is None:
                 continue
-            bx, by, tx, ty = tangent
+            bx, by, tx, ty, kappa = tangent
             # its end points first: most observations do not reach beyond this end
             if max((x_first - bx) * tx + (y_first - by) * ty, (x_last - bx) * tx + (y_last - by) * ty) <= min_step_m:
                 continue
             proj = (px - bx) * tx + (py - by) * ty
-            lat = np.abs((px - bx) * ty - (py - by) * tx)
+            lat = np.abs((py - by) * tx - (px - bx) * ty - 0.5 * kappa * proj * proj)  # off the arc (parabola)
             beyond = np.flatnonzero((proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj))
+            if not len(beyond) and follow_bends:
+                beyond = _bend_continuation(_tail_points(bbx, bby, at_tail, 2 * tangent_m), p,
+                                            np.flatnonzero(proj > min_step_m), np.array([bx, by]), max_gap_m)
             if len(beyond):
                 ext = beyond[np.argsort(proj[beyond])]
                 if at_tail:
@@ -354,7 +418,7 @@ def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extensi
 
 def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
                 guide_xy: np.ndarray | None, params: SingleTripParams,
-                original: np.ndarray | None = None) -> list[SplicedLine]:
+                original: np.ndarray | None = None, follow_bends: bool = False) -> list[SplicedLine]:
     """Observations of one track -> one smoothed polyline per element found in it (usually one).
 
     ``points_w (P, 2)`` all observation points (world), ``obs_id (P,)`` their observation,
@@ -364,6 +428,9 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
     (not inserted by densification): only those give lateral residuals. ``guide_xy`` the vehicle path while the track
     was seen: the backbone when the element runs along it (curves, roundabouts), else the
     principal axis of the points, refined by a second pass on the first result.
+    ``follow_bends``: a backbone grown from the observations follows the element round bends
+    across gaps (``grow_backbone``): for dashed lines, whose gaps are the dash gaps; a continuous
+    element that leaves the end tangent is a branch, not the same line.
     """
     bin_m = params.SPLICE_BIN_M
     if original is None:
@@ -382,7 +449,7 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
             # the track runs across the path (a dashed line crossed in a junction): the gaps
             # between its pieces are along its own shape, not along the path
             return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params,
-                                     original)
+                                     original, follow_bends)
         s, d = _project(points_w, guide_geom)
         labels = _cluster_sd(s, d, params)
         out = []
@@ -402,9 +469,10 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
                 out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide_geom, False, obs_id, obs_ends, end_free, params,
                                       original, binned))
             else:
-                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original))
+                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original, follow_bends))
         return out
-    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original)
+    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original,
+                             follow_bends)
 
 
 def _mixture_sigma(d: np.ndarray, binned: tuple[np.ndarray, int, np.ndarray]) -> float:
@@ -479,7 +547,8 @@ def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
 
 
 def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
-                      end_free: np.ndarray, params: SingleTripParams, original: np.ndarray) -> list[SplicedLine]:
+                      end_free: np.ndarray, params: SingleTripParams, original: np.ndarray,
+                      follow_bends: bool = False) -> list[SplicedLine]:
     """Splice the points ``sel`` on a backbone grown from their own observations (any shape),
     or their principal axis, refined by a second pass; clustered on it first."""
     bin_m = params.SPLICE_BIN_M
@@ -488,7 +557,8 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
     starts = _run_starts(ids)
     ends = np.append(starts[1:], len(ids)) - 1
     short = float((pts.max(0) - pts.min(0)).max()) < params.SPLICE_STRAIGHT_BELOW_M  # np.ptp
-    grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]))
+    grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]), max_gap_m=params.SPLICE_MAX_GAP_M,
+                                                   follow_bends=follow_bends)
     if len(grown) >= 2 and _arclength(grown)[-1] > 2 * bin_m:
         backbone = smooth_polyline(grown, bin_m / 2, params.SPLICE_BACKBONE_SMOOTH_M)
     else:

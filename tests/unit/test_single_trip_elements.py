@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import shapely
 
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.noise import robust_sigma
@@ -181,6 +182,41 @@ def test_dashed_line_crossed_in_a_junction_is_one_instance():
     line = out[0].points_xy_world
     assert np.ptp(line[:, 1]) == pytest.approx(dashes[-1][1] - dashes[0][0], abs=0.5)
     assert np.abs(line[:, 0] - 5.0).max() < 0.1
+
+
+def test_dashed_line_bending_through_a_junction_is_one_instance():
+    # a dashed guide line (3 m dashes, 6 m gaps) that runs straight, then turns by 110 degrees
+    # on a 12 m radius, across the vehicle path; each dash one observation in each of 6 frames.
+    # Past the bend's start the next dash lies 2-3 m off the straight tangent: the backbone
+    # follows the bend (one circle fits its last points and the next dash)
+    from csr_core.single_trip.params import DEFAULT
+    from csr_core.single_trip.splicing import splice_line
+
+    rng = np.random.default_rng(4)
+    radius, turn = 12.0, np.radians(110.0)
+
+    def at(s: np.ndarray) -> np.ndarray:  # the line by arclength: 12 m straight up x = 5, then left
+        a = np.clip(s - 12.0, 0.0, None) / radius
+        straight = np.column_stack([np.full_like(s, 5.0), np.minimum(s, 12.0) - 6.0])
+        bent = np.column_stack([5.0 - radius * (1.0 - np.cos(a)), 6.0 + radius * np.sin(a)])
+        return np.where((s <= 12.0)[:, None], straight, bent)
+
+    length = 12.0 + radius * turn
+    dashes = [(s0, s0 + 3.0) for s0 in np.arange(0.0, length - 3.0, 9.0)]
+    obs = [at(np.linspace(a, b, 4)) + rng.normal(0.0, 0.03, (4, 2)) for _ in range(6) for a, b in dashes]
+    guide = np.column_stack([np.linspace(-40.0, 40.0, 161), np.full(161, -20.0)])
+    counts = np.array([len(o) for o in obs])
+    offsets = np.r_[0, np.cumsum(counts)]
+    obs_id = np.repeat(np.arange(len(obs)), counts)
+    obs_ends = np.column_stack([offsets[:-1], offsets[1:] - 1])
+    args = (np.concatenate(obs), obs_id, obs_ends, np.ones((len(obs), 2), bool), guide, DEFAULT)
+    assert len(splice_line(*args)) == 2  # along the straight tangent only: the last dash is apart
+    out = splice_line(*args, follow_bends=True)
+    assert len(out) == 1
+    line = out[0].points_xy_world
+    truth = shapely.LineString(at(np.linspace(dashes[0][0], dashes[-1][1], 400)))
+    assert max(truth.distance(shapely.Point(p)) for p in line) < 0.3  # on the line
+    assert shapely.LineString(line).hausdorff_distance(truth) < 0.5  # all of it, ends included
 
 
 def test_crossing_connectors_mixed_in_one_track_are_regrouped():
