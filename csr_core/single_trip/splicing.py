@@ -272,7 +272,7 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     ref = None
     bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
     bby: list[float] = []
-    tangents: dict[bool, tuple[float, float, float, float] | None] = {}  # per end, until the backbone grows
+    tangents: dict[bool, tuple[float, float, float, float, float] | None] = {}  # per end, until the backbone grows
     for p in polys:
         d = p[-1] - p[0]
         if ref is not None and float(d @ ref) < 0:
