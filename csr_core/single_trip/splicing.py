@@ -265,9 +265,13 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     """An ordered polyline covering an element of any shape from its observations (each an
     ordered polyline, in time order): the first one, extended at either end by the points of
     later ones that lie beyond it along its end tangent (over the last ``tangent_m``) and near
-    the circular arc that continues its end with the curvature of its last two ``tangent_m``
-    (a dashed line through a junction bends between its dashes: a straight tangent misses the
-    next dash by metres). Observations are oriented like the previous one first."""
+    that tangent line. Observations are oriented like the previous one first.
+
+    ``follow_bends`` (dashed lines: a guide line through a junction bends between its dashes,
+    and the straight tangent misses the next dash by metres): the tangent line becomes the arc
+    with the curvature of the last two ``tangent_m``, and an observation that is not near it
+    still continues the backbone when one circle fits it and the backbone's last
+    ``2 tangent_m`` (``_bend_continuation``), its nearest point within ``max_gap_m``."""
     polys = [points_w[a:b + 1] for a, b in obs_ends]
     ref = None
     bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
