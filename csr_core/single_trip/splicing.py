@@ -188,6 +188,17 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     return np.concatenate([head[::-1], line, tail])
 
 
+def _walk_in(bbx: list[float], bby: list[float], step: int, start: int, span_m: float) -> int:
+    """The index of the first point of a polyline (two lists of floats) at least ``span_m``
+    from point ``start``, walking inward by ``step`` (-1 from the tail, +1 from the head); an
+    end point where the line is shorter."""
+    n = len(bbx)
+    k = min(max(start + step, 0), n - 1)
+    while 0 < k < n - 1 and math.hypot(bbx[start] - bbx[k], bby[start] - bby[k]) < span_m:
+        k += step
+    return k
+
+
 def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: float, bends: bool = True
                  ) -> tuple[float, float, float, float, float] | None:
     """End point, unit tangent and curvature (x, y, tx, ty, kappa) at the tail (or head) of a
@@ -195,11 +206,9 @@ def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: f
     curvature (1/m, positive turning left in the direction of the tangent) from the heading
     change between that chord and the ``tangent_m`` before it (0 where the line is shorter, or
     without ``bends``: the chord's direction, no curvature); None where degenerate."""
-    n = len(bbx)
-    bx, by = (bbx[-1], bby[-1]) if at_tail else (bbx[0], bby[0])
-    j, step = (n - 2, -1) if at_tail else (1, 1)
-    while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < tangent_m:
-        j += step
+    end, step = (len(bbx) - 1, -1) if at_tail else (0, 1)
+    bx, by = bbx[end], bby[end]
+    j = _walk_in(bbx, bby, step, end, tangent_m)
     tx, ty = bx - bbx[j], by - bby[j]
     tn = math.hypot(tx, ty)
     if tn < 1e-9:
@@ -208,9 +217,7 @@ def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: f
     if not bends:
         return bx, by, tx, ty, 0.0
     kappa = 0.0
-    i = j
-    while 0 < i < n - 1 and math.hypot(bbx[j] - bbx[i], bby[j] - bby[i]) < tangent_m:
-        i += step
+    i = _walk_in(bbx, bby, step, j, tangent_m)
     px, py = bbx[j] - bbx[i], bby[j] - bby[i]
     pn = math.hypot(px, py)
     if pn >= tangent_m / 2:
@@ -225,13 +232,10 @@ def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: f
 
 def _tail_points(bbx: list[float], bby: list[float], at_tail: bool, span_m: float) -> np.ndarray:
     """The points of a backbone (two lists of floats) within ``span_m`` of its tail (or head)."""
-    n = len(bbx)
-    bx, by = (bbx[-1], bby[-1]) if at_tail else (bbx[0], bby[0])
-    j, step = (n - 2, -1) if at_tail else (1, 1)
-    while 0 < j < n - 1 and math.hypot(bx - bbx[j], by - bby[j]) < span_m:
-        j += step
-    idx = range(j, n) if at_tail else range(0, j + 1)
-    return np.column_stack([[bbx[k] for k in idx], [bby[k] for k in idx]])
+    end, step = (len(bbx) - 1, -1) if at_tail else (0, 1)
+    j = _walk_in(bbx, bby, step, end, span_m)
+    lo, hi = (j, end) if at_tail else (end, j)
+    return np.column_stack([bbx[lo:hi + 1], bby[lo:hi + 1]])
 
 
 def _bend_continuation(tail_xy: np.ndarray, obs_xy: np.ndarray, beyond: np.ndarray, end_xy: np.ndarray,
