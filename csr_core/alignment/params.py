@@ -59,6 +59,9 @@ class AlignmentParams:
     topo_lane_count_tol: int = 1
     topo_road_width_k: float = 4.0  # x sqrt(2) * boundary lateral sigma
     topo_split_merge_tol: int = 3
+    # tau_sm also at least z x sqrt(N_sm^i + N_sm^j): element ends are counted events, and two
+    # counts of one place differ by their Poisson noise (docs/alignment.md, "Session 19")
+    topo_split_merge_z: float = 2.0
     topo_road_centre_k: float = 3.0  # x sqrt(sigma_pose_i^2 + sigma_pose_j^2 + boundary^2)
     topo_road_centre_floor_m: float = 2.0
     voting_half_window: int = 2  # sliding window of 2w+1 neighbouring pairs of the same two trips

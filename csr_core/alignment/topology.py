@@ -11,6 +11,10 @@ one circle are compared on the same line whatever their anchor frames.
 
 A missing quantity (e.g. one boundary out of sight) leaves its test out instead of failing it.
 Thresholds grow with the single-trip noise (boundary sigma, pose sigma), as the paper asks.
+``N_sm`` is a count of element ends, and its noise is that of a count: a junction's pieces and
+the breaks of occluded tracks come and go from trip to trip, so two sightings of one place
+differ by about ``sqrt(N_sm^i + N_sm^j)`` (Poisson); ``tau_sm`` is at least ``z`` times that.
+A fixed ``tau_sm = 3`` rejected one in eight same-road pairs on Karlsruhe (17 against 10 ends).
 """
 
 from __future__ import annotations
@@ -73,13 +77,16 @@ def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> 
 def topology_consistent(
     a: TopologyDescriptor, b: TopologyDescriptor, noise: NoiseScales, params: AlignmentParams
 ) -> bool:
-    """Eq. 3, each test only where both sub-maps define the quantity."""
+    """Eq. 3, each test only where both sub-maps define the quantity; ``tau_sm`` grows with the
+    two counts' Poisson noise (module docstring)."""
     if a.lane_count >= 0 and b.lane_count >= 0 and abs(a.lane_count - b.lane_count) > params.topo_lane_count_tol:
         return False
     tau_rw = params.topo_road_width_k * np.sqrt(2.0) * noise.boundary_sigma_m
     if np.isfinite(a.road_width_m) and np.isfinite(b.road_width_m) and abs(a.road_width_m - b.road_width_m) > tau_rw:
         return False
-    if abs(a.split_merge_count - b.split_merge_count) > params.topo_split_merge_tol:
+    tau_sm = max(params.topo_split_merge_tol,
+                 params.topo_split_merge_z * np.sqrt(a.split_merge_count + b.split_merge_count))
+    if abs(a.split_merge_count - b.split_merge_count) > tau_sm:
         return False
     tau_rc = params.topo_road_centre_floor_m + params.topo_road_centre_k * np.sqrt(
         a.pose_sigma_m**2 + b.pose_sigma_m**2 + noise.boundary_sigma_m**2)

@@ -23,7 +23,12 @@ from csr_core.alignment.graph_matching import (
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.alignment.registration import register_elements
 from csr_core.alignment.submaps import Circle, Submap, SubmapElement
-from csr_core.alignment.topology import sliding_window_vote, topology_consistent, topology_descriptor
+from csr_core.alignment.topology import (
+    TopologyDescriptor,
+    sliding_window_vote,
+    topology_consistent,
+    topology_descriptor,
+)
 from csr_core.types import ElementType
 from tests.unit.test_alignment_synthetic import LANE_W
 
@@ -153,6 +158,22 @@ def test_topology_descriptors_and_eq3_thresholds():
     far = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 12.0])), 1, 1, (0.0, 12.0, 0.0)),
                               circle, 0.5)
     assert not topology_consistent(full, far, NOISE, P)  # a parallel road, not the same one
+
+
+def test_split_merge_counts_are_compared_within_their_counting_noise():
+    """Eq. 3's tau_sm: element ends inside a circle are counted events (a junction's pieces, a
+    track broken by occlusion), so two sightings of one junction differ by about
+    sqrt(N_i + N_j); a straight road against a junction still fails."""
+    def desc(n_ends: int) -> TopologyDescriptor:
+        return TopologyDescriptor(-1, float("nan"), n_ends, float("nan"), 0.2)
+
+    assert topology_consistent(desc(17), desc(10), NOISE, P)  # one junction, two trips: 7 <= 2 sqrt(27)
+    assert topology_consistent(desc(23), desc(31), NOISE, P)
+    assert not topology_consistent(desc(0), desc(6), NOISE, P)  # 6 > 2 sqrt(6): a junction is not a plain road
+    assert not topology_consistent(desc(1), desc(12), NOISE, P)
+    assert topology_consistent(desc(0), desc(3), NOISE, P)  # the fixed floor tau_sm = 3 still holds
+    fixed = AlignmentParams(topo_split_merge_z=0.0)  # the count's own noise left out: a fixed tau_sm
+    assert not topology_consistent(desc(17), desc(10), NOISE, fixed)
 
 
 def test_sliding_window_vote_drops_isolated_passes():
