@@ -28,3 +28,23 @@ def test_true_registrations_reproduce_the_true_relative_poses_and_do_not_align_w
     assert ate["aligned"] < ate["smoothed"]
     assert ate["true_registrations"] <= ate["aligned"] + 0.02
     assert 0 <= r["pairs_off_m"]["mostly_along"] <= r["pairs_off_m"]["off"] <= r["accepted_pairs"]
+    stages = r["error_by_stage"]
+    assert set(stages) == set(evaluate_floor.STAGES)
+    assert sum(s["frames_share"] for s in stages.values()) == pytest.approx(1.0)
+    assert sum(s["squared_error_share"] for s in stages.values()) == pytest.approx(1.0)
+    # three short trips overlap on about half their frames; what no pair holds is the error
+    assert 0.25 < stages["registered"]["frames_share"] < 0.75
+    assert stages["registered"]["rms_m"] < stages["no_candidate_pair"]["rms_m"]
+    # the stages partition the frames: together they give the aligned ATE
+    ms = sum(s["frames_share"] * s["rms_m"] ** 2 for s in stages.values() if s["frames_share"] > 0)
+    assert np.sqrt(ms) == pytest.approx(ate["aligned"], rel=1e-6)
+
+
+def test_param_assignments_change_the_named_fields_and_reject_unknown_ones() -> None:
+    p = evaluate_floor.parse_params(["topo_split_merge_z=1.5", "fine=false", "max_partners_per_submap=3"])
+    assert p.topo_split_merge_z == 1.5 and p.fine is False and p.max_partners_per_submap == 3
+    assert evaluate_floor.parse_params([]) == evaluate_floor.DEFAULT
+    with pytest.raises(ValueError, match="no_such_field"):
+        evaluate_floor.parse_params(["no_such_field=1"])
+    with pytest.raises(ValueError, match="NAME=VALUE"):
+        evaluate_floor.parse_params(["topo_split_merge_z"])
