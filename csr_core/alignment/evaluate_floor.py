@@ -1,7 +1,7 @@
 """What registration errors cost the alignment: the same alignment with every accepted sub-map
 registration replaced by the truth.
 
-    python -m csr_core.alignment.evaluate_floor SCENARIO [--cache DIR]
+    python -m csr_core.alignment.evaluate_floor SCENARIO [--cache DIR] [--figure PNG] [--param NAME=VALUE ...]
 
 The single-trip stage and :func:`csr_core.alignment.align_trips` run as ``csr reconstruct``
 does (``evaluate_failures.single_trip_results``), twice:
@@ -21,10 +21,11 @@ Also printed, ``error_by_stage``: where the aligned error sits. Each frame goes 
 step of Algorithm 1 that a sub-map holding it reached (``registered`` in an accepted pair,
 ``not_registered``: a candidate pair passed Eq. 3 but none was accepted, ``failed_eq3``: its
 candidate pairs all failed Eq. 3 or the vote, ``no_candidate_pair``), with the frames' share,
-RMS error and share of the squared error. A region whose error is in the first three is held by
-its trips' own GNSS.
+RMS error and share of the squared error. Frames in the last three are held by their trips' own
+GNSS (and the bias the graph learnt for each trip elsewhere).
 
-``--param NAME=VALUE`` (repeatable) runs both alignments with that ``AlignmentParams`` field
+``--figure PNG`` draws it: every frame on its true path, coloured by its stage and by its
+aligned error. ``--param NAME=VALUE`` (repeatable) runs both alignments with that ``AlignmentParams`` field
 changed, to compare a setting on the same single-trip results.
 
 ATE as contract section 6: one rigid SE(2) over all frames of all aligned trips, then RMSE.
@@ -36,7 +37,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -110,15 +111,24 @@ def submap_stages(recons, matches, params: AlignmentParams) -> dict[int, str]:
     return stage
 
 
-def error_by_stage(recons, seen: Mapping, poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray],
-                   params: AlignmentParams) -> dict[str, dict]:
-    """Frames grouped by the furthest stage a sub-map holding them reached (module docstring)."""
+@dataclass(frozen=True, slots=True)
+class FrameStages:
+    """Every aligned frame: its true position, the index in ``STAGES`` of the furthest step a
+    sub-map holding it reached, and its aligned error after the global SE(2) [m]."""
+
+    true_xy_world: np.ndarray  # (N, 2)
+    stage_index: np.ndarray  # (N,) int
+    error_m: np.ndarray  # (N,)
+
+
+def frame_stages(recons, seen: Mapping, poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray],
+                 params: AlignmentParams) -> FrameStages:
     keys = sorted(poses)
     est = np.concatenate([poses[k][:, :2] for k in keys])
     g = umeyama_se2(est, np.concatenate([truth[k][:, :2] for k in keys]))
     stage = submap_stages(recons, seen["matches"], params)
     rank = {name: n for n, name in enumerate(STAGES)}
-    sq: dict[str, list[np.ndarray]] = {name: [] for name in STAGES}
+    xy, idx, err = [], [], []
     for k, t in enumerate(recons):
         key = t.trip.key
         if key not in poses:
@@ -128,18 +138,62 @@ def error_by_stage(recons, seen: Mapping, poses: Mapping[str, np.ndarray], truth
             if s.trip_index == k:
                 span = slice(s.first_frame, s.last_frame + 1)
                 best[span] = np.minimum(best[span], rank[stage[s.submap_id]])
-        err2 = np.sum((apply_se2(g, poses[key][:, :2]) - truth[key][:, :2]) ** 2, axis=1)
-        for n, name in enumerate(STAGES):
-            sq[name].append(err2[best == n])
-    total = sum(float(np.sum(np.concatenate(v))) for v in sq.values())
-    n_frames = sum(len(np.concatenate(v)) for v in sq.values())
+        xy.append(truth[key][:, :2])
+        idx.append(best)
+        err.append(np.linalg.norm(apply_se2(g, poses[key][:, :2]) - truth[key][:, :2], axis=1))
+    return FrameStages(np.concatenate(xy), np.concatenate(idx), np.concatenate(err))
+
+
+def error_by_stage(frames: FrameStages) -> dict[str, dict]:
+    """Per stage: share of the frames, their RMS error, share of the squared error."""
+    e2 = frames.error_m**2
+    total = float(np.sum(e2))
     out = {}
-    for name, parts in sq.items():
-        e2 = np.concatenate(parts)
-        out[name] = {"frames_share": len(e2) / n_frames,
-                     "rms_m": float(np.sqrt(np.mean(e2))) if len(e2) else float("nan"),
-                     "squared_error_share": float(np.sum(e2)) / total if total > 0 else 0.0}
+    for n, name in enumerate(STAGES):
+        mine = e2[frames.stage_index == n]
+        out[name] = {"frames_share": len(mine) / len(e2),
+                     "rms_m": float(np.sqrt(np.mean(mine))) if len(mine) else float("nan"),
+                     "squared_error_share": float(np.sum(mine)) / total if total > 0 else 0.0}
     return out
+
+
+STAGE_COLOURS = {"registered": "tab:green", "not_registered": "tab:orange", "failed_eq3": "tab:red",
+                 "no_candidate_pair": "tab:purple"}
+
+
+def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") -> Path:
+    """Two panels over the true paths: each frame coloured by its stage (left; legend with the
+    frames' share and RMS) and by its aligned error (right)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = error_by_stage(frames)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(16, 8), sharex=True, sharey=True)
+    for n, name in enumerate(STAGES):
+        m = frames.stage_index == n
+        s = summary[name]
+        label = f"{name}: {100 * s['frames_share']:.0f} % of frames" + (f", RMS {s['rms_m']:.2f} m" if m.any() else "")
+        left.scatter(*frames.true_xy_world[m].T, s=2, color=STAGE_COLOURS[name], label=label, rasterized=True)
+    left.legend(loc="best", markerscale=6, fontsize=9)
+    left.set_title("furthest step of Algorithm 1 a frame's sub-maps reached")
+    order = np.argsort(frames.error_m)  # the largest errors drawn last, on top
+    sc = right.scatter(*frames.true_xy_world[order].T, s=2, c=frames.error_m[order], cmap="viridis",
+                       vmin=0.0, vmax=max(0.5, float(np.percentile(frames.error_m, 99))), rasterized=True)
+    fig.colorbar(sc, ax=right, label="aligned error after the global SE(2) [m]", shrink=0.8)
+    right.set_title("aligned error")
+    for ax in (left, right):
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+    left.set_ylabel("y [m]")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def ate_rmse_m(poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]) -> float:
@@ -150,7 +204,9 @@ def ate_rmse_m(poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray])
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
-def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams = DEFAULT) -> dict:
+def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams = DEFAULT,
+             figure: Path | None = None) -> dict:
+    """The module docstring's figures as a dict; ``figure``: also draw ``plot_frame_stages`` there."""
     frame, recons = single_trip_results(scenario, cache)
     truth = true_poses(scenario, frame, [r.trip.key for r in recons])
     as_is: dict = {}
@@ -164,11 +220,15 @@ def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams 
             off += 1
             along += int(abs(err[0]) > abs(err[1]))
     smoothed = {r.trip.key: r.poses_xyyaw_world for r in recons}
+    stages = frame_stages(recons, as_is, real.poses_xyyaw_world, truth, params)
+    aligned_ate = ate_rmse_m(real.poses_xyyaw_world, truth)
+    if figure is not None:
+        plot_frame_stages(stages, figure, f"{scenario.name}: aligned ATE {aligned_ate:.3f} m")
     return {"scenario": scenario.name, "trips": len(recons), "accepted_pairs": len(as_is["matches"]),
             "pairs_off_m": {"bound_m": OFF_M, "off": off, "mostly_along": along},
-            "ate_rmse_m": {"smoothed": ate_rmse_m(smoothed, truth), "aligned": ate_rmse_m(real.poses_xyyaw_world, truth),
+            "ate_rmse_m": {"smoothed": ate_rmse_m(smoothed, truth), "aligned": aligned_ate,
                            "true_registrations": ate_rmse_m(floor.poses_xyyaw_world, truth)},
-            "error_by_stage": error_by_stage(recons, as_is, real.poses_xyyaw_world, truth, params)}
+            "error_by_stage": error_by_stage(stages)}
 
 
 def parse_params(assignments: Sequence[str]) -> AlignmentParams:
@@ -192,12 +252,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, help="folder for cached single-trip results")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="an AlignmentParams field to change for both alignments (repeatable)")
+    ap.add_argument("--figure", type=Path, metavar="PNG",
+                    help="draw each frame by its stage and by its aligned error (plot_frame_stages)")
     args = ap.parse_args(argv)
     try:
         params = parse_params(args.param)
     except ValueError as e:
         ap.error(str(e))
-    sys.stdout.write(json.dumps(evaluate(args.scenario, args.cache, params), indent=1) + "\n")
+    sys.stdout.write(json.dumps(evaluate(args.scenario, args.cache, params, args.figure), indent=1) + "\n")
     return 0
 
 

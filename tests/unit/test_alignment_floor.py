@@ -23,7 +23,9 @@ def test_true_registrations_reproduce_the_true_relative_poses_and_do_not_align_w
         si, sj = seen["submaps"][m.i], seen["submaps"][m.j]
         np.testing.assert_allclose(m.relative_pose(si.world_T_submap, sj.world_T_submap),
                                    evaluate_floor._true_relative(m, seen["submaps"], truth), atol=1e-9)
-    r = evaluate_floor.evaluate(scenario)
+    figure = tmp_path / "stages.png"
+    r = evaluate_floor.evaluate(scenario, figure=figure)
+    assert figure.stat().st_size > 20_000  # two panels of frames drawn
     ate = r["ate_rmse_m"]
     assert ate["aligned"] < ate["smoothed"]
     assert ate["true_registrations"] <= ate["aligned"] + 0.02
