@@ -170,7 +170,7 @@ def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") ->
     import matplotlib.pyplot as plt
 
     summary = error_by_stage(frames)
-    fig, (left, right) = plt.subplots(1, 2, figsize=(16, 8), sharex=True, sharey=True)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(16, 8), sharex=True, sharey=True, layout="constrained")
     for n, name in enumerate(STAGES):
         m = frames.stage_index == n
         s = summary[name]
@@ -181,7 +181,7 @@ def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") ->
     order = np.argsort(frames.error_m)  # the largest errors drawn last, on top
     sc = right.scatter(*frames.true_xy_world[order].T, s=2, c=frames.error_m[order], cmap="viridis",
                        vmin=0.0, vmax=max(0.5, float(np.percentile(frames.error_m, 99))), rasterized=True)
-    fig.colorbar(sc, ax=right, label="aligned error after the global SE(2) [m]", shrink=0.8)
+    fig.colorbar(sc, ax=[left, right], label="aligned error after the global SE(2) [m]", shrink=0.8)
     right.set_title("aligned error")
     for ax in (left, right):
         ax.set_aspect("equal")
@@ -189,7 +189,6 @@ def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") ->
     left.set_ylabel("y [m]")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
