@@ -123,6 +123,7 @@ class FrameStages:
 
 def frame_stages(recons, seen: Mapping, poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray],
                  params: AlignmentParams) -> FrameStages:
+    """``FrameStages`` of the aligned ``poses`` (``seen``: what ``_aligned`` recorded)."""
     keys = sorted(poses)
     est = np.concatenate([poses[k][:, :2] for k in keys])
     g = umeyama_se2(est, np.concatenate([truth[k][:, :2] for k in keys]))
