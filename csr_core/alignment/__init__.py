@@ -115,6 +115,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     matches: list[PairMatch] = []
     pairs: list[tuple[int, int]] = []
     inlier = np.zeros(0, bool)
+    trace: dict = {"eq3_passed": np.zeros(0, bool)}
     prior_shifts: list[float] = []
     own_error: dict = {}
     scale_correction: dict[str, float] = {}
@@ -126,7 +127,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         pairs = submap_pairs(submaps, params)
         timings["split_s"] = time.perf_counter() - clock
         # 2. sub-map data association: topology, graph matching + GNC, temporal, inter-trip (Alg. 1)
-        matches = associate(submaps, circles, pairs, trips, noise, params)
+        matches = associate(submaps, circles, pairs, trips, noise, params, trace)
         if corrections:  # the map team's rejected and added pairs (human correction)
             matches = apply_corrections(matches, submaps, circles, noise, params, corrections)
         timings["associate_s"] = time.perf_counter() - clock - sum(timings.values())
@@ -159,6 +160,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     return AlignmentResult(
         {k: v for k, v in poses.items() if k not in failed}, failed, records, residuals,
         {"timings": timings, "n_submaps": len(submaps), "n_candidate_pairs": len(pairs),
+         "candidate_pairs": pairs, "eq3_passed": trace["eq3_passed"],
          "n_matches": len(matches), "n_pose_graph_inliers": int(inlier.sum()),
          "prior_patch_shifts_m": prior_shifts,
          "odom_scale_correction": scale_correction,

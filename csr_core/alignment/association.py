@@ -157,8 +157,10 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
 
 
 def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Sequence[tuple[int, int]],
-              trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams) -> list[PairMatch]:
-    """Algorithm 1: the optimal data association D* over all candidate pairs."""
+              trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
+              trace: dict | None = None) -> list[PairMatch]:
+    """Algorithm 1: the optimal data association D* over all candidate pairs. ``trace``
+    (diagnostics) receives ``eq3_passed``: Step 1's outcome per candidate pair."""
     from csr_core.alignment.inter_trip import inter_trip_consistency
     from csr_core.alignment.temporal import temporal_consistency
     from csr_core.alignment.topology import topology_filter
@@ -166,6 +168,8 @@ def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Seque
     # 1-2: global topology consistency (Eq. 3) and sliding-window voting
     keep = topology_filter(pairs, submaps, circles, trips, noise, params)
     candidates = [p for p, ok in zip(pairs, keep, strict=False) if ok]
+    if trace is not None:
+        trace["eq3_passed"] = np.asarray(keep, bool)
     # 3-4: multi-order graph matching (Eq. 4-6), GNC relative pose, confidence (Eq. 7)
     distances: dict[tuple[int, int], np.ndarray] = {}
     matched = [m for i, j in candidates

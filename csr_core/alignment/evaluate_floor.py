@@ -45,10 +45,7 @@ import numpy as np
 import csr_core.alignment as alignment
 from csr_core import se2
 from csr_core.alignment.evaluate_failures import single_trip_results
-from csr_core.alignment.fine import dash_ends, detections
-from csr_core.alignment.params import DEFAULT, AlignmentParams, noise_scales
-from csr_core.alignment.submaps import split_submaps, submap_pairs
-from csr_core.alignment.topology import topology_filter
+from csr_core.alignment.params import DEFAULT, AlignmentParams
 from csr_core.metrics import apply_se2, umeyama_se2
 from csr_core.scenario import read_poses_dir
 from csr_core.se2 import heading_deg_to_yaw_rad
@@ -93,16 +90,11 @@ def _aligned(recons, change: Callable | None, seen: dict,
 STAGES = ("registered", "not_registered", "failed_eq3", "no_candidate_pair")  # furthest first
 
 
-def submap_stages(recons, matches, params: AlignmentParams) -> dict[int, str]:
-    """Sub-map id -> the furthest step of Algorithm 1 one of its candidate pairs reached
-    (sub-maps, pairs and Eq. 3 computed again as ``align_trips`` does; they are deterministic)."""
-    dashes = ([dash_ends(t, dets=detections(t)) for t in recons]
-              if (params.landmarks and params.coarse) or params.fine_dashes else None)
-    circles, submaps = split_submaps(recons, params, dashes)
-    pairs = submap_pairs(submaps, params)
-    passed = topology_filter(pairs, submaps, circles, recons, noise_scales(recons, params), params)
+def submap_stages(submaps, matches, diagnostics: Mapping) -> dict[int, str]:
+    """Sub-map id -> the furthest step of Algorithm 1 one of its candidate pairs reached, from
+    what ``align_trips`` reports (``candidate_pairs``, ``eq3_passed``) and the accepted ``matches``."""
     stage = {s.submap_id: "no_candidate_pair" for s in submaps}
-    for (i, j), ok in zip(pairs, passed, strict=True):
+    for (i, j), ok in zip(diagnostics["candidate_pairs"], diagnostics["eq3_passed"], strict=True):
         for s in (i, j):
             if ok or stage[s] == "no_candidate_pair":
                 stage[s] = "not_registered" if ok else "failed_eq3"
@@ -121,13 +113,14 @@ class FrameStages:
     error_m: np.ndarray  # (N,)
 
 
-def frame_stages(recons, seen: Mapping, poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray],
-                 params: AlignmentParams) -> FrameStages:
-    """``FrameStages`` of the aligned ``poses`` (``seen``: what ``_aligned`` recorded)."""
+def frame_stages(recons, seen: Mapping, result: alignment.AlignmentResult,
+                 truth: Mapping[str, np.ndarray]) -> FrameStages:
+    """``FrameStages`` of ``result``'s poses (``seen``: the sub-maps and matches ``_aligned`` recorded)."""
+    poses = result.poses_xyyaw_world
     keys = sorted(poses)
     est = np.concatenate([poses[k][:, :2] for k in keys])
     g = umeyama_se2(est, np.concatenate([truth[k][:, :2] for k in keys]))
-    stage = submap_stages(recons, seen["matches"], params)
+    stage = submap_stages(seen["submaps"], seen["matches"], result.diagnostics)
     rank = {name: n for n, name in enumerate(STAGES)}
     xy, idx, err = [], [], []
     for k, t in enumerate(recons):
@@ -220,8 +213,8 @@ def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams 
             off += 1
             along += int(abs(err[0]) > abs(err[1]))
     smoothed = {r.trip.key: r.poses_xyyaw_world for r in recons}
-    stages = frame_stages(recons, as_is, real.poses_xyyaw_world, truth, params)
-    aligned_ate = ate_rmse_m(real.poses_xyyaw_world, truth)
+    stages = frame_stages(recons, as_is, real, truth)
+    aligned_ate = ate_rmse_m(real.poses_xyyaw_world, truth)  # the contract's metric; the stages must add up to it
     if figure is not None:
         plot_frame_stages(stages, figure, f"{scenario.name}: aligned ATE {aligned_ate:.3f} m")
     return {"scenario": scenario.name, "trips": len(recons), "accepted_pairs": len(as_is["matches"]),
