@@ -116,6 +116,11 @@ class AlignmentParams:
     gnss_bias_tau_s: float = 300.0
     gnss_bias_share: float = 0.5
     reg_alpha: float = 1.0  # alpha of Eq. 12
+    # Eq. 12's information divided by the pair's variance factor (pose_graph.registration_variance_factors):
+    # the redundancy of the accepted pairs of its circle, m_c / (n_c - 1), and its residual RMS
+    # against the batch's median, squared, when above 1 (docs/alignment.md, "Session 20")
+    reg_circle_redundancy: bool = True
+    reg_residual_variance: bool = True
     reg_sigma_floor_xy_m: float = 0.03
     # e^sm: consistency of one trip's overlapping sub-maps, sigma = xy + per_m * travelled. The
     # smoothed trajectory's relative error once its scale is estimated (below), measured against

@@ -19,7 +19,9 @@ Factors (Eq. 9/10):
   so the map moves only as far as its weight allows (a fixed map is the limit sigma -> 0);
 - ``e^reg`` ``BetweenFactorPose2(S(i), S(j), T_reg)``, information ``alpha c_ij Omega_reg^base``
   (Eq. 12) where ``Omega_reg^base`` is the registration's own point-to-line information (so a
-  straight road constrains across, hardly along);
+  straight road constrains across, hardly along), divided by the pair's variance factor
+  (:func:`registration_variance_factors`: the redundancy of the pairs of its circle and its own
+  residual against the batch's typical one);
 - ``e^sm`` consecutive (overlapping) sub-maps of one trip share frames: their relative pose is
   held at the smoothed one, ``sigma = sigma_0 + sigma_per_m * distance``, its translation scaled
   by ``1 + k``, ``k`` the trip's odometry scale correction (a variable ``K(trip)`` with a prior
@@ -101,6 +103,48 @@ def _clip_information(info: np.ndarray, max_eig: float) -> np.ndarray:
     return (vecs * vals) @ vecs.T
 
 
+def registration_variance_factors(matches: Sequence[PairMatch], params: AlignmentParams) -> np.ndarray:
+    """Per pair, the factor by which Eq. 12's ``alpha c_ij Omega_reg^base`` is divided (a
+    variance factor, >= 1; 1 for a pair a human added, whose weight is given).
+
+    ``Omega_reg^base`` is one registration's point-to-line information, computed as if the pair
+    were the only measurement of its two sub-maps and its residuals were as the noise model
+    says. Neither holds:
+
+    - **redundancy of its circle** (``reg_circle_redundancy``): the ``m_c`` accepted pairs of
+      a circle with ``n_c`` sub-maps measure only ``n_c - 1`` independent relative poses; each
+      sub-map's element errors enter every pair it is in (Fig. 4 pairs each sub-map with its next
+      ``max_partners_per_submap`` in the circle, for Step 4's cycles). Independent factors would
+      count them ``m_c / (n_c - 1)`` times, so each pair's information is divided by that;
+    - **its own residual** (``reg_residual_variance``): the a-posteriori variance factor of
+      least squares, ``(rms / rms_0)^2`` when above 1, ``rms_0`` the median RMS residual of the
+      batch's accepted pairs (the residual of a correct registration, from the data rather than
+      the noise model, whose point sigma is about twice it). A pair that fits worse than the
+      batch's typical pair is held looser in proportion, instead of as tight as its geometry
+      alone would say.
+    """
+    n = len(matches)
+    factor = np.ones(n)
+    if n == 0:
+        return factor
+    if params.reg_circle_redundancy:
+        nodes: dict[int, set[int]] = {}
+        edges: dict[int, int] = {}
+        for m in matches:
+            nodes.setdefault(m.circle_id, set()).update((m.i, m.j))
+            edges[m.circle_id] = edges.get(m.circle_id, 0) + 1
+        factor *= np.array([edges[m.circle_id] / max(len(nodes[m.circle_id]) - 1, 1) for m in matches])
+    if params.reg_residual_variance:
+        rms = np.array([m.residual_rms_m for m in matches], float)
+        automatic = np.array([not m.human for m in matches]) & np.isfinite(rms)
+        if automatic.any():
+            rms_0 = float(np.median(rms[automatic]))
+            if rms_0 > 0:
+                factor[automatic] *= np.maximum(1.0, (rms[automatic] / rms_0) ** 2)
+    factor[np.array([m.human for m in matches], bool)] = 1.0
+    return factor
+
+
 def build_factor_graph(
     trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
     params: AlignmentParams, with_scale: bool = False,
@@ -152,10 +196,10 @@ def build_factor_graph(
                 g.add(gtsam.BetweenFactorPose2(S(a.submap_id), S(b.submap_id), gtsam.Pose2(*rel), noise))
     # e^reg (and e^pre against map patches) with Eq. 12 weights
     max_eig = 1.0 / params.reg_sigma_floor_xy_m**2
-    for m in matches:
+    for m, variance_factor in zip(matches, registration_variance_factors(matches, params), strict=True):
         si, sj = submaps[m.i], submaps[m.j]
         T = m.relative_pose(si.world_T_submap, sj.world_T_submap)
-        info = params.reg_alpha * m.confidence * m.information_body_j(sj.world_T_submap)
+        info = params.reg_alpha * m.confidence * m.information_body_j(sj.world_T_submap) / variance_factor
         if m.human:  # a pair a human added: a known inlier, its weight as given (corrections)
             known.append(g.size())
         else:

@@ -3,13 +3,20 @@ GNC rejection of a wrong registration, and distributing sub-map poses to frames.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from csr_core.alignment.association import PairMatch
 from csr_core.alignment.inter_trip import inter_trip_consistency, max_consistent_set
 from csr_core.alignment.params import AlignmentParams
-from csr_core.alignment.pose_graph import frame_poses_from_submaps, gnss_weight, optimize_submap_poses
+from csr_core.alignment.pose_graph import (
+    frame_poses_from_submaps,
+    gnss_weight,
+    optimize_submap_poses,
+    registration_variance_factors,
+)
 from csr_core.alignment.submaps import Submap
 from csr_core.alignment.temporal import vote_instances
 from tests.unit.test_alignment_synthetic import LANE_W, make_scenario
@@ -110,4 +117,28 @@ def test_pose_graph_gnc_rejects_a_wrong_registration_and_keeps_the_right_ones():
     res = optimize_submap_poses(trips, subs, matches, P)
     assert res.registration_inlier.tolist() == [True, True, False, True]
     rel = [res.poses_xyyaw[k][:2] - (subs[k].world_T_submap[:2] - bias[k][:2]) for k in range(3)]
-    assert np.linalg.norm(rel[1] - rel[0]) < 0.05 and np.linalg.norm(rel[2] - rel[0]) < 0.05
+    # within two pair sigmas (0.05 m, times sqrt(2): 4 pairs measure 2 relative poses in this circle,
+    # registration_variance_factors) of each other, against GNSS 1 m apart
+    assert np.linalg.norm(rel[1] - rel[0]) < 0.1 and np.linalg.norm(rel[2] - rel[0]) < 0.1
+
+
+def test_pairs_of_one_circle_count_their_sub_maps_once():
+    """Three sub-maps of one circle, paired in a cycle: three pairs, two independent relative
+    poses, so each pair holds 3/2 of its variance; a circle with one pair keeps it."""
+    cycle = [replace(pair(i, j, i, j, 0.0, (0.0, 0.0)), circle_id=0) for i, j in ((0, 1), (1, 2), (0, 2))]
+    alone = replace(pair(3, 4, 0, 1, 50.0, (0.0, 0.0)), circle_id=1)
+    np.testing.assert_allclose(registration_variance_factors([*cycle, alone], P), [1.5, 1.5, 1.5, 1.0])
+    off = AlignmentParams(reg_circle_redundancy=False)
+    np.testing.assert_allclose(registration_variance_factors([*cycle, alone], off), [1.0] * 4)
+
+
+def test_a_pair_that_fits_worse_than_the_batch_is_held_looser():
+    """Each pair in its own circle: the median residual (0.1 m) is the batch's typical fit; a
+    pair at 0.3 m holds 9 x its variance, a better one keeps its own; a human's pair is as given."""
+    rms = [0.1, 0.1, 0.05, 0.1, 0.3]
+    pairs = [replace(pair(2 * k, 2 * k + 1, 0, 1, 50.0 * k, (0.0, 0.0)), circle_id=k, residual_rms_m=r)
+             for k, r in enumerate(rms)]
+    human = replace(pair(10, 11, 0, 1, 500.0, (0.0, 0.0)), circle_id=9, residual_rms_m=0.5, human=True)
+    np.testing.assert_allclose(registration_variance_factors([*pairs, human], P), [1, 1, 1, 1, 9, 1])
+    off = AlignmentParams(reg_residual_variance=False)
+    np.testing.assert_allclose(registration_variance_factors([*pairs, human], off), [1.0] * 6)
