@@ -39,6 +39,7 @@ class TripScore:
     along_mean_m: float
     across_mean_m: float
     failed_reason: str | None  # None: the trip has poses (aligned, or unaligned with no_overlap)
+    unaligned_reason: str | None = None  # no_overlap: it has poses, its own smoothed ones (nothing checked them)
 
 
 def score_trips(
@@ -47,9 +48,12 @@ def score_trips(
     est_xy: Mapping[str, np.ndarray],
     failed: Mapping[str, str],
     failed_xy: Mapping[str, np.ndarray] | None = None,
+    unaligned: Mapping[str, str] | None = None,
 ) -> list[TripScore]:
     """Per-trip ATE after one SE(2) over the trips with poses (``est_xy``); ``failed_xy`` (the
-    failed trips' unaligned poses, optional) are moved by the same transform and scored too."""
+    failed trips' unaligned poses, optional) are moved by the same transform and scored too;
+    ``unaligned``: trips with poses that nothing aligned (``no_overlap``), with the reason."""
+    unaligned = unaligned or {}
     keys = [k for k in true_xy if k in est_xy]
     truth_T_est = umeyama_se2(
         np.concatenate([est_xy[k] for k in keys]), np.concatenate([true_xy[k] for k in keys])
@@ -58,7 +62,7 @@ def score_trips(
     for k in true_xy:
         xy = est_xy.get(k, (failed_xy or {}).get(k))
         if xy is None:
-            out.append(TripScore(k, float("nan"), float("nan"), float("nan"), failed.get(k)))
+            out.append(TripScore(k, float("nan"), float("nan"), float("nan"), failed.get(k), unaligned.get(k)))
             continue
         err = apply_se2(truth_T_est, xy) - true_xy[k]
         c, s = np.cos(true_yaw[k]), np.sin(true_yaw[k])
@@ -70,6 +74,7 @@ def score_trips(
                 float(along.mean()),
                 float(across.mean()),
                 failed.get(k),
+                unaligned.get(k),
             )
         )
     return out
@@ -88,9 +93,10 @@ def evaluate_output(scenario: Path, out: Path) -> list[TripScore]:
     """Scores of a ``csr reconstruct`` output folder (failed trips: no poses, no ATE)."""
     meta, true_xy, true_yaw = _truth(scenario)
     est = read_poses_dir(out / "poses")
-    failed = json.loads((out / "report.json").read_text()).get("failed", {})
+    report = json.loads((out / "report.json").read_text())
     return score_trips(
-        true_xy, true_yaw, {k: meta.frame.to_local(t.lonlat_deg) for k, t in est.items()}, failed
+        true_xy, true_yaw, {k: meta.frame.to_local(t.lonlat_deg) for k, t in est.items()}, report.get("failed", {}),
+        unaligned=report.get("diagnostics", {}).get("unaligned", {}),
     )
 
 
@@ -123,20 +129,22 @@ def evaluate_in_process(
     res = align_trips(recons, params=replace(DEFAULT, mark_unobservable=mark_unobservable))
     to_scenario = lambda p: meta.frame.to_local(frame.to_lonlat(p[:, :2]))  # noqa: E731
     est = {k: to_scenario(p) for k, p in res.poses_xyyaw_world.items()}
-    failed = {}
+    failed, no_overlap = {}, {}
     for k, reason in res.failed.items():
         if reason.startswith(NO_OVERLAP):  # the pipeline keeps its smoothed poses
             est[k] = to_scenario(next(r.poses_xyyaw_world for r in recons if r.trip.key == k))
+            no_overlap[k] = reason
         else:
             failed[k] = reason
     unaligned = {k: to_scenario(p) for k, p in res.diagnostics["unaligned_poses"].items() if k in failed}
-    return score_trips(true_xy, true_yaw, est, failed, unaligned), res
+    return score_trips(true_xy, true_yaw, est, failed, unaligned, no_overlap), res
 
 
 def format_scores(scores: list[TripScore]) -> str:
     lines = [f"{'trip':<24} {'ATE m':>7} {'along':>7} {'across':>7}  status"]
     for s in scores:
-        status = f"FAILED ({s.failed_reason})" if s.failed_reason else "ok"
+        status = (f"FAILED ({s.failed_reason})" if s.failed_reason
+                  else f"unaligned, own poses ({s.unaligned_reason.split(':')[0]})" if s.unaligned_reason else "ok")
         flag = " <-- over bound" if not s.failed_reason and s.ate_rmse_m > ATE_BOUND_M else ""
         lines.append(
             f"{s.key:<24} {s.ate_rmse_m:7.3f} {s.along_mean_m:+7.3f} {s.across_mean_m:+7.3f}  {status}{flag}"
@@ -146,7 +154,9 @@ def format_scores(scores: list[TripScore]) -> str:
     lines.append(
         f"trips {len(scores)}, marked failed {marked} ({marked / len(scores):.0%}), "
         f"worst unmarked ATE {max(kept) if kept else float('nan'):.3f} m, "
-        f"unmarked over {ATE_BOUND_M} m: {sum(1 for a in kept if a > ATE_BOUND_M)}"
+        f"unmarked over {ATE_BOUND_M} m: {sum(1 for a in kept if a > ATE_BOUND_M)} "
+        f"(of them unaligned with their own poses: "
+        f"{sum(1 for s in scores if not s.failed_reason and s.unaligned_reason and s.ate_rmse_m > ATE_BOUND_M)})"
     )
     return "\n".join(lines)
 
