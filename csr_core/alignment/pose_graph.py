@@ -134,14 +134,15 @@ def registration_variance_factors(matches: Sequence[PairMatch], params: Alignmen
             nodes.setdefault(m.circle_id, set()).update((m.i, m.j))
             edges[m.circle_id] = edges.get(m.circle_id, 0) + 1
         factor *= np.array([edges[m.circle_id] / max(len(nodes[m.circle_id]) - 1, 1) for m in matches])
+    human = np.array([m.human for m in matches], bool)
     if params.reg_residual_variance:
         rms = np.array([m.residual_rms_m for m in matches], float)
-        automatic = np.array([not m.human for m in matches]) & np.isfinite(rms)
+        automatic = ~human & np.isfinite(rms)
         if automatic.any():
             rms_0 = float(np.median(rms[automatic]))
             if rms_0 > 0:
                 factor[automatic] *= np.maximum(1.0, (rms[automatic] / rms_0) ** 2)
-    factor[np.array([m.human for m in matches], bool)] = 1.0
+    factor[human] = 1.0
     return factor
 
 
