@@ -41,7 +41,18 @@ import shapely
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from csr_core.alignment import AlignmentResult, MatchCorrections, PairConstraint, PriorMap, align_trips
+from csr_core.alignment import (
+    DEFAULT as ALIGNMENT_DEFAULT,
+)
+from csr_core.alignment import (
+    AlignmentResult,
+    GnssBiasMessage,
+    MatchCorrections,
+    PairConstraint,
+    PriorMap,
+    align_trips,
+    bias_message,
+)
 from csr_core.alignment.corrections import PRIOR_KEY
 from csr_core.errors import AlignmentFailed
 from csr_core.geo import LocalFrame, tile_bounds_lonlat
@@ -165,9 +176,10 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         ).all()
         trip_pks = [pk for pk, done in rows if not (has_version and done)]
         recons = {pk: _load_reconstruction(session, pk, frame) for pk in trip_pks}
+        recons = {pk: r for pk, r in recons.items() if r is not None}
         prior = _prior_map(session, z, x, y, frame, settings.tile_halo_m, exclude_own=full)
         constraints = corrections_of_tile(session, z, x, y) if full else ([], [])
-    recons = {pk: r for pk, r in recons.items() if r is not None}
+        messages = bias_messages_of(session, recons, z, x, y, frame)
     result = AlignTileResult(frame, full=full)
     if not recons:
         return result
@@ -181,7 +193,8 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             pieces.append(piece)
             piece_of[piece.trip.key] = (pk, start, signed[start:stop])
     corrections = piece_constraints(constraints, piece_of, {p.trip.key: p.trip.n_frames for p in pieces})
-    alignment = _align(pieces, prior, corrections)
+    piece_messages = {key: messages[pk] for key, (pk, _, _) in piece_of.items() if messages.get(pk)}
+    alignment = _align(pieces, prior, corrections, piece_messages)
     per_trip: dict[str, list] = {pk: [] for pk in recons}
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
@@ -216,6 +229,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         result.match_pairs.append({"trip_pk_i": trip_i, "trip_pk_j": trip_j, "confidence": float(rec.confidence),
                                    "residual_rms_m": float(rec.residual_rms_m), "record": record})
     result.diagnostics = {"pieces": len(pieces), "prior_features": len(prior.features) if prior else 0,
+                          "bias_messages": sum(len(m) for m in messages.values()),
                           "timings": alignment.diagnostics.get("timings", {})}
     return result
 
@@ -246,11 +260,12 @@ def piece_outcome(piece: TripReconstruction, alignment: AlignmentResult, signed_
 
 
 def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None,
-           corrections: MatchCorrections | None = None) -> AlignmentResult:
+           corrections: MatchCorrections | None = None,
+           bias_messages: dict[str, list[GnssBiasMessage]] | None = None) -> AlignmentResult:
     if not pieces:
         return AlignmentResult({}, {}, (), {})
     try:
-        return align_trips(pieces, prior_map=prior, corrections=corrections)
+        return align_trips(pieces, prior_map=prior, corrections=corrections, bias_messages=bias_messages)
     except AlignmentFailed as exc:  # nothing to align with (one piece, no map): each keeps its own poses
         return AlignmentResult({}, {p.trip.key: f"{NO_OVERLAP}: {exc}" for p in pieces}, (), {})
 
@@ -277,6 +292,37 @@ def reconstruction_from_row(row: TripReconstructionRecord, trip) -> TripReconstr
         gnss_inlier=arrays["gnss_inlier"],
         diagnostics=dict(row.diagnostics or {}),
     )
+
+
+def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z: int, x: int, y: int,
+                     frame: LocalFrame) -> dict[str, list[GnssBiasMessage]]:
+    """What the other tiles that aligned these trips found of each one's GNSS bias (by trip pk):
+    one message per trip and tile, from the tile's aligned poses against the trip's single-trip
+    poses (``recons``, in ``frame``) weighted by the tile's blend weights, and the number of trips
+    that tile aligned (``csr_core.alignment.bias_messages``)."""
+    if not recons:
+        return {}
+    rows = session.scalars(select(TripTileAlignment).where(
+        TripTileAlignment.trip_pk.in_(list(recons)), TripTileAlignment.failed_reason.is_(None))).all()
+    rows = [r for r in rows if (r.z, r.x, r.y) != (z, x, y)]
+    trips_in: dict[tuple[int, int, int], int] = {}
+    for tile in {(r.z, r.x, r.y) for r in rows}:
+        trips_in[tile] = len(session.scalars(select(TripTileAlignment.trip_pk).where(
+            TripTileAlignment.z == tile[0], TripTileAlignment.x == tile[1], TripTileAlignment.y == tile[2],
+            TripTileAlignment.failed_reason.is_(None))).all())
+    out: dict[str, list[GnssBiasMessage]] = {}
+    for r in rows:
+        recon = recons[r.trip_pk]
+        arrays = decode_arrays(r.arrays)
+        idx = arrays["frame_indices"].astype(np.int64)
+        if len(idx) == 0 or idx.max() >= recon.trip.n_frames:
+            continue
+        aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
+        msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2],
+                           arrays["weights"], trips_in[(r.z, r.x, r.y)], ALIGNMENT_DEFAULT)
+        if msg is not None:
+            out.setdefault(r.trip_pk, []).append(msg)
+    return out
 
 
 def _prior_map(session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float,

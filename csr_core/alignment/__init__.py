@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import cast
 
 import numpy as np
 
 from csr_core.alignment.association import PairMatch, associate
+from csr_core.alignment.bias_messages import GnssBiasMessage, bias_message
 from csr_core.alignment.corrections import MatchCorrections, PairConstraint, apply_corrections
 from csr_core.alignment.fine import dash_ends, detections, frame_points, frame_residuals, refine_frames
 from csr_core.alignment.observability import own_gnss_error_m, unobservable_reason
@@ -37,7 +38,7 @@ from csr_core.types import MapFeature, TripReconstruction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "MatchCorrections", "MatchPairRecord", "PairConstraint",
+__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "GnssBiasMessage", "bias_message", "MatchCorrections", "MatchPairRecord", "PairConstraint",
            "PriorMap", "align_trips"]
 
 
@@ -90,9 +91,12 @@ class AlignmentResult:
 def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None = None,
                 params: AlignmentParams = DEFAULT, corrections: MatchCorrections | None = None,
                 inspect_matches: Callable[[list[PairMatch], list[Submap]], list[PairMatch]] | None = None,
+                bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
                 ) -> AlignmentResult:
     """Coarse-to-fine multi-trip alignment (Fig. 3), against ``prior_map`` when given, with the
-    map team's ``corrections`` of the sub-map association when given.
+    map team's ``corrections`` of the sub-map association when given, and with what other
+    alignments (a neighbouring tile's) learnt of the trips' GNSS biases when given
+    (``bias_messages`` by trip key, :mod:`csr_core.alignment.bias_messages`).
 
     ``inspect_matches`` (diagnostics, ``evaluate_floor``): called with the accepted matches and
     the sub-maps before the pose graph; what it returns goes to the pose graph instead."""
@@ -134,7 +138,7 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
         # 3. incremental pose graph optimisation with adaptive weights (Eq. 9-12)
         if inspect_matches is not None:
             matches = inspect_matches(matches, submaps)
-        graph = optimize_submap_poses(trips, submaps, matches, params)
+        graph = optimize_submap_poses(trips, submaps, matches, params, bias_messages=bias_messages)
         inlier = graph.registration_inlier
         prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
                         for s in submaps if s.is_prior]

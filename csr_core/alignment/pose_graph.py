@@ -49,6 +49,7 @@ from gtsam.symbol_shorthand import B, K, S
 
 from csr_core import se2
 from csr_core.alignment.association import PairMatch
+from csr_core.alignment.bias_messages import GnssBiasMessage, add_bias_messages
 from csr_core.alignment.geometry import arclength_m
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.submaps import Submap
@@ -149,11 +150,13 @@ def registration_variance_factors(matches: Sequence[PairMatch], params: Alignmen
 def build_factor_graph(
     trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
     params: AlignmentParams, with_scale: bool = False,
+    bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int], list[int], dict[int, float]]:
     """Eq. 9 as a factor graph; returns graph, initial values, the indices of the registration
     factors and of the known-inlier factors, and the Eq. 11 weights. ``with_scale``: each trip's
     e^sm factors scale with its odometry scale correction ``K(trip)`` (prior
-    ``odom_scale_sigma``), those priors added last."""
+    ``odom_scale_sigma``), those priors added last. ``bias_messages`` (by trip key): other
+    alignments' estimates of a trip's GNSS bias, priors on its bias chain (``bias_messages``)."""
     g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
     known, reg_idx, weights = [], [], {}
     deviations = {k: gnss_odometry_deviation_m(t) for k, t in enumerate(trips)}
@@ -183,6 +186,9 @@ def build_factor_graph(
         group.sort(key=lambda s: s.anchor_frame)
         if params.gnss_bias_tau_s > 0:
             known.extend(add_gnss_bias_chain(g, trips[k], group, weights, params))
+            if bias_messages and trips[k].trip.key in bias_messages:
+                known.extend(add_bias_messages(g, trips[k], group, weights, bias_messages[trips[k].trip.key],
+                                               params))
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
         for a, b in zip(group[:-1], group[1:], strict=False):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
@@ -306,9 +312,10 @@ def _without(graph: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], inlier: 
 
 def optimize_submap_poses(
     trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
-    params: AlignmentParams,
+    params: AlignmentParams, bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
 ) -> PoseGraphResult:
-    g, init, reg_idx, known, weights = build_factor_graph(trips, submaps, matches, params)
+    g, init, reg_idx, known, weights = build_factor_graph(trips, submaps, matches, params,
+                                                          bias_messages=bias_messages)
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(100)
     warm = gtsam.LevenbergMarquardtOptimizer(_huber_copy(g, reg_idx, init), init, lm).optimize()
@@ -331,7 +338,8 @@ def optimize_submap_poses(
     if params.odom_scale_sigma > 0:
         # each trip's odometry scale, on the inliers GNC kept (gtsam's GNC clones its factors,
         # which a Python factor cannot do, so it decides with the scale fixed)
-        gs, init_s, _, _, _ = build_factor_graph(trips, submaps, matches, params, with_scale=True)
+        gs, init_s, _, _, _ = build_factor_graph(trips, submaps, matches, params, with_scale=True,
+                                                 bias_messages=bias_messages)
         start = gtsam.Values(result)
         for key in init_s.keys():
             if not start.exists(key):

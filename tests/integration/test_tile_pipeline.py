@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import mapbox_vector_tile
+import numpy as np
 import pytest
 from sqlalchemy import create_engine
 from sqlalchemy.orm import sessionmaker
@@ -86,6 +87,7 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(k
 
     tiles = dep.rows("SELECT z, x, y, version, status, n_features FROM tile_versions ORDER BY id")
     assert tiles and all(t.version == 1 and t.status == "published" for t in tiles), tiles
+    _check_bias_messages(dep)
     # seams: where an element crosses a tile edge, the neighbour's half continues it
     qualities = [q if isinstance(q, dict) else json.loads(q) for (q,) in dep.rows("SELECT quality FROM tile_versions")]
     seams = [q["seams"] for q in qualities if q.get("seams", {}).get("checked")]
@@ -178,3 +180,36 @@ def test_a_worker_killed_mid_merge_leaves_the_old_version_and_the_merge_is_redon
     assert after, "the killed merge was not redone"
     assert [tuple(r) for r in dep.rows("SELECT id, z, x, y, version FROM tile_versions WHERE version = 1 "
                                        "ORDER BY id")] == before
+
+
+def _check_bias_messages(dep: Deployment) -> None:
+    """A tile's alignment hears what the other tiles found of its trips' GNSS biases: one message
+    per trip and other tile that aligned it, the mean shift that tile gave the trip's frames."""
+    from sqlalchemy.orm import Session
+
+    from csr_core.geo import LocalFrame
+    from csr_core.tiling import reframe_poses
+    from services.db.models import TripTileAlignment
+    from services.reconstructions import decode_arrays
+    from services.tile_frames import tile_frame
+    from workers.tile_jobs import _load_reconstruction, bias_messages_of
+
+    rows = dep.rows("SELECT trip_pk, z, x, y FROM trip_tile_alignments WHERE failed_reason IS NULL")
+    tiles_of: dict[str, set] = {}
+    for r in rows:
+        tiles_of.setdefault(r.trip_pk, set()).add((r.z, r.x, r.y))
+    pk, tiles = max(tiles_of.items(), key=lambda kv: len(kv[1]))
+    assert len(tiles) >= 2, "no trip crosses two tiles: nothing to pass"
+    here, there = sorted(tiles)[:2]
+    frame = tile_frame(*here)
+    with Session(dep.engine) as session:
+        recon = _load_reconstruction(session, pk, frame)
+        messages = bias_messages_of(session, {pk: recon}, *here, frame)[pk]
+        assert len(messages) == len(tiles) - 1  # every other tile, not this one
+        other = session.get(TripTileAlignment, (pk, *there))
+        arrays = decode_arrays(other.arrays)
+        idx, w = arrays["frame_indices"].astype(int), arrays["weights"]
+        aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(other.origin_lat, other.origin_lon), frame)[:, :2]
+        shift = ((aligned - recon.poses_xyyaw_world[idx, :2]) * w[:, None]).sum(0) / w.sum()
+    assert any(np.allclose(m.bias_xy_m, shift, atol=1e-6) for m in messages), (messages, shift)
+    assert all(0 < m.variance_m2 < 1.0 for m in messages)
