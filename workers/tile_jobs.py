@@ -145,7 +145,6 @@ class TripAlignment:
     instances: list[dict]
     noise: dict
     failed_reason: str | None
-    aligned: np.ndarray  # (F,) bool: the frame's piece was tied to others here (not own poses kept)
 
 
 @dataclass
@@ -200,9 +199,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
         poses, weights, residuals, moved, failed = piece_outcome(piece, alignment, signed, settings.tile_halo_m)
-        # aligned here: registrations tied it to the others (not ``no_overlap``, not failed)
-        aligned_here = np.full(len(poses), piece.trip.key not in alignment.failed)
-        per_trip[pk].append((start, poses, weights, residuals, moved, failed, aligned_here))
+        per_trip[pk].append((start, poses, weights, residuals, moved, failed))
     for pk, parts in per_trip.items():
         if not parts:
             continue  # only a short run here: its frames follow the neighbouring tiles' alignment
@@ -214,7 +211,6 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             poses_xyyaw=np.concatenate([p[1] for p in parts]),
             weights=np.concatenate([p[2] for p in parts]),
             residuals_m=np.concatenate([np.asarray(p[3], float) for p in parts]),
-            aligned=np.concatenate([p[6] for p in parts]),
             instances=[instance_json(i) for p in parts for i in p[4]],
             noise=_plain_json(noise_json(recons[pk].noise)),
             # only when no piece here could be aligned; a failed piece among aligned ones just has
@@ -242,12 +238,16 @@ def piece_outcome(piece: TripReconstruction, alignment: AlignmentResult, signed_
     """What a tile keeps of one aligned piece: ``(poses, blend weights, residuals, instances moved
     with the poses, failure reason or None)``.
 
-    A piece with nothing to align with (``no_overlap``) keeps its own poses. A piece that no
-    consistent registration ties to the others here gets no weight: its frames follow the trip's
-    aligned pieces and tiles (``assemble_poses``). Either way its elements stay in the map where
-    its poses put them: this tile cannot tell whether the trip is aligned elsewhere (``csr
-    reconstruct`` leaves out only a trip that fails everywhere), and the fusion's robust fit and
-    the validator judge them."""
+    A piece with nothing to align with (``no_overlap``) keeps its own poses; so does a piece that
+    no consistent registration ties to the others here (failed). Neither has a say on the trip's
+    poses (weight 0): its frames follow the trip's aligned pieces and tiles (``assemble_poses``;
+    the single-trip poses where no tile aligned the trip). A piece that met no other trip in one
+    tile kept full weight before, and pulled the trip back to its own GNSS there, where the
+    whole-batch graph carries the offset learnt elsewhere along the trip (in-process on 10 x 1 km
+    fleets, rural ATE 1.44 -> 1.36 m, highway 1.37 -> 1.33 m; urban and Karlsruhe the same). Either
+    way its elements stay in the map where its poses put them: this tile cannot tell whether the
+    trip is aligned elsewhere (``csr reconstruct`` leaves out only a trip that fails everywhere),
+    and the fusion's robust fit and the validator judge them."""
     key = piece.trip.key
     reason = alignment.failed.get(key)
     failed = reason if reason is not None and not reason.startswith(NO_OVERLAP) else None
@@ -258,7 +258,7 @@ def piece_outcome(piece: TripReconstruction, alignment: AlignmentResult, signed_
     else:
         poses = alignment.poses_xyyaw_world[key]
     residuals = alignment.frame_residuals_m.get(key, np.full(len(poses), np.nan))
-    weights = np.zeros(len(poses)) if failed else blend_weight(signed_m, halo_m)
+    weights = np.zeros(len(poses)) if reason is not None else blend_weight(signed_m, halo_m)
     moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
     return poses, weights, residuals, moved, failed
 
@@ -303,11 +303,10 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
     """What the other tiles that aligned these trips found of each one's GNSS bias (by trip pk):
     one message per trip and tile, from the tile's aligned poses against the trip's single-trip
     poses (``recons``, in ``frame``) weighted by the tile's blend weights, and the number of trips
-    that tile aligned (``csr_core.alignment.bias_messages``). Frames a tile did not tie to other
-    trips (a ``no_overlap`` piece keeps its own poses) say nothing of the bias: left out (a
-    message "no shift" from them held trips back to their own GNSS: in-process on five 10 x 1 km
-    fleets, rural ATE 1.42 -> 1.46 m and highway 1.38 -> 1.42 m with them, urban and Karlsruhe
-    the same)."""
+    that tile tied together (``csr_core.alignment.bias_messages``). Frames a tile did not tie to
+    other trips have no weight (``piece_outcome``) and say nothing of the bias (a message "no
+    shift" from a ``no_overlap`` piece's own poses held trips back to their own GNSS: in-process
+    on five 10 x 1 km fleets, rural ATE 1.42 -> 1.46 m and highway 1.38 -> 1.42 m with them)."""
     if not recons:
         return {}
     rows = session.scalars(select(TripTileAlignment).where(
@@ -318,7 +317,7 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
         blobs = session.scalars(select(TripTileAlignment.arrays).where(
             TripTileAlignment.z == tile[0], TripTileAlignment.x == tile[1], TripTileAlignment.y == tile[2],
             TripTileAlignment.failed_reason.is_(None))).all()
-        trips_in[tile] = sum(1 for b in blobs if decode_arrays(b).get("aligned", np.ones(1)).any())
+        trips_in[tile] = sum(1 for b in blobs if decode_arrays(b)["weights"].any())
     out: dict[str, list[GnssBiasMessage]] = {}
     for r in rows:
         recon = recons[r.trip_pk]
@@ -327,9 +326,8 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
         if len(idx) == 0 or idx.max() >= recon.trip.n_frames:
             continue
         aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
-        weights = arrays["weights"] * arrays.get("aligned", np.ones(len(idx)))  # rows before: all aligned
-        msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2], weights,
-                           trips_in[(r.z, r.x, r.y)], ALIGNMENT_DEFAULT)
+        msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2],
+                           arrays["weights"], trips_in[(r.z, r.x, r.y)], ALIGNMENT_DEFAULT)
         if msg is not None:
             out.setdefault(r.trip_pk, []).append(msg)
     return out
@@ -369,8 +367,7 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         values = {
             "job_id": job_id, "origin_lat": result.frame.origin_lat, "origin_lon": result.frame.origin_lon,
             "arrays": _npz(frame_indices=ta.frame_indices.astype(np.int32), poses_xyyaw=ta.poses_xyyaw,
-                           weights=ta.weights.astype(np.float32), residuals_m=ta.residuals_m.astype(np.float32),
-                           aligned=ta.aligned.astype(np.uint8)),
+                           weights=ta.weights.astype(np.float32), residuals_m=ta.residuals_m.astype(np.float32)),
             "instances": ta.instances, "noise": ta.noise, "failed_reason": ta.failed_reason,
             "merged_version_id": None, "created_at": now,
         }

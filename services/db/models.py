@@ -210,8 +210,8 @@ class TripTileAlignment(Base):
     """What one ``align_tile`` job made of one trip in one tile (coarse + fine alignment of the trip's
     frames in the tile and its halo). Poses and instance points are metres in the tile's region frame
     (``origin_lat/lon``). ``arrays``: ``frame_indices (F,)``, ``poses_xyyaw (F, 3)``,
-    ``weights (F,)`` (blend weights), ``residuals_m (F,)``, ``aligned (F,)`` (the frame's piece was
-    tied to other trips here; rows written before lack it); ``instances``: the trip's instances moved with its alignment (JSON as in
+    ``weights (F,)`` (blend weights; 0 where the trip's piece was not tied to other trips here),
+    ``residuals_m (F,)``; ``instances``: the trip's instances moved with its alignment (JSON as in
     ``trip_reconstructions``). ``failed_reason``: set when the trip could not be aligned here.
     ``merged_version_id``: the tile version that took these instances in (NULL until merged)."""
 

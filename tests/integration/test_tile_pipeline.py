@@ -208,7 +208,7 @@ def _check_bias_messages(dep: Deployment) -> None:
         assert len(messages) == len(tiles) - 1  # every other tile, not this one
         other = session.get(TripTileAlignment, (pk, *there))
         arrays = decode_arrays(other.arrays)
-        idx, w = arrays["frame_indices"].astype(int), arrays["weights"] * arrays["aligned"]
+        idx, w = arrays["frame_indices"].astype(int), arrays["weights"]
         aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(other.origin_lat, other.origin_lon), frame)[:, :2]
         shift = ((aligned - recon.poses_xyyaw_world[idx, :2]) * w[:, None]).sum(0) / w.sum()
     assert any(np.allclose(m.bias_xy_m, shift, atol=1e-6) for m in messages), (messages, shift)
