@@ -38,8 +38,8 @@ from csr_core.types import MapFeature, TripReconstruction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "GnssBiasMessage", "bias_message", "MatchCorrections", "MatchPairRecord", "PairConstraint",
-           "PriorMap", "align_trips"]
+__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "GnssBiasMessage", "MatchCorrections", "MatchPairRecord",
+           "PairConstraint", "PriorMap", "align_trips", "bias_message"]
 
 
 @dataclass(frozen=True, slots=True)

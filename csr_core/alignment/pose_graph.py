@@ -13,7 +13,9 @@ Factors (Eq. 9/10):
   at ``g_i`` with only the independent share of its variance, and the trip's biases ``B(i)`` form a
   Gauss-Markov chain (:func:`add_gnss_bias_chain`). A trip's GNSS offset is then one unknown,
   learnt where the trip overlaps others and carried along the stretches it drives alone,
-  instead of each sub-map being pulled back to its own fixes;
+  instead of each sub-map being pulled back to its own fixes. What another alignment (a
+  neighbouring tile's) learnt of that offset comes in as priors on the chain (bias messages,
+  :mod:`csr_core.alignment.bias_messages`);
 - ``e^pre`` the pre-built map: each patch is a variable held by a ``PriorFactorPose2`` at its
   stored pose with the map's own sigma, and a sub-map registered to it gets a between factor,
   so the map moves only as far as its weight allows (a fixed map is the limit sigma -> 0);
@@ -156,7 +158,8 @@ def build_factor_graph(
     factors and of the known-inlier factors, and the Eq. 11 weights. ``with_scale``: each trip's
     e^sm factors scale with its odometry scale correction ``K(trip)`` (prior
     ``odom_scale_sigma``), those priors added last. ``bias_messages`` (by trip key): other
-    alignments' estimates of a trip's GNSS bias, priors on its bias chain (``bias_messages``)."""
+    alignments' estimates of a trip's GNSS bias, priors on its bias chain
+    (:func:`csr_core.alignment.bias_messages.add_bias_messages`, known inliers)."""
     g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
     known, reg_idx, weights = [], [], {}
     deviations = {k: gnss_odometry_deviation_m(t) for k, t in enumerate(trips)}
