@@ -41,9 +41,7 @@ import shapely
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from csr_core.alignment import (
-    DEFAULT as ALIGNMENT_DEFAULT,
-)
+from csr_core.alignment import DEFAULT as ALIGNMENT_DEFAULT
 from csr_core.alignment import (
     AlignmentResult,
     GnssBiasMessage,
@@ -309,27 +307,28 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
     on five 10 x 1 km fleets, rural ATE 1.42 -> 1.46 m and highway 1.38 -> 1.42 m with them)."""
     if not recons:
         return {}
-    rows = session.scalars(select(TripTileAlignment).where(
-        TripTileAlignment.trip_pk.in_(list(recons)), TripTileAlignment.failed_reason.is_(None))).all()
-    rows = [r for r in rows if (r.z, r.x, r.y) != (z, x, y)]
-    trips_in: dict[tuple[int, int, int], int] = {}
-    for tile in {(r.z, r.x, r.y) for r in rows}:
-        blobs = session.scalars(select(TripTileAlignment.arrays).where(
-            TripTileAlignment.z == tile[0], TripTileAlignment.x == tile[1], TripTileAlignment.y == tile[2],
-            TripTileAlignment.failed_reason.is_(None))).all()
-        trips_in[tile] = sum(1 for b in blobs if decode_arrays(b)["weights"].any())
+    tiles = set(session.execute(select(TripTileAlignment.z, TripTileAlignment.x, TripTileAlignment.y).where(
+        TripTileAlignment.trip_pk.in_(list(recons)), TripTileAlignment.failed_reason.is_(None))).all())
+    tiles.discard((z, x, y))
     out: dict[str, list[GnssBiasMessage]] = {}
-    for r in rows:
-        recon = recons[r.trip_pk]
-        arrays = decode_arrays(r.arrays)
-        idx = arrays["frame_indices"].astype(np.int64)
-        if len(idx) == 0 or idx.max() >= recon.trip.n_frames:
-            continue
-        aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
-        msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2],
-                           arrays["weights"], trips_in[(r.z, r.x, r.y)], ALIGNMENT_DEFAULT)
-        if msg is not None:
-            out.setdefault(r.trip_pk, []).append(msg)
+    for tz, tx, ty in sorted(tuple(t) for t in tiles):
+        # every trip the tile aligned, each decoded once: the count of trips it tied together
+        # (any weight) and the messages of the trips asked about
+        rows = session.scalars(select(TripTileAlignment).where(
+            TripTileAlignment.z == tz, TripTileAlignment.x == tx, TripTileAlignment.y == ty,
+            TripTileAlignment.failed_reason.is_(None))).all()
+        decoded = [(r, decode_arrays(r.arrays)) for r in rows]
+        n_tied = sum(1 for _, arrays in decoded if arrays["weights"].any())
+        for r, arrays in decoded:
+            recon = recons.get(r.trip_pk)
+            idx = arrays["frame_indices"].astype(np.int64)
+            if recon is None or len(idx) == 0 or idx.max() >= recon.trip.n_frames:
+                continue
+            aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
+            msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2],
+                               arrays["weights"], n_tied, ALIGNMENT_DEFAULT)
+            if msg is not None:
+                out.setdefault(r.trip_pk, []).append(msg)
     return out
 
 
