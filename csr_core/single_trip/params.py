@@ -24,6 +24,14 @@ class SingleTripParams:
     # GNSS errors (multipath, atmosphere) are correlated over seconds; fixes within this time
     # count as one independent fix in the graph (0: every fix independent).
     GNSS_CORRELATION_S: float = 30.0
+    # The last solve holds the GNSS error as a Gauss-Markov bias state per node (gnss_bias.py):
+    # each fix then weighs only its white part. TAU is the bias's correlation time: longer than
+    # the tens of seconds GNSS_CORRELATION_S assumes, shorter than the real u-blox log's (its
+    # offset stays within 0.1 m over a minute, docs/gnss-model.md); 30-300 s all beat the white
+    # model on every world (docs/single-trip.md, "Session 23"). The white sigma is measured per trip.
+    GNSS_BIAS_STATE: bool = True
+    GNSS_BIAS_TAU_S: float = 120.0
+    GNSS_WHITE_SIGMA_MIN_M: float = 0.01
     # GNSS latency (fix stamped t = position at t - L), estimated per trip; windows remove the bias
     GNSS_LATENCY_ESTIMATE: bool = True
     GNSS_LATENCY_WINDOW_S: float = 20.0

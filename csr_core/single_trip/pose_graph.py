@@ -21,6 +21,7 @@ import numpy as np
 
 from csr_core import se2
 from csr_core.errors import ReconstructionError
+from csr_core.single_trip.gnss_bias import run_sigmas_m, solve_with_bias, white_sigmas_m
 from csr_core.single_trip.keyframes import every_travel_or_time
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import GnssStatus
@@ -40,13 +41,14 @@ class SmoothedPoses:
     gnss_latency_s: float = 0.0  # estimated GNSS latency (compensated)
 
 
-def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams) -> np.ndarray:
-    """Per-frame GNSS sigma (N,): the receiver's ``std_m`` when given, else the status table;
-    ``inf`` where there is no fix."""
+def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams,
+                  floor_m: float | None = None) -> np.ndarray:
+    """Per-frame GNSS sigma (N,): the receiver's ``std_m`` when given, else the status table,
+    at least ``floor_m`` (default ``GNSS_SIGMA_FLOOR_M``); ``inf`` where there is no fix."""
     table = np.asarray(params.GNSS_SIGMA_BY_STATUS_M, float)
     status = np.asarray(status, int)
     sigma = np.where(np.isfinite(std_m) & (std_m > 0), std_m, table[np.clip(status, 0, len(table) - 1)])
-    sigma = np.maximum(sigma, params.GNSS_SIGMA_FLOOR_M)
+    sigma = np.maximum(sigma, params.GNSS_SIGMA_FLOOR_M if floor_m is None else floor_m)
     sigma[status == GnssStatus.NONE] = np.inf
     return sigma
 
@@ -378,6 +380,12 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
         if not changed:
             break
         node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
+    if params.GNSS_BIAS_STATE:
+        # the bias's own sigma is the receiver's, unfloored: an RTK fix's 2 cm, not the white
+        # stages' 5 cm floor (which would let the odometry move a fixed spell by that much)
+        bias_sigma = run_sigmas_m(gnss_status, gnss_sigmas_m(gnss_status, gnss_std_m, params,
+                                                            floor_m=params.GNSS_WHITE_SIGMA_MIN_M))
+        node_poses = graph.solve_with_bias(node_poses, timestamps_s, gnss_status, bias_sigma, inlier)
     poses = graph.frame_poses(node_poses)
 
     gnss_var = np.where(inlier, np.square(sigma * inflation), np.inf)
@@ -452,15 +460,19 @@ class _NodeGraph:
             else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
         return gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sigma))
 
+    def fix_at_node(self, gnss_idx: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
+        """(M, 2) each fix moved to its node by the odometry lever, with the node's current yaw."""
+        yaw = node_poses[self.node_of[gnss_idx], 2]
+        c, s = np.cos(yaw), np.sin(yaw)
+        lever = self.node_T_fix[gnss_idx]
+        return self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
+                                                         s * lever[:, 0] + c * lever[:, 1]])
+
     def build(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> gtsam.NonlinearFactorGraph:
         odometry, course = self._fixed_factors()
         g = gtsam.NonlinearFactorGraph()
         g.push_back(odometry)
-        yaw = node_poses[self.node_of[gnss_idx], 2]
-        c, s = np.cos(yaw), np.sin(yaw)
-        lever = self.node_T_fix[gnss_idx]
-        z = self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
-                                                      s * lever[:, 0] + c * lever[:, 1]])
+        z = self.fix_at_node(gnss_idx, node_poses)
         models = self._gnss_models.setdefault(kernel, {})  # one noise model per distinct sigma, kept across solves
         for zi, node, sig in zip(z, self.node_of[gnss_idx].tolist(), self.factor_sigma[gnss_idx].tolist(), strict=True):
             robust = models.get(sig)
@@ -476,6 +488,18 @@ class _NodeGraph:
             values.insert(k, gtsam.Pose2(*pose))
         values = _optimize(self.build(kernel, gnss_idx, node_poses), values, self.params)
         return gtsam.utilities.extractPose2(values)
+
+    def solve_with_bias(self, node_poses: np.ndarray, timestamps_s: np.ndarray, status: np.ndarray,
+                        bias_sigma: np.ndarray, inlier: np.ndarray) -> np.ndarray:
+        """The kept fixes again, with the GNSS error as a Gauss-Markov bias state (gnss_bias.py);
+        ``bias_sigma (N,)`` the bias's stationary sigma per frame."""
+        idx = np.flatnonzero(inlier)
+        run = np.r_[0, np.cumsum(np.diff(np.asarray(status, int)) != 0)]
+        white = white_sigmas_m(timestamps_s, status, self.fix_positions(node_poses), self.gnss_xy, inlier,
+                               self.params)
+        odometry, course = self._fixed_factors()
+        return solve_with_bias(odometry, course, node_poses, timestamps_s[self.nodes], run[self.nodes], self.node_of[idx],
+                               self.fix_at_node(idx, node_poses), bias_sigma[idx], white[idx], self.params)
 
     def frame_poses(self, node_poses: np.ndarray) -> np.ndarray:
         """Every frame from its node by odometry; the small misclosure to the next node is
