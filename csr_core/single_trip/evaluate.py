@@ -37,7 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -264,14 +264,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--local-offset-m", type=float, default=LOCAL_OFFSET_M,
                     help="travel around an instance over which the 'local' figures remove the pose offset "
                          f"(default {LOCAL_OFFSET_M:g}; the issue's figure is 'rigid', the trip's own offset)")
+    ap.add_argument("--gnss-bias-state", action=argparse.BooleanOptionalAction, default=DEFAULT.GNSS_BIAS_STATE,
+                    help="the last pose solve with the GNSS error as a Gauss-Markov state (gnss_bias.py; "
+                         f"default {DEFAULT.GNSS_BIAS_STATE})")
     args = ap.parse_args(argv)
+    params = replace(DEFAULT, GNSS_BIAS_STATE=args.gnss_bias_state)
     cols = ("scenario", "trips", "km", "ate_raw_gnss_m", "ate_smoothed_m", "ate_trip_aligned_m", "rpe_raw_gnss_m",
             "rpe_smoothed_m", "jump_frames", "jump_max_smoothed_err_m", "rigid", "local", "seconds_per_km")
     if not args.json:
         print("| " + " | ".join(cols) + " |")  # noqa: T201
         print("|" + "---|" * len(cols))  # noqa: T201
     for sc in args.scenarios:
-        r = evaluate_scenario(sc, true_poses=args.true_poses, local_offset_m=args.local_offset_m)
+        r = evaluate_scenario(sc, params, true_poses=args.true_poses, local_offset_m=args.local_offset_m)
         if args.json:
             print(json.dumps(r))  # noqa: T201
             continue

@@ -6,9 +6,12 @@ Built-in gtsam factors only (Python custom factors are 30-100x slower):
 ``BetweenFactorPose2`` for odometry increments (sigma grows with the distance travelled),
 ``PoseTranslationPrior2D`` for GNSS positions (sigma from the receiver's ``std_m``, else from the
 status table), ``PoseRotationPrior2D`` for the GNSS course when the vehicle moves. Frames without
-a fix get no GNSS factor: odometry alone bridges them. Two LM stages: Huber from a robust rigid
-fit of the odometry to GNSS (convex, so the warm start is safe), then Cauchy from the Huber
-solution, which leaves GNSS jumps (tunnels, urban canyons) with almost no weight.
+a fix get no GNSS factor: odometry alone bridges them. Two LM stages with the fixes as white noise
+(inflated by their correlation time): Huber from a robust rigid fit of the odometry to GNSS
+(convex, so the warm start is safe), then Cauchy from the Huber solution, which leaves GNSS jumps
+(tunnels, urban canyons) with almost no weight. Optionally (``GNSS_BIAS_STATE``, off by default)
+a last solve on the fixes kept holds the GNSS error as a Gauss-Markov bias state (``gnss_bias``),
+so that its slow wander does not bend the trip.
 """
 
 from __future__ import annotations
@@ -307,7 +310,8 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     """Eq. 2 for one trip. Arrays (N,...) in upload order; returns world_T_vehicle per frame.
 
     Recipe: robust rigid fit (warm start) -> Huber LM -> reject GNSS jumps -> calibrate the
-    odometry (scale, yaw-rate bias) against the kept fixes -> Cauchy LM with rejection rounds.
+    odometry (scale, yaw-rate bias) against the kept fixes -> Cauchy LM with rejection rounds ->
+    optionally the kept fixes with a Gauss-Markov bias state (``GNSS_BIAS_STATE``).
     """
     n = len(timestamps_s)
     timestamps_s = np.asarray(timestamps_s, float)

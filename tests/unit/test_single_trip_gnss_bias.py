@@ -137,11 +137,12 @@ def test_a_wandering_gnss_bias_does_not_bend_the_trajectory():
     a state the smoothed trajectory keeps more of the odometry's shape than the white model (fixes
     inflated by their correlation time), which follows the wander. Trip-aligned error (each
     trip's own rigid offset removed, issue 4's measure) over four trips."""
-    white_model = dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False)
+    models = {"state": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True),
+              "white": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False)}
     errors: dict[str, list[np.ndarray]] = {"state": [], "white": []}
     for seed in range(4):
         t, true, odom, gnss, status, std = _wander_trip(seed)
-        for name, params in (("state", DEFAULT), ("white", white_model)):
+        for name, params in models.items():
             est = smooth_poses(t, gnss, status, std, np.full(len(t), np.nan), odom, params).poses_xyyaw_world[:, :2]
             aligned = metrics.apply_se2(metrics.umeyama_se2(est, true[:, :2]), est)
             errors[name].append(metrics.position_errors(aligned, true[:, :2]))
