@@ -9,8 +9,8 @@ Gauss-Markov step,
 
     b_{k+1} / s_{k+1} = exp(-dt / tau) b_k / s_k + w,   w ~ N(0, 1 - exp(-2 dt / tau)),
 
-``s`` the fix's stationary sigma (the receiver's ``std_m``, else the status table), ``tau``
-``GNSS_BIAS_TAU_S``. The odometry then carries the shape over the bias's correlation time and
+``s`` the stationary sigma of the fix's status run (the median of the receiver's ``std_m`` over
+the run, else the status table), ``tau`` ``GNSS_BIAS_TAU_S``, and a new bias where the run changes. The odometry then carries the shape over the bias's correlation time and
 the fixes still hold the trip where the bias has wandered (the chain is no stiffer than the
 receiver's own sigma allows).
 
@@ -20,6 +20,10 @@ fix position with the node's current yaw (so SE(2)'s log map does not mix the ro
 translation residual) and a free rotation; the chain is linear (``add_gauss_markov_chain``).
 The fixes and the odometry are those the white-noise stages kept and calibrated
 (``pose_graph.smooth_poses``); this stage only re-weighs them.
+
+Off by default (``GNSS_BIAS_STATE``): the single trip gains, but the alignment's GNSS priors
+(e^g), which are these poses, were modelled for the white stages' error shape and lose with it
+(docs/single-trip.md, "Session 23").
 """
 
 from __future__ import annotations
