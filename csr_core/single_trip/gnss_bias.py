@@ -87,21 +87,27 @@ def run_sigmas_m(status: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
     return out
 
 
-def node_bias_sigmas_m(node_of_fix: np.ndarray, fix_sigma_m: np.ndarray, n_nodes: int) -> np.ndarray:
-    """Stationary bias sigma per node (n_nodes,): the median sigma of its fixes; nodes without a
-    fix (outages) take the nearest node's, so the bias keeps wandering at its own rate."""
-    out = np.full(n_nodes, np.nan)
+def median_per_node(node_of_fix: np.ndarray, values: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``(n_nodes, ...)`` the median of ``values`` (M, ...) over each node's fixes; NaN for a node
+    without a fix."""
+    out = np.full((n_nodes, *np.shape(values)[1:]), np.nan)
     order = np.argsort(node_of_fix, kind="stable")
     nodes, starts = np.unique(node_of_fix[order], return_index=True)
-    for node, part in zip(nodes.tolist(), np.split(fix_sigma_m[order], starts[1:]), strict=True):
-        out[node] = float(np.median(part))
-    have = np.flatnonzero(np.isfinite(out))
+    for node, part in zip(nodes.tolist(), np.split(np.asarray(values)[order], starts[1:]), strict=True):
+        out[node] = np.median(part, axis=0)
+    return out
+
+
+def fill_from_nearest(per_node: np.ndarray) -> np.ndarray:
+    """Nodes without a value (outages) take the nearest node's: the bias keeps wandering at its
+    own rate there, and starts from where it was."""
+    have = np.flatnonzero(np.isfinite(per_node).all(axis=tuple(range(1, per_node.ndim))))
     if len(have) == 0:
-        return out
-    pos = np.clip(np.searchsorted(have, np.arange(n_nodes)), 0, len(have) - 1)
+        return per_node
+    k = np.arange(len(per_node))
+    pos = np.clip(np.searchsorted(have, k), 0, len(have) - 1)
     after, before = have[pos], have[np.maximum(pos - 1, 0)]
-    pick = np.where(np.abs(before - np.arange(n_nodes)) < np.abs(after - np.arange(n_nodes)), before, after)
-    return np.where(np.isfinite(out), out, out[pick])
+    return per_node[np.where(np.abs(before - k) < np.abs(after - k), before, after)]
 
 
 def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarray, node_sigma_m: np.ndarray,
@@ -109,8 +115,9 @@ def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarra
     """The first-order Gauss-Markov prior of the biases: ``b_0 ~ N(0, s_0^2)`` and, in units of
     each node's stationary sigma, ``b_{k+1} / s_{k+1} = phi b_k / s_k + w``, ``phi = exp(-dt /
     tau)``, ``w ~ N(0, 1 - phi^2)``; ``phi = 0`` where ``node_run`` changes (a new fix status, or
-    the fixes back after an outage: the receiver's error is a new one, independent of the last). The step is linear but not a difference (the mean reversion
-    holds the bias's level over a trip longer than tau), so it is a ``JacobianFactor`` in a
+    the fixes back after an outage: the receiver's error is a new one, independent of the last).
+    The step is linear but not a difference (the mean reversion holds the bias's level over a trip
+    longer than tau), so it is a ``JacobianFactor`` in a
     ``LinearContainerFactor``, linearised at ``bias_xy_lin``: a bias keeps its yaw at 0, where
     ``Pose2``'s local coordinates are the plain translation difference and the factor is exact."""
     s0 = float(node_sigma_m[0])
@@ -131,7 +138,7 @@ def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarra
         g.add(gtsam.LinearContainerFactor(jac, lin))
 
 
-def solve_with_bias(
+def build_bias_graph(
     odometry: gtsam.NonlinearFactorGraph,
     course: gtsam.NonlinearFactorGraph,
     node_poses: np.ndarray,
@@ -142,27 +149,18 @@ def solve_with_bias(
     fix_sigma_m: np.ndarray,
     white_m: np.ndarray,
     params: SingleTripParams,
-) -> np.ndarray:
-    """Node poses (n_nodes, 3) of the graph ``odometry + course + fixes with a bias chain``.
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """The graph ``odometry + course + fixes with a bias chain`` and its initial values (node
+    poses under keys ``0..n-1``, biases under ``b``).
 
-    ``fix_xy_at_node (M, 2)``: each kept fix moved to its node by the odometry lever (what the
-    fix says the node's position is, bias included); ``node_of_fix (M,)``; ``fix_sigma_m (M,)``
-    its stationary sigma, ``white_m (M,)`` its white sigma; ``node_run (n_nodes,)`` the fix-status run each node is in. Warm start: the given node poses, each bias at its node's median
-    residual, so that the fixes start near their white sigma (Cauchy from a good start)."""
+    ``fix_xy_at_node (M, 2)``: each kept fix moved to its node by the odometry lever (what the fix
+    says the node's position is, bias included); ``node_of_fix (M,)``; ``fix_sigma_m (M,)`` its
+    stationary sigma, ``white_m (M,)`` its white sigma; ``node_run (n_nodes,)`` the fix-status run
+    each node is in. Warm start: the given node poses, each bias at its node's median residual,
+    so that the fixes start near their white sigma (Cauchy from a good start)."""
     n = len(node_poses)
-    sig_node = node_bias_sigmas_m(node_of_fix, fix_sigma_m, n)
-    if not np.all(np.isfinite(sig_node)):
-        return node_poses
-    resid = node_poses[node_of_fix, :2] - fix_xy_at_node  # b = p - z: minus the fix's error
-    b0 = np.zeros((n, 2))
-    order = np.argsort(node_of_fix, kind="stable")
-    nodes, starts = np.unique(node_of_fix[order], return_index=True)
-    for node, part in zip(nodes.tolist(), np.split(resid[order], starts[1:]), strict=True):
-        b0[node] = np.median(part, axis=0)
-    have = np.zeros(n, bool)
-    have[nodes] = True
-    for axis in range(2):
-        b0[~have, axis] = np.interp(np.flatnonzero(~have), np.flatnonzero(have), b0[have, axis])
+    sig_node = fill_from_nearest(median_per_node(node_of_fix, fix_sigma_m, n))
+    b0 = fill_from_nearest(median_per_node(node_of_fix, node_poses[node_of_fix, :2] - fix_xy_at_node, n))
 
     g = gtsam.NonlinearFactorGraph()
     g.push_back(odometry)
@@ -182,8 +180,4 @@ def solve_with_bias(
                 np.array([w, w, FREE_ROTATION_SIGMA_RAD])))
         g.add(gtsam.BetweenFactorPose2(_bias_key(node), node, gtsam.Pose2(z[0], z[1], float(node_poses[node, 2])),
                                        model))
-    lm = gtsam.LevenbergMarquardtParams()
-    lm.setMaxIterations(params.LM_MAX_ITERATIONS)
-    lm.setRelativeErrorTol(params.LM_RELATIVE_ERROR_TOL)
-    result = gtsam.LevenbergMarquardtOptimizer(g, values, lm).optimize()
-    return np.array([[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(n))])
+    return g, values

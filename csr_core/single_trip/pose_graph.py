@@ -24,7 +24,7 @@ import numpy as np
 
 from csr_core import se2
 from csr_core.errors import ReconstructionError
-from csr_core.single_trip.gnss_bias import run_sigmas_m, solve_with_bias, white_sigmas_m
+from csr_core.single_trip.gnss_bias import build_bias_graph, run_sigmas_m, white_sigmas_m
 from csr_core.single_trip.keyframes import every_travel_or_time
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import GnssStatus
@@ -502,8 +502,11 @@ class _NodeGraph:
         white = white_sigmas_m(timestamps_s, status, self.fix_positions(node_poses), self.gnss_xy, inlier,
                                self.params)
         odometry, course = self._fixed_factors()
-        return solve_with_bias(odometry, course, node_poses, timestamps_s[self.nodes], run[self.nodes], self.node_of[idx],
-                               self.fix_at_node(idx, node_poses), bias_sigma[idx], white[idx], self.params)
+        graph, values = build_bias_graph(odometry, course, node_poses, timestamps_s[self.nodes], run[self.nodes],
+                                         self.node_of[idx], self.fix_at_node(idx, node_poses), bias_sigma[idx],
+                                         white[idx], self.params)
+        result = _optimize(graph, values, self.params)
+        return np.array([[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(len(node_poses)))])
 
     def frame_poses(self, node_poses: np.ndarray) -> np.ndarray:
         """Every frame from its node by odometry; the small misclosure to the next node is
