@@ -122,7 +122,17 @@ class AlignmentParams:
     reg_circle_redundancy: bool = True
     reg_residual_variance: bool = True
     reg_sigma_floor_xy_m: float = 0.03
-    # e^sm: consistency of one trip's overlapping sub-maps, sigma = xy + per_m * travelled. The
+    # e^sm: consistency of one trip's overlapping sub-maps. From the trip's odometry
+    # (``submap_chain_from_odometry``, :mod:`csr_core.alignment.odometry_noise`): the heading's
+    # random walk over the seconds between the anchors, the lateral error it makes over the metres
+    # between them, plus ``submap_chain_sigma_xy0_m``; the random walk is read from each trip's
+    # own odometry (``submap_chain_yaw_rw_default`` for a trip too short to say, never below
+    # ``submap_chain_yaw_rw_min``). docs/alignment.md, "Session 24".
+    submap_chain_from_odometry: bool = True
+    submap_chain_sigma_xy0_m: float = 0.005
+    submap_chain_yaw_rw_default: float = 0.001  # rad/sqrt(s)
+    submap_chain_yaw_rw_min: float = 0.0001  # rad/sqrt(s), a good automotive gyro
+    # The model before (``submap_chain_from_odometry=False``): sigma = xy + per_m * travelled. The
     # smoothed trajectory's relative error once its scale is estimated (below), measured against
     # truth (docs/alignment.md, "Session 7"): 0.013-0.027 m per axis over 25 m, 0.025-0.059 m over
     # 50 m (urban the largest, standard and hard alike); this model covers the urban figures.

@@ -25,7 +25,9 @@ Factors (Eq. 9/10):
   (:func:`registration_variance_factors`: the redundancy of the pairs of its circle and its own
   residual against the batch's typical one);
 - ``e^sm`` consecutive (overlapping) sub-maps of one trip share frames: their relative pose is
-  held at the smoothed one, ``sigma = sigma_0 + sigma_per_m * distance``, its translation scaled
+  held at the smoothed one with the sigmas the trip's odometry gives over the seconds and metres
+  between them (:mod:`csr_core.alignment.odometry_noise`: its heading's random walk, read from
+  the trip's own yaw increments, and the lateral error that makes), its translation scaled
   by ``1 + k``, ``k`` the trip's odometry scale correction (a variable ``K(trip)`` with a prior
   of ``odom_scale_sigma``): the single-trip calibration sets the scale from the trip's own GNSS,
   0.04 % off (RMS; 0.6 m over a 1.5 km trip); registrations to other trips refine it.
@@ -53,6 +55,7 @@ from csr_core import se2
 from csr_core.alignment.association import PairMatch
 from csr_core.alignment.bias_messages import GnssBiasMessage, add_bias_messages
 from csr_core.alignment.geometry import arclength_m
+from csr_core.alignment.odometry_noise import chain_sigmas, yaw_random_walk_rad_per_sqrt_s
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.submaps import Submap
 from csr_core.types import TripReconstruction
@@ -193,13 +196,19 @@ def build_factor_graph(
                 known.extend(add_bias_messages(g, trips[k], group, weights, bias_messages[trips[k].trip.key],
                                                params))
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
+        t = trips[k].trip.timestamps_s
+        yaw_rw = submap_chain_yaw_rw(trips[k], params)
         for a, b in zip(group[:-1], group[1:], strict=False):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
-            sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d
-            syaw = params.submap_chain_sigma_yaw_rad * (1.0 + d / 50.0)
+            if params.submap_chain_from_odometry:
+                sigmas = chain_sigmas(d, abs(float(t[b.anchor_frame] - t[a.anchor_frame])), yaw_rw,
+                                      params.submap_chain_sigma_xy0_m)
+            else:
+                sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d
+                sigmas = np.array([sxy, sxy, params.submap_chain_sigma_yaw_rad * (1.0 + d / 50.0)])
             known.append(g.size())
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy, sxy, syaw]))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             if with_scale:
                 g.add(scaled_chain_factor(S(a.submap_id), S(b.submap_id), K(k), rel, noise))
             else:
@@ -224,6 +233,14 @@ def build_factor_graph(
                 g.add(gtsam.PriorFactorVector(K(k), np.zeros(1),
                                               gtsam.noiseModel.Isotropic.Sigma(1, params.odom_scale_sigma)))
     return g, init, reg_idx, known, weights
+
+
+def submap_chain_yaw_rw(trip: TripReconstruction, params: AlignmentParams) -> float:
+    """The angle random walk (rad/sqrt(s)) that e^sm assumes for ``trip``: read from its odometry
+    (:func:`csr_core.alignment.odometry_noise.yaw_random_walk_rad_per_sqrt_s`), the default for a
+    trip too short to say, at least ``submap_chain_yaw_rw_min``."""
+    q = yaw_random_walk_rad_per_sqrt_s(trip.trip.timestamps_s, trip.trip.odom_xyyaw)
+    return max(params.submap_chain_yaw_rw_default if q is None else q, params.submap_chain_yaw_rw_min)
 
 
 def scaled_chain_factor(key_a: int, key_b: int, key_scale: int, rel_xyyaw: np.ndarray,
