@@ -204,6 +204,11 @@ def build_factor_graph(
             if params.submap_chain_from_odometry:
                 sigmas = chain_sigmas(d, abs(float(t[b.anchor_frame] - t[a.anchor_frame])), yaw_rw,
                                       params.submap_chain_sigma_xy0_m)
+                if not with_scale and params.odom_scale_sigma > 0:
+                    # the graph without K(trip) (GNC's, which decides the inliers) holds the scale
+                    # at the smoothed one: its unknown correction belongs in the translation's
+                    # sigma, or a trip whose scale is off rejects the registrations that say so
+                    sigmas[:2] = np.hypot(sigmas[:2], params.odom_scale_sigma * d)
             else:
                 sxy = params.submap_chain_sigma_xy_m + params.submap_chain_sigma_per_m * d
                 sigmas = np.array([sxy, sxy, params.submap_chain_sigma_yaw_rad * (1.0 + d / 50.0)])
