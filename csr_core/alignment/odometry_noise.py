@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from csr_core import se2
+from csr_core.single_trip.noise import robust_sigma
 
 #: fewer odometry increments than this give no estimate (the caller falls back to its default)
 MIN_INCREMENTS = 20
@@ -47,9 +48,7 @@ def yaw_random_walk_rad_per_sqrt_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndar
     step_s = float(np.median(dt))
     if not np.isfinite(step_s) or step_s <= 0:
         return None
-    second = np.diff(increments, 2)
-    spread = 1.4826 * float(np.median(np.abs(second - np.median(second))))
-    return spread / np.sqrt(6.0) / np.sqrt(step_s)
+    return robust_sigma(np.diff(increments, 2)) / np.sqrt(6.0) / np.sqrt(step_s)
 
 
 def chain_sigmas(distance_m: float, duration_s: float, yaw_rw_rad_per_sqrt_s: float,
