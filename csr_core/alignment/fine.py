@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from csr_core import se2
 from csr_core.alignment.geometry import arclength_m, resample_polyline
+from csr_core.alignment.odometry_noise import chain_sigmas, trip_yaw_random_walk
 from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.types import ElementType, MapFeature, TripReconstruction
 
@@ -382,8 +383,9 @@ def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, ma
 
     The chain holds the coarse solution's relative motion (already GNSS + odometry smoothed and
     calibrated, so its scale and yaw-rate bias are right) with the smoothed trajectory's
-    relative accuracy (``fine_chain_*``): the fine stage estimates a *correction* that varies
-    slowly along the trip and cannot add frame-to-frame noise. Raw odometry increments would
+    relative accuracy (the heading random walk of the trip's odometry over the seconds between
+    two keyframes, as e^sm: ``odometry_noise.chain_sigmas``): the fine stage estimates a
+    *correction* that varies slowly along the trip and cannot add frame-to-frame noise. Raw odometry increments would
     re-introduce the odometry scale error that the single-trip stage removed. The keyframe
     corrections are spread to every frame linearly in travelled distance."""
     frames = _keyframes(poses, params.fine_keyframe_spacing_m)
@@ -396,8 +398,13 @@ def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, ma
         init.insert(X(slot), gtsam.Pose2(*kf[slot]))
     rel = se2.between(kf[:-1], kf[1:])
     d = np.hypot(rel[:, 0], rel[:, 1])
-    sxy = params.fine_chain_sigma_floor_m + params.fine_chain_sigma_per_m * d
-    syaw = params.fine_chain_sigma_yaw_floor_rad + params.fine_chain_sigma_yaw_per_m * d
+    if params.fine_chain_from_odometry:  # the heading random walk over the seconds between keyframes
+        sigmas = chain_sigmas(d, np.abs(np.diff(trip.trip.timestamps_s[frames])), trip_yaw_random_walk(trip, params),
+                              params.fine_chain_sigma_xy0_m)
+        sxy, syaw = sigmas[:, 0], sigmas[:, 2]
+    else:
+        sxy = params.fine_chain_sigma_floor_m + params.fine_chain_sigma_per_m * d
+        syaw = params.fine_chain_sigma_yaw_floor_rad + params.fine_chain_sigma_yaw_per_m * d
     for slot in range(len(frames) - 1):
         g.add(gtsam.BetweenFactorPose2(X(slot), X(slot + 1), gtsam.Pose2(*rel[slot]),
                                        gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[slot], sxy[slot], syaw[slot]]))))

@@ -19,6 +19,10 @@ Over ``dt`` seconds and ``d`` metres (:func:`chain_sigmas`):
     sigma_xy  = sigma_xy0 + d sigma_yaw / sqrt(3) (the lateral error of a path whose heading is
                                                    that random walk, end to end; used on both axes)
 
+The same model ties the fine stage's keyframes (every ``fine_keyframe_spacing_m``, a tenth of a
+second to a second apart; ``fine.refine_trip``), with ``sigma_xy0`` the step-length noise of
+wheel odometry over one such step (0.1 % of 2 m).
+
 The smoothed trajectory's relative error measured against truth follows this on every world and
 both profiles (docs/alignment.md, "Session 24": 0.73 / 1.0 / 1.4 mrad over 1.5 / 3 / 6 s
 whatever the speed), where the distance-based model before it (``0.002 (1 + d / 50)`` rad) was
@@ -30,7 +34,9 @@ from __future__ import annotations
 import numpy as np
 
 from csr_core import se2
+from csr_core.alignment.params import AlignmentParams
 from csr_core.single_trip.noise import robust_sigma
+from csr_core.types import TripReconstruction
 
 #: fewer odometry increments than this give no estimate (the caller falls back to its default)
 MIN_INCREMENTS = 20
@@ -51,10 +57,19 @@ def yaw_random_walk_rad_per_sqrt_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndar
     return robust_sigma(np.diff(increments, 2)) / np.sqrt(6.0) / np.sqrt(step_s)
 
 
-def chain_sigmas(distance_m: float, duration_s: float, yaw_rw_rad_per_sqrt_s: float,
+def chain_sigmas(distance_m: float | np.ndarray, duration_s: float | np.ndarray, yaw_rw_rad_per_sqrt_s: float,
                  sigma_xy0_m: float) -> np.ndarray:
-    """``(sigma_x, sigma_y, sigma_yaw)`` of e^sm between two anchors ``distance_m`` of travel and
-    ``duration_s`` apart (module docstring)."""
-    sigma_yaw = yaw_rw_rad_per_sqrt_s * np.sqrt(max(float(duration_s), 0.1))
-    sigma_xy = sigma_xy0_m + float(distance_m) * sigma_yaw / np.sqrt(3.0)
-    return np.array([sigma_xy, sigma_xy, sigma_yaw])
+    """``(sigma_x, sigma_y, sigma_yaw)`` of a link ``distance_m`` of travel and ``duration_s``
+    apart (module docstring): ``(3,)`` for one link, ``(n, 3)`` for arrays of ``n``. No link is
+    shorter in time than one 0.1 s odometry increment."""
+    sigma_yaw = yaw_rw_rad_per_sqrt_s * np.sqrt(np.maximum(np.asarray(duration_s, float), 0.1))
+    sigma_xy = sigma_xy0_m + np.asarray(distance_m, float) * sigma_yaw / np.sqrt(3.0)
+    return np.stack([sigma_xy, sigma_xy, sigma_yaw], axis=-1)
+
+
+def trip_yaw_random_walk(trip: TripReconstruction, params: AlignmentParams) -> float:
+    """The angle random walk (rad/sqrt(s)) that the chains (e^sm, the fine keyframes) assume for
+    ``trip``: read from its odometry (:func:`yaw_random_walk_rad_per_sqrt_s`), the default for a
+    trip too short to say, at least ``submap_chain_yaw_rw_min``."""
+    q = yaw_random_walk_rad_per_sqrt_s(trip.trip.timestamps_s, trip.trip.odom_xyyaw)
+    return max(params.submap_chain_yaw_rw_default if q is None else q, params.submap_chain_yaw_rw_min)

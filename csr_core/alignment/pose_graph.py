@@ -55,7 +55,7 @@ from csr_core import se2
 from csr_core.alignment.association import PairMatch
 from csr_core.alignment.bias_messages import GnssBiasMessage, add_bias_messages
 from csr_core.alignment.geometry import arclength_m
-from csr_core.alignment.odometry_noise import chain_sigmas, yaw_random_walk_rad_per_sqrt_s
+from csr_core.alignment.odometry_noise import chain_sigmas, trip_yaw_random_walk
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.submaps import Submap
 from csr_core.types import TripReconstruction
@@ -197,7 +197,7 @@ def build_factor_graph(
                                                params))
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
         t = trips[k].trip.timestamps_s
-        yaw_rw = submap_chain_yaw_rw(trips[k], params)
+        yaw_rw = trip_yaw_random_walk(trips[k], params)
         for a, b in zip(group[:-1], group[1:], strict=False):
             rel = se2.between(a.world_T_submap, b.world_T_submap)
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
@@ -238,14 +238,6 @@ def build_factor_graph(
                 g.add(gtsam.PriorFactorVector(K(k), np.zeros(1),
                                               gtsam.noiseModel.Isotropic.Sigma(1, params.odom_scale_sigma)))
     return g, init, reg_idx, known, weights
-
-
-def submap_chain_yaw_rw(trip: TripReconstruction, params: AlignmentParams) -> float:
-    """The angle random walk (rad/sqrt(s)) that e^sm assumes for ``trip``: read from its odometry
-    (:func:`csr_core.alignment.odometry_noise.yaw_random_walk_rad_per_sqrt_s`), the default for a
-    trip too short to say, at least ``submap_chain_yaw_rw_min``."""
-    q = yaw_random_walk_rad_per_sqrt_s(trip.trip.timestamps_s, trip.trip.odom_xyyaw)
-    return max(params.submap_chain_yaw_rw_default if q is None else q, params.submap_chain_yaw_rw_min)
 
 
 def scaled_chain_factor(key_a: int, key_b: int, key_scale: int, rel_xyyaw: np.ndarray,

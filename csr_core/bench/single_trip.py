@@ -20,7 +20,7 @@ import numpy as np
 
 from csr_core.bench.runner import ensure_scenario, map_in_processes, simulator_fingerprint
 from csr_core.bench.sets import WORLDS, ScenarioSpec, scenario_set
-from csr_core.bench.tables import markdown_table
+from csr_core.bench.tables import duration_text, markdown_table
 
 SECTION = "single-trip"
 SETS = ("standard-seeds", "hard")
@@ -137,7 +137,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     lines = [
         "## Single-trip reconstruction (issue 4, `csr bench-single-trip`)",
         "",
-        f"Regenerate: `{regenerate}` ({elapsed_s / 60:.0f} min on this machine; scenarios cached in "
+        f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine; scenarios cached in "
         f"`bench-out/scenarios`). Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
         f"Sets {', '.join(f'`{s}`' for s in sets)} ({len(target_specs)} target scenarios: "
         f"{', '.join(f'`{n}`' for n in target_specs)}{'; the `hard` set for the GNSS jumps' if hard else ''}), simulator sources "

@@ -55,6 +55,11 @@ def _mean(values: Sequence[float]) -> float:
     return float(v.mean()) if v.size else float("nan")
 
 
+def duration_text(seconds: float) -> str:
+    """A run time as a reader wants it: seconds under two minutes, else whole minutes."""
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]

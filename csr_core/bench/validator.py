@@ -24,7 +24,8 @@ from csr_core.bench.runner import (
     sources_fingerprint,
 )
 from csr_core.bench.sets import ScenarioSpec, scenario_set
-from csr_core.bench.tables import markdown_table
+from csr_core.bench.tables import duration_text, markdown_table
+from csr_core.topology.validation import SEVERITY, SUSPECT
 
 SECTION = "validator"
 RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
@@ -32,6 +33,8 @@ PRECISION_MIN = 0.5
 #: what the cached per-fleet instances depend on: the single-trip stage, the alignment, the
 #: instances moved with it (``topology.instances.reposition_instances``) and the core's types,
 #: frames and upload decoding
+#: the suspect flags, most severe first, as the section lists them
+SUSPECT_ORDER = sorted(SUSPECT, key=lambda kind: (-SEVERITY[kind], kind))
 ALIGNMENT_CACHE_SOURCES = ("single_trip", "alignment", "topology/instances.py", "types.py", "se2.py", "geo.py",
                            "upload.py", "scenario.py")
 
@@ -115,7 +118,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     lines = [
         "## Validator (issue 6, `csr bench-validator`)",
         "",
-        f"Regenerate: `{regenerate}` ({elapsed_s / 60:.0f} min on this machine{cached}; scenarios cached in "
+        f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine{cached}; scenarios cached in "
         f"`bench-out/scenarios`, alignments in `bench-out/validator`, keyed by the sources they come from). "
         f"Measured "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Set `{set_name}`: "
@@ -124,7 +127,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         "`csr reconstruct` runs them), then every instance judged against the truth "
         "(`python -m csr_core.topology.evaluate DIR --poses aligned`): *wrong* when at least a fifth of its 0.5 m "
         "samples are more than 0.5 m from the truth of its type, *flagged* when it carries a suspect flag "
-        "(`low_support`, `high_variance`, `trips_disagree`, `implausible_lane_width`, `high_residual_pair`).",
+        f"({', '.join(f'`{k}`' for k in SUSPECT_ORDER)}).",
         "",
         f"**Pooled over {instances} instances: recall {_share(total['recall'])} ({total['caught']} of {total['wrong']} "
         f"wrong instances flagged), precision {_share(total['precision'])} ({total['caught']} of {total['flagged']} "
@@ -148,8 +151,9 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
                 [c["flagged"], c["wrong"], c["alone"], c["alone_wrong"]])
     flag_rows = [[kind, str(c[0]), str(c[1]), f"{c[1] / max(c[0], 1):.2f}", str(c[2]), str(c[3])]
                  for kind, c in sorted(kinds.items(), key=lambda kv: -kv[1][0])]
-    lines += ["Per flag, pooled (an instance can carry several; *alone*: its only suspect flag; `gap` and "
-              "`outlier_trip` are informative, not suspect):", "",
+    informative = ", ".join(f"`{k}`" for k in sorted(k for k, v in SEVERITY.items() if v == 0))
+    lines += ["Per flag, pooled (an instance can carry several; *alone*: its only suspect flag; "
+              f"{informative} are informative, not suspect):", "",
               markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
               if flag_rows else "(no instance flagged)", ""]
     if figure is not None:

@@ -54,3 +54,12 @@ def test_chain_sigmas_grow_as_a_heading_random_walk():
     # the lateral error: distance times the heading's spread over sqrt(3), plus the floor
     assert slow[0] == pytest.approx(0.005 + 20.0 * 0.002 / np.sqrt(3.0))
     assert slow[0] == slow[1]
+
+
+def test_chain_sigmas_of_many_links_are_those_of_each_link():
+    d, dt = np.array([2.0, 2.0, 30.0]), np.array([0.05, 0.4, 1.5])
+    many = chain_sigmas(d, dt, yaw_rw_rad_per_sqrt_s=0.0007, sigma_xy0_m=0.002)
+    assert many.shape == (3, 3)
+    for k in range(3):
+        np.testing.assert_allclose(many[k], chain_sigmas(float(d[k]), float(dt[k]), 0.0007, 0.002))
+    assert many[0, 2] == pytest.approx(0.0007 * np.sqrt(0.1))  # no link shorter than one 0.1 s increment

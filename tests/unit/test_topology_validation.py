@@ -61,6 +61,21 @@ def test_low_support_is_a_single_trip_or_a_minority_of_the_trips_that_passed() -
     assert "low_support" in kinds["two_of_eight"]  # six trips passed and did not see it
 
 
+def test_a_marking_one_trip_saw_is_reported_but_not_suspect() -> None:
+    stop = _line("stop", 0.0, support=1, length=3.5, etype=ElementType.STOP_LINE)
+    crosswalk = _line("crosswalk", 10.0, support=1, length=4.0, etype=ElementType.CROSSWALK)
+    seen_twice = _line("stop2", 20.0, support=2, length=3.5, etype=ElementType.STOP_LINE)
+    divider = _line("divider", 30.0, support=1, etype=ElementType.LANE_DIVIDER)
+    flags, quality = validate([stop, crosswalk, seen_twice, divider], [1, 1, 2, 1], DEFAULT)
+    kinds: dict[str, set[str]] = {}
+    for fl in flags:
+        kinds.setdefault(str(fl.feature_id), set()).add(fl.kind)
+    assert kinds["stop"] == {"low_support_marking"} and kinds["crosswalk"] == {"low_support_marking"}
+    assert "stop2" not in kinds  # two trips confirm each other
+    assert kinds["divider"] == {"low_support"}  # a line one trip saw stays suspect
+    assert "low_support_marking" not in SUSPECT
+
+
 def test_a_gap_is_reported_but_does_not_make_the_instance_suspect() -> None:
     f = _line("gappy", 0.0, support=4, max_internal_gap_m=8.0)
     flags, quality = validate([f], [4], DEFAULT)
