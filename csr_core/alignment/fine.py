@@ -385,9 +385,9 @@ def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, ma
     calibrated, so its scale and yaw-rate bias are right) with the smoothed trajectory's
     relative accuracy (the heading random walk of the trip's odometry over the seconds between
     two keyframes, as e^sm: ``odometry_noise.chain_sigmas``): the fine stage estimates a
-    *correction* that varies slowly along the trip and cannot add frame-to-frame noise. Raw odometry increments would
-    re-introduce the odometry scale error that the single-trip stage removed. The keyframe
-    corrections are spread to every frame linearly in travelled distance."""
+    *correction* that varies slowly along the trip and cannot add frame-to-frame noise. Raw
+    odometry increments would re-introduce the odometry scale error that the single-trip stage
+    removed. The keyframe corrections are spread to every frame linearly in travelled distance."""
     frames = _keyframes(poses, params.fine_keyframe_spacing_m)
     if frames[-1] != len(poses) - 1:
         frames = np.append(frames, len(poses) - 1)

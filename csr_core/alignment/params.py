@@ -166,9 +166,9 @@ class AlignmentParams:
     fine_coarse_sigma_m: float = 0.15  # expected error left by coarse alignment
     # chain between keyframes at the coarse relative pose: the relative accuracy of the
     # smoothed trajectory, from the trip's own odometry as e^sm's (``odometry_noise.chain_sigmas``
-    # with ``odometry_noise.trip_yaw_random_walk``; ``fine_chain_sigma_xy0_m`` per step). False: the distance
-    # model before it (``fine_chain_sigma_*``: 0.6 mrad per 2 m step, two to three times the
-    # measured heading drift of rural and highway trips)
+    # with ``odometry_noise.trip_yaw_random_walk``; ``fine_chain_sigma_xy0_m`` per step). False:
+    # the distance model before it (``fine_chain_sigma_*``: 0.6 mrad per 2 m step, two to three
+    # times the measured heading drift of rural and highway trips)
     fine_chain_from_odometry: bool = True
     fine_chain_sigma_xy0_m: float = 0.002
     fine_chain_sigma_per_m: float = 0.002

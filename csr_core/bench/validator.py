@@ -30,11 +30,11 @@ from csr_core.topology.validation import SEVERITY, SUSPECT
 SECTION = "validator"
 RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
 PRECISION_MIN = 0.5
+#: the suspect flags, most severe first, as the section lists them
+SUSPECT_ORDER = sorted(SUSPECT, key=lambda kind: (-SEVERITY[kind], kind))
 #: what the cached per-fleet instances depend on: the single-trip stage, the alignment, the
 #: instances moved with it (``topology.instances.reposition_instances``) and the core's types,
 #: frames and upload decoding
-#: the suspect flags, most severe first, as the section lists them
-SUSPECT_ORDER = sorted(SUSPECT, key=lambda kind: (-SEVERITY[kind], kind))
 ALIGNMENT_CACHE_SOURCES = ("single_trip", "alignment", "topology/instances.py", "types.py", "se2.py", "geo.py",
                            "upload.py", "scenario.py")
 
