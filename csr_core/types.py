@@ -124,8 +124,24 @@ class Trip:
         return int(self.timestamps_s.shape[0])
 
     @property
+    def held_fix(self) -> np.ndarray:
+        """(N,) frames whose fix repeats the previous frame's bit for bit: a receiver slower
+        than the frames, its last epoch copied into the frames between. Not a new measurement
+        (as a new one it would be a position up to an epoch late, a staircase along the road)."""
+        fix = self.gnss_status != GnssStatus.NONE
+        same = np.all(self.gnss_lonlat_deg[1:] == self.gnss_lonlat_deg[:-1], axis=1)
+        return np.r_[False, same & fix[1:] & fix[:-1]]
+
+    @property
     def has_fix(self) -> np.ndarray:
-        return self.gnss_status != GnssStatus.NONE
+        """(N,) frames with a fix of their own: status not ``none`` and not a held repeat."""
+        return (self.gnss_status != GnssStatus.NONE) & ~self.held_fix
+
+    @property
+    def fix_status(self) -> np.ndarray:
+        """``gnss_status`` with held repeats (:attr:`held_fix`) as ``none``: what the stages
+        that weigh fixes read."""
+        return np.where(self.held_fix, np.uint8(GnssStatus.NONE), self.gnss_status).astype(np.uint8)
 
 
 # --- stage outputs ----------------------------------------------------------------------------

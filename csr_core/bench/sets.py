@@ -23,7 +23,7 @@ class ScenarioSpec:
 
 
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
-SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "full", "toy")
+SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "variants", "full", "toy")
 #: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
 #: by half in aligned ATE, docs/alignment.md "Session 11"), so the reported figures average three
 STANDARD_SEEDS = (1, 2, 3)
@@ -37,6 +37,10 @@ DENSE_TRIPS = {"urban": 40, "highway": 70, "rural": 40, "roundabout": 20, "karls
 #: the six fleets of 8 trips x 1.5 km it has been measured on since session 8 (docs/topology.md),
 #: so that its figures compare across sessions: (world, seed)
 VALIDATOR_FLEETS = (("urban", 5), ("urban", 9), ("karlsruhe", 3), ("highway", 7), ("rural", 11), ("roundabout", 2))
+#: ``variants``: the fleets ``csr bench-variants`` rewrites into foreign ones; small, and in the two
+#: compact worlds, where 6 trips of 800 m meet each other (the highway and rural worlds are large
+#: enough that such a fleet barely overlaps, and its accuracy is its GNSS's)
+VARIANT_FLEETS = (("urban", 6, 800.0), ("roundabout", 6, 800.0))
 
 
 def scenario_set(name: str) -> list[ScenarioSpec]:
@@ -55,6 +59,8 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]
     if name == "validator":
         return [ScenarioSpec(w, 8, "hard", seed, 1500.0) for w, seed in VALIDATOR_FLEETS]
+    if name == "variants":
+        return [ScenarioSpec(w, n, "standard", 1, length) for w, n, length in VARIANT_FLEETS]
     if name == "toy":
         return [ScenarioSpec("toy", 3, "toy", 1, 300.0)]
     if name == "full":

@@ -232,7 +232,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
     # 2. pose smoothing, Eq. 2
     if smoothed is None:
-        smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.gnss_status, trip.gnss_std_m,
+        smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.fix_status, trip.gnss_std_m,
                                 trip.gnss_heading_deg, trip.odom_xyyaw, params)
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]

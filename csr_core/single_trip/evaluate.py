@@ -245,7 +245,7 @@ def pose_only(scenario_dir: str | Path, params: SingleTripParams = DEFAULT) -> d
     for tf in list_trip_files(scenario_dir):
         trip = load_trip(tf)
         true_xy = frame.to_local(truth_poses[tf.key].lonlat_deg)
-        sp = smooth_poses(trip.timestamps_s, frame.to_local(trip.gnss_lonlat_deg), trip.gnss_status,
+        sp = smooth_poses(trip.timestamps_s, frame.to_local(trip.gnss_lonlat_deg), trip.fix_status,
                           trip.gnss_std_m, trip.gnss_heading_deg, trip.odom_xyyaw, params)
         est = sp.poses_xyyaw_world[:, :2]
         a.append(metrics.position_errors(est, true_xy))

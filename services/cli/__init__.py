@@ -23,6 +23,7 @@ _COMMAND_MODULES += ("bench_tiles",)  # csr bench-tiles: tile serving vs nginx (
 _COMMAND_MODULES += ("demo",)  # csr demo: the README's first command (services/cli/demo.py)
 _COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: issue 4's targets
 _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: issue 6's validator target
+_COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -119,3 +119,20 @@ def test_bench_validator_toy_set_end_to_end(tmp_path):
     # the toy fleet is clean: every instance judged, none wrong, so nothing to catch and no false alarm
     assert v["instances"] > 5 and v["wrong"] == 0 and v["flagged"] == 0 and fleet["mcd"] < 0.05
     assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned-*.pkl"))  # the alignment cache
+
+
+def test_bench_variants_toy_set_every_foreign_fleet_holds(tmp_path):
+    # contract-valid uploads our simulator never writes (no std_m, fixes held between 1 Hz epochs,
+    # 2 Hz frames, odometry elsewhere, another hemisphere, ...): each must run and stay accurate
+    text, figs = _bench_command_on_toy(tmp_path, "bench-variants", "--set", "variants")
+    from csr_core.bench.variants import VARIANTS
+
+    rows = [line for line in text.splitlines() if line.startswith("| toy-toy-3x-300m-s1 |")]
+    assert [r.split(" | ")[1] for r in rows] == list(VARIANTS)
+    assert all(r.rstrip(" |").endswith("yes") for r in rows), "\n".join(rows)
+    assert f"**{len(VARIANTS) - 1} of {len(VARIANTS) - 1} variants hold.**" in text
+    png = figs / "bench_variants.png"
+    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    unknown = subprocess.run(CSR + ["bench-variants", "--variants", "nope", "--set", "toy", "--out",
+                                    str(tmp_path / "bench")], capture_output=True, text=True)
+    assert unknown.returncode == 2 and "unknown variant" in unknown.stderr

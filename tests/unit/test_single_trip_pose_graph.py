@@ -78,6 +78,34 @@ def test_trip_without_fix_raises():
         reconstruct_trip(trip, frame)
 
 
+
+def _held_at(trip, period_frames: int):
+    """``trip`` as a receiver at 1 / ``period_frames`` of the frame rate logs it: each epoch's
+    fix (position, status, std) copied into the frames up to the next epoch."""
+    epoch = (np.arange(trip.n_frames) // period_frames) * period_frames
+    return dataclasses.replace(trip, gnss_lonlat_deg=trip.gnss_lonlat_deg[epoch], gnss_status=trip.gnss_status[epoch],
+                               gnss_std_m=trip.gnss_std_m[epoch])
+
+
+def test_a_fix_held_over_the_frames_between_epochs_is_one_measurement():
+    # 10 Hz frames, a 1 Hz receiver whose fix the log repeats: at 12 m/s a repeated fix is up to
+    # 10.8 m behind; taken as ten measurements it drags the trajectory along a staircase
+    spec = SynthSpec(length_m=900.0, speed_mps=12.0, gnss_sigma_m=0.3, curvature_1pm=0.002, seed=5)
+    trip, true, frame = make_trip(spec)
+    held = _held_at(trip, 10)
+    assert held.held_fix.sum() == trip.n_frames - len(range(0, trip.n_frames, 10))
+    assert not held.held_fix[::10].any() and not trip.held_fix.any()
+    epochs_only = dataclasses.replace(trip, gnss_status=np.where(np.arange(trip.n_frames) % 10 == 0, trip.gnss_status,
+                                                                 np.uint8(GnssStatus.NONE)).astype(np.uint8))
+
+    def rmse(t):
+        return float(np.sqrt(np.mean(np.sum((reconstruct_trip(t, frame).poses_xyyaw_world[:, :2] - true[:, :2]) ** 2,
+                                            axis=1))))
+
+    assert rmse(held) == pytest.approx(rmse(epochs_only), abs=0.01)
+    assert rmse(held) < 0.3
+
+
 def _winding_drive(t: np.ndarray, speed_mps: np.ndarray, yaw_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(true poses (N, 3), body-frame increments (N-1, 3))`` of a drive at 10 Hz with the given
     speed and heading profiles."""

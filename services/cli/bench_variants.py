@@ -1,0 +1,71 @@
+"""`csr bench-variants [--set variants] [--variants a,b] [--out bench-out] [--jobs 2] [--write BENCHMARKS.md]`:
+the pipeline on foreign fleets, contract-valid uploads our simulator never writes.
+
+Simulates (or reuses from ``--out``/scenarios) the set's fleets, rewrites each into every variant
+of ``csr_core.bench.variants`` (``--out``/variants), runs ``csr reconstruct`` on each and scores it
+against the fleet's truth; prints the section and, with ``--write``, rewrites the ``variants``
+section of the markdown file. Exit status 1 when a variant fails to run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from csr_core.bench.sets import SCENARIO_SETS
+    from csr_core.bench.variants import VARIANTS
+
+    p = sub.add_parser("bench-variants", help="the pipeline on contract-valid fleets unlike the simulator's")
+    p.add_argument("--set", dest="set_name", default="variants", choices=SCENARIO_SETS,
+                   help="the source fleets (default variants: urban and roundabout, 6 trips x 800 m)")
+    p.add_argument("--variants", default="", help=f"comma-separated subset of: {', '.join(VARIANTS)} (default all)")
+    p.add_argument("--out", default="bench-out", help="work folder: scenarios cache and variants/")
+    p.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes; default 2)")
+    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the variants section of this file")
+    p.add_argument("--figures", default="docs/figures", help="where the PNG figure goes")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
+    from csr_core.bench.sets import scenario_set
+    from csr_core.bench.tables import write_section
+    from csr_core.bench.variants import SECTION, plot_variants, render_section, run_variants_bench
+
+    t0 = time.perf_counter()
+    out_root = Path(args.out)
+
+    def progress(msg: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr)
+
+    fingerprint = simulator_fingerprint()
+    sources = {}
+    for spec in scenario_set(args.set_name):
+        progress(f"scenario {spec.name}")
+        sources[spec.name] = ensure_scenario(spec, out_root / "scenarios", fingerprint)
+    names = [n.strip() for n in args.variants.split(",") if n.strip()] or None
+    try:
+        rows = run_variants_bench(sources, out_root / "variants", names, jobs=args.jobs, progress=progress)
+    except ValueError as exc:
+        print(f"csr bench-variants: {exc}", file=sys.stderr)
+        return 2
+    import orjson
+
+    (out_root / "variants" / "results.json").write_bytes(orjson.dumps(rows, option=orjson.OPT_INDENT_2))
+    regenerate = "csr bench-variants --write BENCHMARKS.md" + ("" if args.set_name == "variants" else f" --set {args.set_name}")
+    figure = plot_variants(rows, Path(args.figures) / "bench_variants.png")
+    doc_dir = Path(args.write).parent if args.write else Path(".")
+    section = render_section(rows, time.perf_counter() - t0, regenerate, figure, doc_dir)
+    print(section)
+    if args.write:
+        write_section(Path(args.write), section, SECTION)
+        print(f"csr bench-variants: wrote the {SECTION} section of {args.write}", file=sys.stderr)
+    failed = [f"{r['base']} {r['variant']}" for r in rows if not r["ok"]]
+    if failed:
+        print(f"csr bench-variants: failed to run: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
