@@ -1,10 +1,11 @@
 """Foreign fleets: contract-valid uploads that our simulator does not write (``csr bench-variants``).
 
 Outside evaluators run ``csr reconstruct`` on scenario folders from their own simulators and
-logs (contract section 5). What the contract allows, ours never produces: no ``std_m``, no
-course heading, fixes repeated between receiver epochs, lower frame rates, an odometry frame
-that does not start at the origin, times that do not start at zero, a region far from central
-Europe, coarse polylines, detector scores and tracker ids, no ``sensor_setup``. Each variant
+logs (contract section 5). What the contract allows, ours never produces: no ``std_m`` or one
+off by a factor, no course heading, fixes repeated between receiver epochs, lower frame rates, an
+odometry frame that does not start at the origin, times that do not start at zero, a region far
+from central Europe, coarse polylines, detector scores and tracker ids, no ``sensor_setup``, a
+perception stack without some element types, a GNSS antenna away from the vehicle frame. Each variant
 here rewrites a simulated scenario folder into such a fleet (uploads, truth poses and truth map
 kept consistent), so that the whole command can be run on it and scored against the same truth
 as the original.
@@ -28,9 +29,6 @@ import numpy as np
 
 from csr_core.geo import LocalFrame
 from csr_core.scenario import read_scenario_meta
-
-#: the GNSS fields of a frame that a variant may drop
-_GNSS_OPTIONAL = ("std_m", "heading_deg")
 
 
 @dataclass(frozen=True)
@@ -205,11 +203,13 @@ def _move_lonlat(lonlat_deg: np.ndarray, src: LocalFrame, dst: LocalFrame) -> np
 
 
 def _move_geometry(coords, src: LocalFrame, dst: LocalFrame):
+    """GeoJSON coordinates (a position, a line, or nested rings) moved as :func:`_move_lonlat`."""
     a = np.asarray(coords, float)
     if a.ndim == 1:
         return [float(v) for v in _move_lonlat(a[None, :2], src, dst)[0]]
-    return [_move_geometry(c, src, dst) for c in coords] if a.ndim > 2 else \
-        _move_lonlat(a[:, :2], src, dst).tolist()
+    if a.ndim == 2:
+        return _move_lonlat(a[:, :2], src, dst).tolist()
+    return [_move_geometry(c, src, dst) for c in coords]
 
 
 def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> Path:
@@ -231,6 +231,7 @@ def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> P
     rng = np.random.default_rng(seed)
     for path in sorted((source / "trips").glob("*.json.gz")):
         doc = json.loads(gzip.decompress(path.read_bytes()))
+        first_t = float(doc["frames"][0]["t"])
         doc, keep = variant.rewrite_trip(doc, rng)
         key = path.name.removesuffix(".json.gz")
         if variant.antenna_forward_left_m is not None:
@@ -241,7 +242,7 @@ def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> P
                 f["gnss"]["lon"], f["gnss"]["lat"] = round(float(lon), 9), round(float(lat), 9)
         (out / "trips" / path.name).write_bytes(gzip.compress(json.dumps(doc).encode()))
         _write_truth_poses(source / "truth" / "poses" / f"{key}.csv", out / "truth" / "poses" / f"{key}.csv",
-                           keep, src, dst, t_shift=doc["frames"][0]["t"] - _first_t(path))
+                           keep, src, dst, t_shift=doc["frames"][0]["t"] - first_t)
     truth_map = json.loads((source / "truth" / "map.geojson").read_text())
     if dst is not src:
         for feat in truth_map["features"]:
@@ -261,11 +262,6 @@ def _move_to_antenna(doc: dict, truth_csv: Path, keep: np.ndarray | None, frame:
     moved = frame.to_lonlat(frame.to_local(fixes) + forward_left_m[0] * forward + forward_left_m[1] * left)
     for f, (lon, lat) in zip(doc["frames"], moved, strict=True):
         f["gnss"]["lon"], f["gnss"]["lat"] = round(float(lon), 9), round(float(lat), 9)
-
-
-def _first_t(upload_path: Path) -> float:
-    doc = json.loads(gzip.decompress(upload_path.read_bytes()))
-    return float(doc["frames"][0]["t"])
 
 
 def _write_truth_poses(src_csv: Path, dst_csv: Path, keep: np.ndarray | None, src: LocalFrame, dst: LocalFrame,
