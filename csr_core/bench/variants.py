@@ -2,7 +2,7 @@
 
 Outside evaluators run ``csr reconstruct`` on scenario folders from their own simulators and
 logs (contract section 5). What the contract allows, ours never produces: no ``std_m`` or one
-off by a factor, no course heading, fixes repeated between receiver epochs, lower frame rates, an
+off by a factor, no course heading, fixes repeated between receiver epochs, lower or lossy frame rates, an
 odometry frame that does not start at the origin, times that do not start at zero, a region far
 from central Europe, coarse polylines, detector scores and tracker ids, no ``sensor_setup``, a
 perception stack without some element types, a GNSS antenna away from the vehicle frame. Each variant
@@ -65,6 +65,18 @@ def _every_nth_frame(n: int) -> Callable[[dict, np.random.Generator], tuple[dict
         return doc, keep
 
     return rewrite
+
+
+def _frames_dropped(doc: dict, rng: np.random.Generator) -> tuple[dict, np.ndarray]:
+    """A logger that loses frames: a random tenth of them, and three gaps of 2 s."""
+    n = len(doc["frames"])
+    keep = rng.random(n) >= 0.1
+    for start in rng.integers(1, max(n - 20, 2), size=3):
+        keep[start : start + 20] = False
+    keep[[0, -1]] = True
+    idx = np.flatnonzero(keep)
+    doc["frames"] = [doc["frames"][k] for k in idx]
+    return doc, idx
 
 
 def _gnss_held(period_s: float) -> Callable[[dict, np.random.Generator], tuple[dict, None]]:
@@ -175,6 +187,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("gnss_1hz_held", "the receiver at 1 Hz, its fix repeated on the 9 frames between", _gnss_held(1.0)),
     Variant("frames_5hz", "every second frame (5 Hz)", _every_nth_frame(2)),
     Variant("frames_2hz", "every fifth frame (2 Hz)", _every_nth_frame(5)),
+    Variant("frames_dropped", "a random tenth of the frames lost, and three 2 s gaps", _frames_dropped),
     Variant("odom_elsewhere", "odometry frame rotated and moved kilometres", _odometry_elsewhere),
     Variant("odom_yaw_continuous", "odometry yaw not wrapped into [-pi, pi)", _odometry_yaw_continuous),
     Variant("t_offset", "frame times start 100-1000 s after started_at", _time_offset),
