@@ -247,15 +247,15 @@ def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> P
         first_t = float(doc["frames"][0]["t"])
         doc, keep = variant.rewrite_trip(doc, rng)
         key = path.name.removesuffix(".json.gz")
+        truth = np.loadtxt(source / "truth" / "poses" / f"{key}.csv", delimiter=",", skiprows=1, ndmin=2)
+        truth = truth if keep is None else truth[keep]  # t, lat, lon, heading_deg per uploaded frame
         if variant.antenna_forward_left_m is not None:
-            _move_to_antenna(doc, source / "truth" / "poses" / f"{key}.csv", keep, src, variant.antenna_forward_left_m)
+            _move_to_antenna(doc, truth[:, 3], src, variant.antenna_forward_left_m)
         if dst is not src:
-            fixes = np.array([[f["gnss"]["lon"], f["gnss"]["lat"]] for f in doc["frames"]])
-            for f, (lon, lat) in zip(doc["frames"], _move_lonlat(fixes, src, dst), strict=True):
-                f["gnss"]["lon"], f["gnss"]["lat"] = round(float(lon), 9), round(float(lat), 9)
+            _set_fixes(doc, _move_lonlat(_fixes(doc), src, dst))
         (out / "trips" / path.name).write_bytes(gzip.compress(json.dumps(doc).encode()))
-        _write_truth_poses(source / "truth" / "poses" / f"{key}.csv", out / "truth" / "poses" / f"{key}.csv",
-                           keep, src, dst, t_shift=doc["frames"][0]["t"] - first_t)
+        _write_truth_poses(truth, out / "truth" / "poses" / f"{key}.csv", src, dst,
+                           t_shift=doc["frames"][0]["t"] - first_t)
     truth_map = json.loads((source / "truth" / "map.geojson").read_text())
     if dst is not src:
         for feat in truth_map["features"]:
@@ -264,24 +264,30 @@ def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> P
     return out
 
 
-def _move_to_antenna(doc: dict, truth_csv: Path, keep: np.ndarray | None, frame: LocalFrame,
-                     forward_left_m: tuple[float, float]) -> None:
-    """Every fix moved by the antenna's offset, turned by the frame's true heading."""
-    rows = np.loadtxt(truth_csv, delimiter=",", skiprows=1, ndmin=2)
-    heading = np.radians(rows[keep if keep is not None else slice(None), 3])  # clockwise from north
-    forward = np.column_stack([np.sin(heading), np.cos(heading)])
-    left = np.column_stack([-forward[:, 1], forward[:, 0]])
-    fixes = np.array([[f["gnss"]["lon"], f["gnss"]["lat"]] for f in doc["frames"]])
-    moved = frame.to_lonlat(frame.to_local(fixes) + forward_left_m[0] * forward + forward_left_m[1] * left)
-    for f, (lon, lat) in zip(doc["frames"], moved, strict=True):
+def _fixes(doc: dict) -> np.ndarray:
+    """``(N, 2)`` every frame's fix, lon and lat (meaningless where the status is none)."""
+    return np.array([[f["gnss"]["lon"], f["gnss"]["lat"]] for f in doc["frames"]])
+
+
+def _set_fixes(doc: dict, lonlat_deg: np.ndarray) -> None:
+    for f, (lon, lat) in zip(doc["frames"], lonlat_deg, strict=True):
         f["gnss"]["lon"], f["gnss"]["lat"] = round(float(lon), 9), round(float(lat), 9)
 
 
-def _write_truth_poses(src_csv: Path, dst_csv: Path, keep: np.ndarray | None, src: LocalFrame, dst: LocalFrame,
-                       t_shift: float) -> None:
-    rows = np.loadtxt(src_csv, delimiter=",", skiprows=1, ndmin=2)  # t, lat, lon, heading_deg
-    if keep is not None:
-        rows = rows[keep]
+def _move_to_antenna(doc: dict, heading_deg: np.ndarray, frame: LocalFrame,
+                     forward_left_m: tuple[float, float]) -> None:
+    """Every fix moved by the antenna's offset, turned by the frame's true heading (degrees
+    clockwise from north, one per frame of ``doc``)."""
+    heading = np.radians(heading_deg)
+    forward = np.column_stack([np.sin(heading), np.cos(heading)])
+    left = np.column_stack([-forward[:, 1], forward[:, 0]])
+    offset = forward_left_m[0] * forward + forward_left_m[1] * left
+    _set_fixes(doc, frame.to_lonlat(frame.to_local(_fixes(doc)) + offset))
+
+
+def _write_truth_poses(rows: np.ndarray, dst_csv: Path, src: LocalFrame, dst: LocalFrame, t_shift: float) -> None:
+    """The truth rows (t, lat, lon, heading_deg) of the kept frames, shifted in time and moved."""
+    rows = rows.copy()
     rows[:, 0] += t_shift
     if dst is not src:
         moved = _move_lonlat(rows[:, [2, 1]], src, dst)
