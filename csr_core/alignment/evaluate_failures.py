@@ -16,6 +16,7 @@ true heading (an along-track offset is what an unobservable trip shows).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import pickle
 import sys
@@ -27,6 +28,8 @@ import numpy as np
 
 from csr_core.metrics import apply_se2, umeyama_se2
 from csr_core.scenario import list_trip_files, load_trip, read_poses_dir, read_scenario_meta
+from csr_core.single_trip.params import DEFAULT as SINGLE_TRIP_DEFAULT
+from csr_core.single_trip.params import SingleTripParams
 
 #: the hard-profile rule (issue 5): a trip with poses must be under this ATE
 ATE_BOUND_M = 0.5
@@ -100,17 +103,21 @@ def evaluate_output(scenario: Path, out: Path) -> list[TripScore]:
     )
 
 
-def single_trip_results(scenario: Path, cache: Path | None):
-    """``(world frame, [TripReconstruction])`` as ``csr reconstruct`` computes them, cached."""
+def single_trip_results(scenario: Path, cache: Path | None, params: SingleTripParams = SINGLE_TRIP_DEFAULT):
+    """``(world frame, [TripReconstruction])`` as ``csr reconstruct`` computes them (with
+    ``params``), cached: one file per scenario and, for other than the default params, per params."""
     from csr_core.pipeline import world_frame
     from csr_core.single_trip import reconstruct_trip
 
-    path = cache / (scenario.resolve().name + ".pkl") if cache else None
+    name = scenario.resolve().name
+    if params != SINGLE_TRIP_DEFAULT:  # the dataclass's repr names every field's value
+        name += "-" + hashlib.sha1(repr(params).encode()).hexdigest()[:12]
+    path = cache / (name + ".pkl") if cache else None
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
     trips = [load_trip(f) for f in list_trip_files(scenario)]
     frame = world_frame(trips)
-    result = (frame, [reconstruct_trip(t, frame) for t in trips])
+    result = (frame, [reconstruct_trip(t, frame, params) for t in trips])
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(result))

@@ -23,7 +23,9 @@ The fixes and the odometry are those the white-noise stages kept and calibrated
 
 Off by default (``GNSS_BIAS_STATE``): the single trip gains, but the alignment's GNSS priors
 (e^g), which are these poses, were modelled for the white stages' error shape and lose with it
-(docs/single-trip.md, "Session 23").
+(docs/single-trip.md, "Session 23"; "Session 27": the loss is in the chain between a trip's
+sub-maps, and ``python -m csr_core.alignment.compare_single_trip`` measures a change like this one
+through the alignment).
 """
 
 from __future__ import annotations
