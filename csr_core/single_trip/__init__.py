@@ -15,6 +15,7 @@ import itertools
 import logging
 import time
 from collections import Counter
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -262,9 +263,16 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         pts = pieces.points_w[of_type].reshape(-1, 2)
         type_points[t] = (cKDTree(pts) if len(pts) else None, np.repeat(pieces.frame[of_type], k_pts))
     for track in tracks:
-        if len(track.frames) < params.TRACK_MIN_FRAMES:
+        track_frames = pieces.frame[track.pieces]
+        cut_short = len(track.frames) < params.TRACK_MIN_FRAMES
+        if cut_short and not (len(track.frames) >= params.TRACK_MIN_FRAMES_AT_TRIP_END
+                              and (track_frames.min() == 0 or track_frames.max() == len(frames) - 1)):
             n_dropped += 1
             continue
+        # a track cut short by the trip's start or end: its splice needs no more frames than it has,
+        # and it must have been seen in every tracked frame that had it in range (no false positive is)
+        track_params = replace(params, TRACK_MIN_FRAMES=len(track.frames)) if cut_short else params
+        min_visibility = 1.0 if cut_short else params.TRACK_MIN_VISIBILITY_RATIO
         upload_frames = frames[pieces.frame[track.pieces]]
         detections = [trip.elements[f][j]  # (plain ints index the tuples faster)
                       for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)]
@@ -282,7 +290,6 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
                                  s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        track_frames = pieces.frame[track.pieces]
         if track.type.is_polygon:
             whole = np.logical_and.reduceat(_inside(pts_v, box, edge_margin), offsets[:-1])
             obs_w = np.split(pts_w, offsets[1:-1])
@@ -298,14 +305,14 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
             guide = poses[t0:t1 + 1, :2]
             mixed_above = params.INSTANCE_MAX_SIGMA_RATIO * params.NOISE_PRIOR_LATERAL_M
-            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, params, original,
+            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, track_params, original,
                                      follow_bends=track.type == ElementType.LANE_DIVIDER):
                 lat = piece.lateral_residuals_m
                 parts = [piece]
                 if len(lat) >= params.NOISE_MIN_SAMPLES and robust_sigma(lat) > mixed_above:
                     # a mixture of elements (a junction): split its observations apart, splice each
                     parts = _resplice_mixture(piece.observations, pieces.points_w[track.pieces], track_frames,
-                                              pts_w, obs_id, offsets, end_free, original, params)
+                                              pts_w, obs_id, offsets, end_free, original, track_params)
                 for part in parts:
                     kept = runs_along_observations(part.points_xy_world, pts_w, obs_id, part.observations,
                                                    params.TRACK_MAX_ANGLE_RAD, params.TRACK_GATE_M,
@@ -327,7 +334,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         for points_w, lat, alo, seen in spliced:
             step = points_w[1:] - points_w[:-1]
             length = float(np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1]).sum())  # as np.linalg.norm
-            if len(seen) < params.TRACK_MIN_FRAMES or (not track.type.is_polygon
+            if len(seen) < track_params.TRACK_MIN_FRAMES or (not track.type.is_polygon
                                                        and length < params.min_length_m(track.type)):
                 log.debug("dropped %s (%.0f m from %s): %d frames", track.type.value, length,
                           np.round(points_w[0], 1), len(seen))
@@ -335,8 +342,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 continue
             ratio = _visibility_ratio(points_w, seen, frames, poses, box, params.BEV_RANGE_MARGIN_M,
                                       *type_points[track.type], params.TRACK_GATE_M,
-                                      enough=params.TRACK_MIN_VISIBILITY_RATIO)
-            if ratio < params.TRACK_MIN_VISIBILITY_RATIO:
+                                      enough=min_visibility)
+            if ratio < min_visibility:
                 log.debug("dropped %s (%.0f m from %s): visibility %.2f", track.type.value, length,
                           np.round(points_w[0], 1), ratio)
                 n_dropped += 1

@@ -97,6 +97,9 @@ class SingleTripParams:
 
     # --- ghosts and false positives -----------------------------------------------------------------
     TRACK_MIN_FRAMES: int = 4  # tracked frames supporting an instance
+    # a track holding the trip's first or last tracked frame was cut short by the trip, not by its
+    # detector: this many frames hold it if it was seen in every tracked frame that had it in range
+    TRACK_MIN_FRAMES_AT_TRIP_END: int = 2
     TRACK_MIN_VISIBILITY_RATIO: float = 0.35  # seen / in-range tracked frames
     BEV_RANGE_MARGIN_M: float = 2.0  # an instance point counts as in range this far inside the BEV box
     INSTANCE_MAX_SIGMA_RATIO: float = 2.0  # own lateral residual sigma / its type's, above: a mixture

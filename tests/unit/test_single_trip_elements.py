@@ -1,11 +1,14 @@
 """Single-trip element tracking, splicing, ghost rejection and noise: known answers."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import shapely
 
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.noise import robust_sigma
+from csr_core.single_trip.params import DEFAULT
 from csr_core.single_trip.synthetic import SynthLine, SynthSpec, line_points_world, make_trip
 from csr_core.single_trip.tracking import pair_distance, resample_flat
 from csr_core.types import DividerStyle, ElementType
@@ -55,6 +58,38 @@ def test_noiseless_trip_reproduces_the_lines(curvature_1pm, tol_p95_m, tol_max_m
 def test_ghost_seen_for_a_few_frames_is_dropped():
     # the solid divider at 5.25 m is seen shifted by a lane width for 6 frames
     spec = SynthSpec(length_m=300.0, element_sigma_m=0.05, ghosts=((120, 125, 2, 3.5), (200, 204, 0, -3.5)), seed=5)
+    trip, _, frame = make_trip(spec)
+    rec = reconstruct_trip(trip, frame)
+    assert len(rec.instances) == len(spec.lines)
+    truth = np.vstack([line_points_world(spec, ln, 0.1) for ln in spec.lines])
+    for inst in rec.instances:
+        assert np.percentile(_dist_to_line(inst.points_xy_world, truth), 99) < 0.15
+
+
+def test_an_element_seen_only_before_the_trip_left_it_behind_is_kept():
+    # a boundary ending at the trip's start: in the BEV range (15 m behind) for the first 15 m only,
+    # three tracked frames (5 m apart), fewer than TRACK_MIN_FRAMES; the trip, not its detector, cut it
+    behind = SynthLine(ElementType.ROAD_BOUNDARY, -5.4, s_range_m=(-40.0, 0.0))
+    spec = SynthSpec(length_m=200.0, element_sigma_m=0.03, seed=7, lines=(*SynthSpec().lines, behind))
+    trip, _, frame = make_trip(spec)
+    truth = line_points_world(spec, behind, 0.1)
+    seen_in = [i for i, f in enumerate(trip.elements) if any(
+        e.type == ElementType.ROAD_BOUNDARY and e.points_xy_vehicle[:, 1].mean() < -4.0 for e in f)]
+    assert seen_in and max(seen_in) < 15  # the first 1.5 s of a 20 s trip
+    near = [i for i in _instances(reconstruct_trip(trip, frame), ElementType.ROAD_BOUNDARY)
+            if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5]
+    assert len(near) == 1
+    assert np.percentile(_dist_to_line(near[0].points_xy_world, truth), 95) < 0.15
+    # the rule it passes: without it (as many frames as anywhere else) the boundary is dropped
+    strict = replace(DEFAULT, TRACK_MIN_FRAMES_AT_TRIP_END=DEFAULT.TRACK_MIN_FRAMES)
+    assert not [i for i in _instances(reconstruct_trip(trip, frame, strict), ElementType.ROAD_BOUNDARY)
+                if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5]
+
+
+def test_a_ghost_in_the_trip_s_first_frames_is_still_dropped():
+    # the right boundary seen a lane further out in the first 13 frames (three tracked frames, as
+    # above); the place stays in range afterwards and nothing is seen there
+    spec = SynthSpec(length_m=200.0, element_sigma_m=0.03, seed=7, ghosts=((0, 12, 0, -3.5),))
     trip, _, frame = make_trip(spec)
     rec = reconstruct_trip(trip, frame)
     assert len(rec.instances) == len(spec.lines)
