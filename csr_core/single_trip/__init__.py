@@ -265,15 +265,15 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     for track in tracks:
         track_frames = pieces.frame[track.pieces]
         cut_short = len(track.frames) < params.TRACK_MIN_FRAMES
-        if cut_short and not (len(track.frames) >= params.TRACK_MIN_FRAMES_AT_TRIP_END
-                              and (track_frames.min() == 0 or track_frames.max() == len(frames) - 1)):
+        at_trip_end = track_frames.min() == 0 or track_frames.max() == len(frames) - 1
+        if cut_short and not (at_trip_end and len(track.frames) >= params.TRACK_MIN_FRAMES_AT_TRIP_END):
             n_dropped += 1
             continue
         # a track cut short by the trip's start or end: its splice needs no more frames than it has,
-        # and it must have been seen in every tracked frame that had it in range (no false positive is)
+        # and it must have been seen in every tracked frame that had it in range (a false positive is not)
         track_params = replace(params, TRACK_MIN_FRAMES=len(track.frames)) if cut_short else params
         min_visibility = 1.0 if cut_short else params.TRACK_MIN_VISIBILITY_RATIO
-        upload_frames = frames[pieces.frame[track.pieces]]
+        upload_frames = frames[track_frames]
         detections = [trip.elements[f][j]  # (plain ints index the tuples faster)
                       for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)]
         raw_v = [e.points_xy_vehicle for e in detections]
