@@ -30,9 +30,10 @@ import numpy as np
 
 from csr_core.alignment import align_trips
 from csr_core.alignment.evaluate_failures import single_trip_results
-from csr_core.alignment.evaluate_floor import ate_rmse_m, replace_fields, true_poses
+from csr_core.alignment.evaluate_floor import ate_rmse_m, true_poses
 from csr_core.alignment.params import DEFAULT as ALIGNMENT_DEFAULT
 from csr_core.alignment.params import AlignmentParams
+from csr_core.param_overrides import replace_fields
 from csr_core.single_trip.params import DEFAULT as SINGLE_TRIP_DEFAULT
 from csr_core.single_trip.params import SingleTripParams
 

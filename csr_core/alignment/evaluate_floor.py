@@ -37,9 +37,8 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 
@@ -48,13 +47,11 @@ from csr_core import se2
 from csr_core.alignment.evaluate_failures import single_trip_results
 from csr_core.alignment.params import DEFAULT, AlignmentParams
 from csr_core.metrics import apply_se2, umeyama_se2
+from csr_core.param_overrides import replace_fields
 from csr_core.scenario import read_poses_dir
 from csr_core.se2 import heading_deg_to_yaw_rad
-from csr_core.single_trip.params import SingleTripParams
 
 OFF_M = 0.5  # a registration further than this from the truth counts as off
-
-P = TypeVar("P", AlignmentParams, SingleTripParams)
 
 
 def true_poses(scenario: Path, frame, keys: Sequence[str]) -> dict[str, np.ndarray]:
@@ -226,20 +223,6 @@ def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams 
             "ate_rmse_m": {"smoothed": ate_rmse_m(smoothed, truth), "aligned": aligned_ate,
                            "true_registrations": ate_rmse_m(floor.poses_xyyaw_world, truth)},
             "error_by_stage": error_by_stage(stages)}
-
-
-def replace_fields(default: P, assignments: Sequence[str]) -> P:
-    """``default`` (a params dataclass) with the fields of ``["name=value", ...]`` changed (values
-    read as the field's default's type)."""
-    defaults = {f.name: getattr(default, f.name) for f in fields(default)}
-    changes: dict = {}
-    for a in assignments:
-        name, sep, value = a.partition("=")
-        if not sep or name not in defaults:
-            raise ValueError(f"{a!r}: expected NAME=VALUE with NAME a field of {type(default).__name__}")
-        kind = type(defaults[name])
-        changes[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
-    return replace(default, **changes)
 
 
 def parse_params(assignments: Sequence[str]) -> AlignmentParams:

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.geo import LocalFrame
+from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
@@ -244,6 +245,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     box = bev_range_m(trip)
     frames = select_tracking_frames(poses, trip.timestamps_s, params.TRACK_STEP_M, params.TRACK_STEP_S)
     pieces, tracks = track_elements(frames, poses, travel, trip.elements, params)
+    if params.DASH_CHAINING:
+        tracks = chain_dash_tracks(pieces, tracks, trip.elements, frames, params)
     t_track = time.perf_counter()
     # 5. splicing; short-lived tracks (false positives) and ghosts dropped
     instances: list[TripInstance] = []

@@ -44,6 +44,7 @@ import numpy as np
 
 from csr_core import metrics, se2
 from csr_core.geo import LocalFrame
+from csr_core.param_overrides import replace_fields
 from csr_core.scenario import (
     geo_features_to_local,
     list_trip_files,
@@ -267,8 +268,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gnss-bias-state", action=argparse.BooleanOptionalAction, default=DEFAULT.GNSS_BIAS_STATE,
                     help="the last pose solve with the GNSS error as a Gauss-Markov state (gnss_bias.py; "
                          f"default {DEFAULT.GNSS_BIAS_STATE})")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="a SingleTripParams field to change (repeatable), e.g. DASH_CHAINING=false")
     args = ap.parse_args(argv)
-    params = replace(DEFAULT, GNSS_BIAS_STATE=args.gnss_bias_state)
+    try:
+        params = replace_fields(replace(DEFAULT, GNSS_BIAS_STATE=args.gnss_bias_state), args.param)
+    except ValueError as exc:
+        ap.error(str(exc))
     cols = ("scenario", "trips", "km", "ate_raw_gnss_m", "ate_smoothed_m", "ate_trip_aligned_m", "rpe_raw_gnss_m",
             "rpe_smoothed_m", "jump_frames", "jump_max_smoothed_err_m", "rigid", "local", "seconds_per_km")
     if not args.json:

@@ -45,3 +45,12 @@ def test_noise_estimates_are_tabled_from_the_true_pose_runs():
                _result("rural", 2, 0.99, true_poses=True)]
     noise = render_section(results, None, None, 60.0).split("### Noise estimates")[1].split("###")[0]
     assert "| rural | 0.100 / 0.120 |  |  |" in noise
+
+
+def test_evaluate_param_names_a_field_or_is_refused(capsys):
+    from csr_core.single_trip import evaluate
+
+    with pytest.raises(SystemExit) as exc:
+        evaluate.main(["no-such-folder", "--param", "DASH_CHAINNG=false"])
+    assert exc.value.code == 2
+    assert "DASH_CHAINNG=false" in capsys.readouterr().err
