@@ -231,14 +231,14 @@ def dash_units(pieces: Pieces, track: Track, params: SingleTripParams) -> list[n
 
 
 def _attach_leftovers(pieces: Pieces, units: list[np.ndarray], source: list[int], chorded: set[int],
-                      chains: DisjointSet, params: SingleTripParams, only: set[int]) -> None:
-    """A unit of ``only`` that takes no link (seen in too few frames, or no line or circle fits
-    it: a dash seen partly, a stretch of a long line) rejoins the unit of its own track that its
-    points lie on (mean distance within ``TRACK_MERGE_GATE_M``): the tracker's association, kept."""
+                      chains: DisjointSet, params: SingleTripParams) -> None:
+    """A unit without a chord (no line or circle fits it: a dash seen partly, a stretch of a long
+    line) rejoins the unit of its own track that its points lie on (mean distance within
+    ``TRACK_MERGE_GATE_M``): the tracker's association, kept."""
     by_source: dict[int, list[int]] = {}
-    for u in sorted(chorded & only):
+    for u in sorted(chorded):
         by_source.setdefault(source[u], []).append(u)
-    for u in sorted(only - chorded):
+    for u in sorted(set(range(len(units))) - chorded):
         if source[u] not in by_source:
             continue
         targets = by_source[source[u]]
@@ -321,7 +321,7 @@ def chain_dash_tracks(pieces: Pieces, tracks: list[Track], elements, frames: np.
     chords = _chords(pieces, units, params)
     chains = DisjointSet(range(len(units)))
     _link(chords, source, _weak(pieces, units, params), chains, params, max_gap_m)
-    _attach_leftovers(pieces, units, source, {c.track for c in chords}, chains, params, set(range(len(units))))
+    _attach_leftovers(pieces, units, source, {c.track for c in chords}, chains, params)
     for group in sorted(chains.subsets(), key=min):
         out.append(_track_of(pieces, ElementType.LANE_DIVIDER, np.concatenate([units[u] for u in sorted(group)])))
     return out
