@@ -94,8 +94,9 @@ class SingleTripParams:
     TRACK_MAX_ANGLE_RAD: float = math.radians(20.0)  # pieces of one element are nearly parallel
     TRACK_MAX_SKIP_FRAMES: int = 2  # links reach this many tracked frames ahead (missed detections)
     TRACK_MERGE_GATE_M: float = 0.6  # an unassigned piece collinear with a matched track joins it
-    # short straight tracks of a dashed divider chained where one circle carries them (a junction's
-    # curved guide line, tracked dash by dash: dash_chaining.py)
+    # dashed-divider tracks re-cut into the lines their dashes form: a track across the path that no
+    # line or circle carries split into its dashes, and dashes and tracks chained end to end where
+    # one circle carries them (a junction's guide line tracked dash by dash: dash_chaining.py)
     DASH_CHAINING: bool = True
 
     # --- ghosts and false positives -----------------------------------------------------------------
