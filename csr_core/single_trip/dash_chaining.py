@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
-from csr_core.single_trip.splicing import _BEND_MIN_RADIUS_M
+from csr_core.single_trip.splicing import _BEND_MIN_RADIUS_M, kasa_circle
 from csr_core.single_trip.tracking import Pieces, Track, pair_distance
 from csr_core.types import DividerStyle, ElementType
 
@@ -62,17 +62,6 @@ class DashChord:
     out_dirs: np.ndarray  # (2, 2) unit, out of the track at each end
     behind_m: float
     angle_sigma_rad: float  # of each end direction
-
-
-def _kasa_circle(pts: np.ndarray) -> tuple[np.ndarray, float]:
-    """Algebraic least-squares circle through ``pts (P, 2)``: centre and radius (radius inf when
-    the points are collinear)."""
-    x, y = pts[:, 0], pts[:, 1]
-    a = np.column_stack([x, y, np.ones(len(pts))])
-    sol, *_ = np.linalg.lstsq(a, x * x + y * y, rcond=None)
-    centre = sol[:2] / 2.0
-    r2 = sol[2] + centre @ centre
-    return centre, float(np.sqrt(r2)) if r2 > 0 else float("inf")
 
 
 def dash_chord(track_index: int, points_w: np.ndarray, params: SingleTripParams) -> DashChord | None:
@@ -105,9 +94,10 @@ def dash_chord(track_index: int, points_w: np.ndarray, params: SingleTripParams)
         sigma = max(float(np.std(dev)), float(np.median(prior))) / np.sqrt(ok.sum())
         ends = centre + np.outer([along.min(), along.max()], u)
         return DashChord(track_index, ends, np.stack([-u, u]), length / 2.0, sigma)
-    c, r = _kasa_circle(pts)
-    if not np.isfinite(r) or r < _BEND_MIN_RADIUS_M:
+    c, r2 = kasa_circle(pts)
+    if not np.isfinite(r2) or r2 < _BEND_MIN_RADIUS_M ** 2:
         return None
+    r = float(np.sqrt(r2))
     rel = pts - c
     if np.abs(np.hypot(rel[:, 0], rel[:, 1]) - r).max() > params.TRACK_MERGE_GATE_M:
         return None

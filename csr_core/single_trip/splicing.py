@@ -251,16 +251,22 @@ def _bend_continuation(tail_xy: np.ndarray, obs_xy: np.ndarray, beyond: np.ndarr
     if float(np.min(np.hypot(cand[:, 0] - end_xy[0], cand[:, 1] - end_xy[1]))) > max_gap_m:
         return beyond[:0]
     pts = np.vstack([tail_xy, cand])
-    mu = pts.mean(0)
-    q = pts - mu
-    # algebraic (Kasa) circle fit: x^2 + y^2 + D x + E y + F = 0, least squares
-    a = np.column_stack([q, np.ones(len(q))])
-    (d, e, f), *_ = np.linalg.lstsq(a, -(q * q).sum(1), rcond=None)
-    r2 = 0.25 * (d * d + e * e) - f
+    centre, r2 = kasa_circle(pts)
     if not np.isfinite(r2) or r2 <= _BEND_MIN_RADIUS_M ** 2:
         return beyond[:0]
-    residual = np.abs(np.hypot(q[:, 0] + 0.5 * d, q[:, 1] + 0.5 * e) - math.sqrt(r2))
+    residual = np.abs(np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1]) - math.sqrt(r2))
     return beyond if float(residual.max()) <= _BEND_SHAPE_TOL_M else beyond[:0]
+
+
+def kasa_circle(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Algebraic (Kasa) least-squares circle through ``pts (P, 2)``, fitted about their mean
+    (x^2 + y^2 + D x + E y + F = 0): its centre and squared radius (not positive, or not finite,
+    when the points are collinear)."""
+    mu = pts.mean(0)
+    q = pts - mu
+    a = np.column_stack([q, np.ones(len(q))])
+    (d, e, f), *_ = np.linalg.lstsq(a, -(q * q).sum(1), rcond=None)
+    return mu - 0.5 * np.array([d, e]), float(0.25 * (d * d + e * e) - f)
 
 
 def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
