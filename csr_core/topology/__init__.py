@@ -5,7 +5,8 @@
 
 The recipe, one module per step: per element type, associate the aligned instances of all
 trips (``association``), fuse each group robustly (``fusion``), give every instance a stable id
-(``identity``), link the lanes (``lane_graph``) and validate instances and tiles
+(``identity``), derive centrelines where none was perceived (``derived_centerlines``), link the
+lanes (``lane_graph``) and validate instances and tiles
 (``validation``). ``update_topology`` (``incremental``) refits only what new trips touch.
 
 Input: each trip's ``TripInstance``s already in the world frame of the aligned poses, and each
@@ -25,6 +26,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from csr_core.topology.association import Member
+from csr_core.topology.derived_centerlines import with_derived_centerlines
 from csr_core.topology.incremental import update_topology
 from csr_core.topology.instances import (
     TopologyResult,
@@ -82,8 +84,11 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     features = assign_ids(features, (*previous.features, *previous.suppressed) if previous is not None else (),
                           params)
     members = {f.feature_id: m for f, m in zip(features, member_lists, strict=True)}
+    # 5. centrelines derived from dividers and boundaries where none was perceived
+    features = with_derived_centerlines(features, paths, params, trip_times,
+                                        (*previous.features, *previous.suppressed) if previous is not None else ())
     t2 = time.perf_counter()
-    # 5.-6. lane graph, validation
+    # 6.-7. lane graph, validation
     result = finish(features, members, trip_probe_points(instances_per_trip), params, match_pairs,
                     {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected, paths)
     log.info("topology: %d trips, %d features, %d flags in %.2f s", len(instances_per_trip),

@@ -211,13 +211,7 @@ def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: flo
     if len(backbone) >= 5:
         # smoothed with point-reflected ends (a straight line stays straight and keeps its
         # length), then prolonged straight so that the members' ends project inside it
-        sigma = 2.0 / spacing
-        pad = int(np.ceil(3 * sigma))
-        head = 2 * backbone[0] - backbone[1:pad + 1][::-1]
-        tail = 2 * backbone[-1] - backbone[-pad - 1:-1][::-1]
-        padded = np.vstack([head, backbone, tail])
-        sm = gaussian_filter1d(padded, sigma, axis=0, mode="nearest")  # x and y, column by column
-        backbone = resample_polyline(sm[len(head):len(head) + len(backbone)], spacing)
+        backbone = resample_polyline(smooth_point_reflected(backbone, 2.0 / spacing), spacing)
     return _extend_straight(backbone, 3.0, spacing)
 
 
@@ -230,6 +224,18 @@ def _project_members(lines: Sequence[np.ndarray], members: Sequence[int], frame:
     s, d = project_on_frame(np.concatenate([lines[k] for k in members]), frame)
     cuts = np.cumsum([len(lines[k]) for k in members])[:-1]
     return dict(zip(members, zip(np.split(s, cuts), np.split(d, cuts), strict=True), strict=True))
+
+
+def smooth_point_reflected(points: np.ndarray, sigma_samples: float) -> np.ndarray:
+    """Gaussian smoothing along a polyline (x and y, ``sigma_samples`` in samples) with its ends
+    point-reflected: a straight line stays straight, keeps its ends and its length, and a curve
+    is not pulled in at its ends."""
+    pad = int(np.ceil(3 * sigma_samples))
+    head = 2 * points[0] - points[1:pad + 1][::-1]
+    tail = 2 * points[-1] - points[-pad - 1:-1][::-1]
+    padded = np.vstack([head, points, tail])
+    smooth = gaussian_filter1d(padded, sigma_samples, axis=0, mode="nearest")  # x and y, column by column
+    return smooth[len(head):len(head) + len(points)]
 
 
 def _smooth_around(backbone: np.ndarray, start: int, count: int, spacing: float) -> np.ndarray:

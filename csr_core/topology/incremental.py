@@ -29,6 +29,7 @@ import numpy as np
 
 from csr_core.errors import ReconstructionError
 from csr_core.topology.association import MAP_MEMBER_KEY, Member, associate_lines, associate_polygons
+from csr_core.topology.derived_centerlines import is_derived, with_derived_centerlines
 from csr_core.topology.fusion import FusedInstance
 from csr_core.topology.instances import (
     TopologyResult,
@@ -61,7 +62,8 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     new_by_type, rejected = make_members(new_instances_per_trip, new_noise_per_trip, params)
     old_by_type: dict[ElementType, list[MapFeature]] = {t: [] for t in ElementType}
     for f in (*previous.features, *previous.suppressed):
-        old_by_type[f.type].append(f)
+        if not is_derived(f):  # derived again below from the updated dividers and boundaries
+            old_by_type[f.type].append(f)
     kept: list[MapFeature] = []
     refit: list[MapFeature] = []
     refit_members: list[tuple[Member, ...]] = []
@@ -115,7 +117,8 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     members = {f.feature_id: previous.members[f.feature_id] for f in kept if f.feature_id in previous.members}
     members.update({f.feature_id: m for f, m in zip(refit, refit_members, strict=True)})
     trip_points = {**previous.trip_points, **trip_probe_points(new_instances_per_trip)}
-    features = [_strip(f) for f in kept] + refit
+    features = with_derived_centerlines([_strip(f) for f in kept] + refit, trip_paths, params, times or None,
+                                        (*previous.features, *previous.suppressed))
     return finish(features, members, trip_points, params, match_pairs,
                   {"fuse": t1 - t0, "refit_features": float(len(refit))}, times,
                   (*previous.rejected_members, *rejected), trip_paths)

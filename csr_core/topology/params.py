@@ -67,6 +67,9 @@ class TopologyParams:
     CONNECT_M: float = 2.5  # lane end -> lane start within this is a successor link
     CONNECT_MAX_ANGLE_RAD: float = math.radians(45.0)
     LANE_MIN_LENGTH_M: float = 5.0  # shorter centreline pieces (fragments) are not lanes
+    # lanes without a perceived centreline get one derived from their dividers and boundaries
+    # (``derived_centerlines``: perception stacks with MapTR's classes report none)
+    DERIVE_CENTERLINES: bool = True
 
     # --- validation ---------------------------------------------------------------------------------
     TILE_SIZE_M: float = 200.0  # square tiles of the world plane (the service may use its own)
