@@ -200,9 +200,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
             antenna_forward_left_m=(1.5, 0.0),
             gap="no antenna lever arm is estimated: trips driving a road in opposite directions start 3 m apart "
                 "along it (docs/single-trip.md, session 26)"),
-    Variant("no_centerline", "a perception stack without centrelines (MapTR's classes)", _without_types("centerline"),
-            gap="centrelines are fused from perceived ones only, none derived from dividers and boundaries: "
-                "the map has none, so their CD is the 1 m cap"),
+    Variant("no_centerline", "a perception stack without centrelines (MapTR's classes)", _without_types("centerline")),
     Variant("no_markings", "no stop lines, crosswalks or road markings perceived",
             _without_types("stop_line", "crosswalk", "road_marking")),
     Variant("southern_west", "the fleet moved to 33.4 S 70.6 W", origin_latlon=(-33.45, -70.66)),

@@ -30,8 +30,9 @@ boundaries), and the trips' paths say where such strips are:
 7. Junction connectors (no bounding line inside a junction) come from the paths of the trips
    that drove from one centreline to the next (``derived_connectors``).
 
-Each derived feature carries ``properties["derived_from"]``: the ids of its two bounding lines
-(a connector: of the two centrelines it links).
+Each derived feature carries ``properties["derived"]`` (``"bounding_lines"``, a connector
+``"trip_paths"``) and ``properties["derived_from"]``: the ids of its two bounding lines (a
+connector: of the two centrelines it links).
 """
 
 from __future__ import annotations
@@ -272,6 +273,7 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
         "outlier_trips": [],
         "max_internal_gap_m": 0.0,
         "first_trip": ordered[0],
+        "derived": "bounding_lines",
         "derived_from": [edges[0].feature_id, edges[1].feature_id],
         "direction": "driven" if driven.any() else "assumed",
         "shoulder_m": round(shoulder_m, 3) if any(kerbs) and not all(kerbs) else 0.0,
@@ -304,7 +306,8 @@ def _with_ids(derived: list[MapFeature], previous: Sequence[MapFeature], params:
 
 
 def is_derived(feature: MapFeature) -> bool:
-    return "derived_from" in feature.properties
+    """A centreline of this stage (recomputed with the map, never fused from trips)."""
+    return "derived" in feature.properties
 
 
 def with_derived_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray],

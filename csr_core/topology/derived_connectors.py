@@ -22,8 +22,8 @@ middle of the turn path on average, the rule ``derived_centerlines`` uses beside
 4. A connector mostly (more than half its length) within half a narrow lane of another
    centreline, in its direction, is there already and is not added.
 
-Each connector carries ``properties["derived_from"]``: the ids of A and B, and
-``properties["direction"] = "driven"``.
+Each connector carries ``properties["derived"] = "trip_paths"``, ``properties["derived_from"]``:
+the ids of A and B, and ``properties["direction"] = "driven"``.
 """
 
 from __future__ import annotations
@@ -191,6 +191,7 @@ def _connector(path: np.ndarray, pass_trips: Sequence[str], ends: tuple[MapFeatu
         "outlier_trips": [],
         "max_internal_gap_m": 0.0,
         "first_trip": ordered[0],
+        "derived": "trip_paths",
         "derived_from": [ends[0].feature_id, ends[1].feature_id],
         "direction": "driven",
     }

@@ -64,6 +64,7 @@ def test_viewer(browser_ready, make_isolated) -> None:
     assert {
         "road_boundary",
         "centerline",
+        "centerline-derived",
         "lane_divider-solid",
         "lane_divider-dashed",
         "stop_line",

@@ -43,12 +43,13 @@ function elementLayers(prefix, source, sourceLayer) {
     return layer;
   };
   const line = (type, extra, paint) =>
-    base(`${type}${extra ? '-' + extra.name : ''}`, 'line', all(byType(type, sourceLayer), extra?.filter), {
+    base(`${type}${extra?.name ? '-' + extra.name : ''}`, 'line', all(byType(type, sourceLayer), extra?.filter), {
       'line-color': STYLE[type].color,
       'line-width': STYLE[type].width,
       ...paint,
     }, { 'line-cap': 'butt', 'line-join': 'round' });
   const dashed = ['==', ['get', 'style'], 'dashed'];
+  const DERIVED = ['has', 'derived']; // centrelines derived from dividers and boundaries or trip paths
   return [
     base('flags', 'line', FLAGGED, { 'line-color': FLAG_COLOR, 'line-width': 12, 'line-opacity': 0.7, 'line-blur': 3 }),
     ...['crosswalk', 'road_marking'].flatMap((type) => [
@@ -56,7 +57,8 @@ function elementLayers(prefix, source, sourceLayer) {
       base(`${type}-outline`, 'line', byType(type, sourceLayer), { 'line-color': STYLE[type].color, 'line-width': 1 }),
     ]),
     line('road_boundary'),
-    line('centerline', null, { 'line-opacity': 0.8 }),
+    line('centerline', { filter: ['!', DERIVED] }, { 'line-opacity': 0.8 }),
+    line('centerline', { name: 'derived', filter: DERIVED }, { 'line-opacity': 0.8, 'line-dasharray': [1, 2] }),
     line('lane_divider', { name: 'solid', filter: ['!', dashed] }),
     line('lane_divider', { name: 'dashed', filter: dashed }, { 'line-dasharray': [3, 3] }),
     line('stop_line'),
@@ -176,7 +178,8 @@ function legend() {
   const item = (color, label, { fill, dash } = {}) =>
     el('li', {}, el('span', { class: `swatch${fill ? ' fill' : ''}`, style: `border-color:${color};${fill ? `background:${color}` : ''}${dash ? ';border-top-style:dashed' : ''}` }), label);
   for (const s of Object.values(STYLE)) ul.append(item(s.color, s.label, { fill: Boolean(s.fill) }));
-  ul.append(item(FLAG_COLOR, 'validator flag'), item(HELD_BACK_COLOR, 'held-back line (tile panel)', { dash: true }),
+  ul.append(item(STYLE.centerline.color, 'centerline, derived (no perceived one)', { dash: true }),
+    item(FLAG_COLOR, 'validator flag'), item(HELD_BACK_COLOR, 'held-back line (tile panel)', { dash: true }),
     item(TRACK_COLORS.raw, 'trip: raw GNSS', { dash: true }), item(TRACK_COLORS.aligned, 'trip: aligned'));
 }
 
@@ -356,6 +359,7 @@ async function showElement(feature) {
   const rows = [
     ['id', detail.id ?? id], ['type', p.type], ['style', p.style],
     ['status', heldBack ? `held back: ${fmt(p.passed_trips, 0)} trips drove alongside without seeing it` : undefined],
+    ['derived', p.derived ? `${p.derived === 'trip_paths' ? 'connector along the trips\' paths' : 'between dividers / boundaries'}${p.direction === 'assumed' ? ', direction assumed (nobody drove it)' : ''}` : undefined],
     ['support', `${fmt(p.support_trips, 0)} trips, ${fmt(p.support_observations, 0)} observations`],
     ['uncertainty', p.uncertainty_m !== undefined ? `${fmt(p.uncertainty_m, 3)} m` : undefined],
     ['first seen', p.first_seen], ['last confirmed', p.last_confirmed], ['flags', flags && flags !== '[]' ? flags : 'none'],
