@@ -264,7 +264,8 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
              probe_trips: Sequence[str], edges: tuple[MapFeature, MapFeature], shoulder_m: float,
              trip_times: Mapping[str, object] | None) -> MapFeature:
     """Step 6 and the properties: direction from the trips that drove in the lane (else from
-    those that saw it); support from the trips whose probes made the run."""
+    those that saw it); ``trips``: those whose probes made the run; ``support_trips``: that of
+    the less supported edge."""
     tangent = np.gradient(run_xy, axis=0)
     _, at = cKDTree(run_xy).query(centre_xy)
     along = (probe_dir * tangent[at]).sum(1)
@@ -278,7 +279,9 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
     kerbs = [e.type == ElementType.ROAD_BOUNDARY for e in edges]
     uncertainty = u[kerbs.index(False)] if kerbs[0] != kerbs[1] else 0.5 * math.hypot(*u)
     props = {
-        "support_trips": len(trips),
+        # the lane is as well confirmed as the less confirmed of its edges (the validator's
+        # low_support then says what it says of them)
+        "support_trips": min(int(e.properties.get("support_trips", len(trips))) for e in edges),
         "support_observations": int(len(centre_xy)),
         "uncertainty_m": round(uncertainty, 4),
         "first_seen": times[ordered[0]] if times else None,

@@ -31,9 +31,10 @@ def _line(y_m: float, x0: float = 0.0, x1: float = 200.0) -> np.ndarray:
 def _two_way_road(x0: float = 0.0, x1: float = 200.0) -> list[MapFeature]:
     """One lane each way (3.5 m) between a centre line and kerbs half a metre beyond the lanes."""
     kerb = LANE_M + SHOULDER_M
-    return [MapFeature(LD, _line(0.0, x0, x1), DividerStyle.SOLID, "ld-centre", {"uncertainty_m": 0.05}),
-            MapFeature(RB, _line(-kerb, x0, x1), None, "rb-right", {"uncertainty_m": 0.08}),
-            MapFeature(RB, _line(kerb, x0, x1), None, "rb-left", {"uncertainty_m": 0.08})]
+    return [MapFeature(LD, _line(0.0, x0, x1), DividerStyle.SOLID, "ld-centre", {"uncertainty_m": 0.05,
+                                                                                  "support_trips": 5}),
+            MapFeature(RB, _line(-kerb, x0, x1), None, "rb-right", {"uncertainty_m": 0.08, "support_trips": 4}),
+            MapFeature(RB, _line(kerb, x0, x1), None, "rb-left", {"uncertainty_m": 0.08, "support_trips": 1})]
 
 
 def _wander(path: np.ndarray, seed: int, sigma_m: float = 0.15) -> np.ndarray:
@@ -52,7 +53,8 @@ def _centrelines(features: list[MapFeature]) -> list[MapFeature]:
 def test_a_two_way_road_without_centrelines_gets_one_per_lane() -> None:
     """Eastbound trips in the right lane: both lanes get a centreline, the right one half a
     painted lane in from the centre line (the kerb's shoulder measured from where the trips
-    drove, not assumed), pointing east; the left one is assumed to run the same way."""
+    drove, not assumed), pointing east; the left one is assumed to run the same way. Each is as
+    well supported as its less supported edge."""
     paths = {f"veh__t{k}": _wander(_line(-LANE_M / 2), seed=k) for k in range(3)}
     derived = derive_centerlines(_two_way_road(), path_probes(paths), DEFAULT)
     assert len(derived) == 2
@@ -64,7 +66,8 @@ def test_a_two_way_road_without_centrelines_gets_one_per_lane() -> None:
         assert f.properties["shoulder_m"] == pytest.approx(SHOULDER_M, abs=0.05)
         assert sorted(f.properties["derived_from"]) in (["ld-centre", "rb-right"], ["ld-centre", "rb-left"])
     assert right.properties["direction"] == "driven" and left.properties["direction"] == "assumed"
-    assert right.properties["support_trips"] == 3
+    assert right.properties["support_trips"] == 4 and len(right.properties["trips"]) == 3
+    assert left.properties["support_trips"] == 1
 
 
 def test_a_perceived_centreline_takes_precedence() -> None:
