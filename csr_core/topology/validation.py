@@ -359,8 +359,8 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     negative evidence against a ghost (``PASS_LATERAL_M``, ``PASS_MAX_ANGLE_RAD``,
     ``PASS_MIN_SHARE``). ``trip_paths``: each trip's driven path as ``(P, 4)`` rows x, y, unit
     direction x, y a few metres apart (``instances.path_probes``); ``properties["trips"]`` of a
-    feature names the trips that saw it. Polygons and stop lines (crossed, not driven along): 0.
-    All lines' probes in one query."""
+    feature names the trips that saw it. Polygons and stop lines (crossed, not driven along) and
+    derived centrelines (no perception saw them): 0. All lines' probes in one query."""
     keys, rows, label, tree = _labelled_tree(trip_paths)
     out = [0] * len(features)
     if not keys or not features:
@@ -369,8 +369,8 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     lines, probes, tangents = [], [], []
     for k, f in enumerate(features):
         p = np.asarray(f.points_xy_world, float)
-        if f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 2:
-            continue
+        if f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 2 or "derived" in f.properties:
+            continue  # derived centrelines (``derived_centerlines``) are never seen, so never passed unseen
         probe = resample_polyline(p, PASS_PROBE_SPACING_M)
         tangent = np.gradient(probe, axis=0)
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
