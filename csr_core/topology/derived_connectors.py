@@ -19,8 +19,10 @@ middle of the turn path on average, the rule ``derived_centerlines`` uses beside
 3. Each such pass gives the trip's path from where it left A to where it joined B; the passes of
    one (A, B) are averaged at equal shares of their length, smoothed over a metre (ends
    point-reflected), and moved to start on A and end on B.
-4. A connector mostly (more than half its length) within half a narrow lane of another
-   centreline, in its direction, is there already and is not added.
+4. A connector shorter than ``LANE_MIN_LENGTH_M`` is no lane (the lane graph leaves such
+   fragments out; on the hard profile's perceived maps most connectors were 2.5-3 m bridges
+   between two pieces of one centreline), and one mostly (more than half its length) within half
+   a narrow lane of another centreline, in its direction, is there already: neither is added.
 
 Each connector carries ``properties["derived"] = "trip_paths"``, ``properties["derived_from"]``:
 the ids of A and B, and ``properties["direction"] = "driven"``.
@@ -141,7 +143,8 @@ def derive_connectors(centerlines: Sequence[MapFeature], probes: Mapping[str, np
     for (a, b), passes in sorted(by_pair.items()):
         path = _mean_path([p for _, p in passes], params)
         path = _onto_ends(path, pts[owner == a], pts[owner == b])
-        if _covered(path, pts, tans, owner, (a, b), params):
+        length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+        if length < params.LANE_MIN_LENGTH_M or _covered(path, pts, tans, owner, (a, b), params):
             continue
         out.append(_connector(path, [k for k, _ in passes], (lines[a], lines[b]), trip_times))
     return out

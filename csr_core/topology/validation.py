@@ -115,7 +115,8 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
     for etype in ElementType:
         if etype.is_polygon:
             continue
-        idx = [i for i, f in enumerate(features) if f.type == etype]
+        # derived centrelines are no estimates of their own: a connector starts on the lane it leaves
+        idx = [i for i, f in enumerate(features) if f.type == etype and "derived" not in f.properties]
         if len(idx) < 2:
             continue
         pts, tans, own = _samples([features[i] for i in idx], spacing)

@@ -29,12 +29,16 @@ def _line(y_m: float, x0: float = 0.0, x1: float = 200.0) -> np.ndarray:
 
 
 def _two_way_road(x0: float = 0.0, x1: float = 200.0) -> list[MapFeature]:
-    """One lane each way (3.5 m) between a centre line and kerbs half a metre beyond the lanes."""
-    kerb = LANE_M + SHOULDER_M
-    return [MapFeature(LD, _line(0.0, x0, x1), DividerStyle.SOLID, "ld-centre", {"uncertainty_m": 0.05,
-                                                                                  "support_trips": 5}),
-            MapFeature(RB, _line(-kerb, x0, x1), None, "rb-right", {"uncertainty_m": 0.08, "support_trips": 4}),
-            MapFeature(RB, _line(kerb, x0, x1), None, "rb-left", {"uncertainty_m": 0.08, "support_trips": 1})]
+    """Two lanes each way (3.5 m): a solid centre line, a dashed line between the lanes of each
+    direction, kerbs half a metre beyond the outer lanes. ``support_trips`` 5, 4, 3, 2, 1 from
+    the centre line out."""
+    kerb = 2 * LANE_M + SHOULDER_M
+
+    def f(etype: ElementType, y: float, fid: str, support: int, style: DividerStyle | None = None) -> MapFeature:
+        return MapFeature(etype, _line(y, x0, x1), style, fid, {"uncertainty_m": 0.05, "support_trips": support})
+
+    return [f(LD, 0.0, "ld-centre", 5, DividerStyle.SOLID), f(LD, -LANE_M, "ld-right", 4, DividerStyle.DASHED),
+            f(LD, LANE_M, "ld-left", 3, DividerStyle.DASHED), f(RB, -kerb, "rb-right", 2), f(RB, kerb, "rb-left", 1)]
 
 
 def _wander(path: np.ndarray, seed: int, sigma_m: float = 0.15) -> np.ndarray:
@@ -51,27 +55,32 @@ def _centrelines(features: list[MapFeature]) -> list[MapFeature]:
 
 
 def test_a_two_way_road_without_centrelines_gets_one_per_lane() -> None:
-    """Eastbound trips in the right lane: both lanes get a centreline, the right one half a
-    painted lane in from the centre line (the kerb's shoulder measured from where the trips
-    drove, not assumed), pointing east; the left one is assumed to run the same way. Each is as
-    well supported as its less supported edge."""
-    paths = {f"veh__t{k}": _wander(_line(-LANE_M / 2), seed=k) for k in range(3)}
+    """Eastbound trips in both lanes of their side: each of them gets a centreline, the inner one
+    midway between its dividers, the kerb-side one half a painted lane in from its divider (the
+    kerb's shoulder measured from where the trips drove, not assumed), pointing east. Of the
+    other side only the lane between two dividers: assumed to run the same way; its kerb-side
+    strip, which nobody drove, could be parking or a cycle lane. Each lane is as well supported
+    as its less supported edge."""
+    inner, outer = -LANE_M / 2, -1.5 * LANE_M
+    paths = {f"veh__t{k}": _wander(_line(inner if k < 3 else outer), seed=k) for k in range(5)}
     derived = derive_centerlines(_two_way_road(), path_probes(paths), DEFAULT)
-    assert len(derived) == 2
-    right, left = sorted(derived, key=lambda f: float(np.mean(f.points_xy_world[:, 1])))
-    for f, y_true in ((right, -LANE_M / 2), (left, LANE_M / 2)):
+    by_y = sorted(derived, key=lambda f: float(np.mean(f.points_xy_world[:, 1])))
+    assert len(by_y) == 3
+    kerb_side, driven, assumed = by_y
+    for f, y_true in ((kerb_side, outer), (driven, inner), (assumed, -inner)):
         y = f.points_xy_world[:, 1]
         assert float(np.max(np.abs(y - y_true))) < 0.05, (y_true, float(np.max(np.abs(y - y_true))))
         assert f.points_xy_world[-1, 0] - f.points_xy_world[0, 0] > 150  # runs along the road, eastwards
-        assert f.properties["shoulder_m"] == pytest.approx(SHOULDER_M, abs=0.05)
-        assert sorted(f.properties["derived_from"]) in (["ld-centre", "rb-right"], ["ld-centre", "rb-left"])
-    assert right.properties["direction"] == "driven" and left.properties["direction"] == "assumed"
-    assert right.properties["support_trips"] == 4 and len(right.properties["trips"]) == 3
-    assert left.properties["support_trips"] == 1
+    assert kerb_side.properties["shoulder_m"] == pytest.approx(SHOULDER_M, abs=0.05)
+    assert kerb_side.properties["derived_from"] == ["ld-right", "rb-right"]
+    assert sorted(driven.properties["derived_from"]) == ["ld-centre", "ld-right"]
+    assert [f.properties["direction"] for f in by_y] == ["driven", "driven", "assumed"]
+    assert driven.properties["support_trips"] == 4 and len(driven.properties["trips"]) == 5
+    assert kerb_side.properties["support_trips"] == 2 and assumed.properties["support_trips"] == 3
 
 
 def test_a_perceived_centreline_takes_precedence() -> None:
-    """A lane that has a perceived centreline gets no derived one; the other lane still does."""
+    """A lane that has a perceived centreline gets no derived one; the lane beside it still does."""
     road = _two_way_road() + [MapFeature(CL, _line(-LANE_M / 2 + 0.1), None, "cl-seen", {})]
     derived = derive_centerlines(road, path_probes({"veh__t0": _line(-LANE_M / 2)}), DEFAULT)
     assert len(derived) == 1
