@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from csr_core import metrics
+from csr_core.param_overrides import replace_fields
 from csr_core.scenario import (
     geo_features_to_local,
     list_trip_files,
@@ -43,7 +44,14 @@ from csr_core.scenario import (
     read_scenario_meta,
 )
 from csr_core.se2 import heading_deg_to_yaw_rad
-from csr_core.topology import DEFAULT, SUSPECT, TopologyResult, generate_topology, reposition_instances
+from csr_core.topology import (
+    DEFAULT,
+    SUSPECT,
+    TopologyParams,
+    TopologyResult,
+    generate_topology,
+    reposition_instances,
+)
 from csr_core.topology.evaluate_lane_graph import compare_lane_graphs, plot_comparison
 from csr_core.types import ElementType, MapFeature
 
@@ -205,18 +213,19 @@ def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | Non
 def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None,
                       lane_graph_figure: str | Path | None = None,
                       figure_bbox_xy: tuple[float, float, float, float] | None = None,
-                      validator_figure: str | Path | None = None) -> dict:
+                      validator_figure: str | Path | None = None, params: TopologyParams = DEFAULT) -> dict:
     """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
     graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
     ``figure_bbox_xy`` in the scenario's local frame if given); ``validator_figure``: a picture
-    of the judged instances, caught / missed / false alarm (``validator_figure.plot_validator``)."""
+    of the judged instances, caught / missed / false alarm (``validator_figure.plot_validator``);
+    ``params``: the topology's (``--param NAME=VALUE``)."""
     scenario_dir = Path(scenario_dir)
     data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
     truth_map = geo_features_to_local(read_map_geojson(scenario_dir / "truth" / "map.geojson"), meta.frame)
     true_xy = np.concatenate([v[3][:, :2] for v in data.values()])
     t0 = time.perf_counter()
-    result = generate_topology({k: v[0] for k, v in data.items()}, {k: v[1] for k, v in data.items()},
+    result = generate_topology({k: v[0] for k, v in data.items()}, {k: v[1] for k, v in data.items()}, params,
                                trip_times={k: v[4] for k, v in data.items()},
                                paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()},
                                match_pairs=match_pairs)
@@ -233,7 +242,7 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
         return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
                                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
 
-    lane_graph = compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, DEFAULT)
+    lane_graph = compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, params)
     if lane_graph_figure is not None:
         plot_comparison(lane_graph, lane_graph_figure, figure_bbox_xy)
     judged = judge_instances(result, truth_map, true_xy)
@@ -260,7 +269,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--validator-figure", metavar="PNG",
                     help="also draw the judged instances: flagged and wrong, flagged and right, missed")
     ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figures to this box (metres, local frame)")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="a TopologyParams field changed, e.g. DERIVE_CENTERLINES=false (repeatable)")
     args = ap.parse_args(argv)
+    try:
+        params = replace_fields(DEFAULT, args.param)
+    except ValueError as exc:
+        ap.error(str(exc))
     bbox = None
     if args.bbox:
         try:
@@ -268,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             ap.error(f"--bbox must be four numbers X0,X1,Y0,Y1, got {args.bbox!r}")
         bbox = (x0, x1, y0, y1)
-    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox, args.validator_figure)
+    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox, args.validator_figure,
+                          params)
     print(json.dumps(r, indent=1))  # noqa: T201
     return 0
 
