@@ -48,9 +48,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import resample_polyline
-from csr_core.topology.derived_connectors import derive_connectors
+from csr_core.topology.derived_connectors import derive_connectors, derived_properties
 from csr_core.topology.fusion import smooth_point_reflected
-from csr_core.topology.identity import inherit_ids, new_feature_id
+from csr_core.topology.instances import assign_ids
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
@@ -219,7 +219,7 @@ def derive_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
     lanes = derived_lanes(features, probes, params, trip_times)
     perceived = [f for f in features if f.type == ElementType.CENTERLINE]
     connectors = derive_connectors([*perceived, *lanes], probes, params, trip_times)
-    return _with_ids(lanes + connectors, previous, params)
+    return assign_ids(lanes + connectors, previous, params)
 
 
 def derived_lanes(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray], params: TopologyParams,
@@ -278,57 +278,18 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
     vote = along[driven].sum() if driven.any() else along.sum()
     if vote < 0:
         run_xy = run_xy[::-1].copy()
-    trips = sorted(set(probe_trips))
-    times = {k: trip_times[k] for k in trips} if trip_times and all(k in trip_times for k in trips) else {}
-    ordered = sorted(trips, key=lambda k: (times[k], k)) if times else trips
     u = [float(e.properties.get("uncertainty_m", 0.1)) for e in edges]
     kerbs = [e.type == ElementType.ROAD_BOUNDARY for e in edges]
-    uncertainty = u[kerbs.index(False)] if kerbs[0] != kerbs[1] else 0.5 * math.hypot(*u)
-    props = {
+    props = derived_properties(
+        probe_trips, trip_times,
         # the lane is as well confirmed as the less confirmed of its edges (the validator's
         # low_support then says what it says of them)
-        "support_trips": min(int(e.properties.get("support_trips", len(trips))) for e in edges),
-        "support_observations": int(len(centre_xy)),
-        "uncertainty_m": round(uncertainty, 4),
-        "first_seen": times[ordered[0]] if times else None,
-        "last_confirmed": times[ordered[-1]] if times else None,
-        "style": None,
-        "trips": trips,
-        "scatter_ratio": 1.0,
-        "rejected_weight_share": 0.0,
-        "outlier_trips": [],
-        "max_internal_gap_m": 0.0,
-        "first_trip": ordered[0],
-        "derived": "bounding_lines",
-        "derived_from": [edges[0].feature_id, edges[1].feature_id],
-        "direction": "driven" if driven.any() else "assumed",
-        "shoulder_m": round(shoulder_m, 3) if any(kerbs) and not all(kerbs) else 0.0,
-    }
+        support_trips=min(int(e.properties.get("support_trips", len(set(probe_trips)))) for e in edges),
+        support_observations=len(centre_xy),
+        uncertainty_m=u[kerbs.index(False)] if kerbs[0] != kerbs[1] else 0.5 * math.hypot(*u),
+        derived="bounding_lines", derived_from=edges, direction="driven" if driven.any() else "assumed")
+    props["shoulder_m"] = round(shoulder_m, 3) if kerbs[0] != kerbs[1] else 0.0
     return MapFeature(ElementType.CENTERLINE, run_xy, None, "", props)
-
-
-def _with_ids(derived: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
-              ) -> list[MapFeature]:
-    """Ids continue those of the earlier derived centrelines they overlap (``identity``), else new
-    deterministic ones; ``first_seen`` keeps the earlier value."""
-    inherited = inherit_ids(derived, previous, params)
-    prev_by_id = {f.feature_id: f for f in previous}
-    used: set[str] = set()
-    out = []
-    for f, fid in zip(derived, inherited, strict=True):
-        props = dict(f.properties)
-        if fid is not None and fid not in used:
-            old = prev_by_id[fid].properties.get("first_seen")
-            if old is not None and (props["first_seen"] is None or old < props["first_seen"]):
-                props["first_seen"] = old
-        else:
-            base = fid or new_feature_id(f.type, props["first_trip"], f.points_xy_world[0])
-            fid, n = base, 2
-            while fid in used:
-                fid, n = f"{base}-{n}", n + 1
-        used.add(fid)
-        out.append(replace(f, feature_id=fid, properties=props))
-    return out
 
 
 def is_derived(feature: MapFeature) -> bool:

@@ -175,16 +175,18 @@ def _covered(path: np.ndarray, pts: np.ndarray, tans: np.ndarray, owner: np.ndar
     return bool(along.mean() > 0.5)
 
 
-def _connector(path: np.ndarray, pass_trips: Sequence[str], ends: tuple[MapFeature, MapFeature],
-               trip_times: Mapping[str, object] | None) -> MapFeature:
-    trips = sorted(set(pass_trips))
+def derived_properties(trips: Sequence[str], trip_times: Mapping[str, object] | None, *, support_trips: int,
+                       support_observations: int, uncertainty_m: float, derived: str,
+                       derived_from: Sequence[MapFeature], direction: str) -> dict:
+    """The properties of a derived centreline: those of a fused one (``instances.feature_from_fused``)
+    with nothing rejected or scattered, plus ``derived``, ``derived_from`` (ids) and ``direction``."""
+    trips = sorted(set(trips))
     times = {k: trip_times[k] for k in trips} if trip_times and all(k in trip_times for k in trips) else {}
     ordered = sorted(trips, key=lambda k: (times[k], k)) if times else trips
-    u = [float(e.properties.get("uncertainty_m", 0.1)) for e in ends]
-    props = {
-        "support_trips": len(trips),
-        "support_observations": len(pass_trips),
-        "uncertainty_m": round(max(u), 4),
+    return {
+        "support_trips": support_trips,
+        "support_observations": support_observations,
+        "uncertainty_m": round(uncertainty_m, 4),
         "first_seen": times[ordered[0]] if times else None,
         "last_confirmed": times[ordered[-1]] if times else None,
         "style": None,
@@ -194,8 +196,16 @@ def _connector(path: np.ndarray, pass_trips: Sequence[str], ends: tuple[MapFeatu
         "outlier_trips": [],
         "max_internal_gap_m": 0.0,
         "first_trip": ordered[0],
-        "derived": "trip_paths",
-        "derived_from": [ends[0].feature_id, ends[1].feature_id],
-        "direction": "driven",
+        "derived": derived,
+        "derived_from": [f.feature_id for f in derived_from],
+        "direction": direction,
     }
+
+
+def _connector(path: np.ndarray, pass_trips: Sequence[str], ends: tuple[MapFeature, MapFeature],
+               trip_times: Mapping[str, object] | None) -> MapFeature:
+    props = derived_properties(pass_trips, trip_times, support_trips=len(set(pass_trips)),
+                               support_observations=len(pass_trips),
+                               uncertainty_m=max(float(e.properties.get("uncertainty_m", 0.1)) for e in ends),
+                               derived="trip_paths", derived_from=ends, direction="driven")
     return MapFeature(ElementType.CENTERLINE, path, None, "", props)
