@@ -26,11 +26,10 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from csr_core.topology.association import Member
-from csr_core.topology.derived_centerlines import with_derived_centerlines
+from csr_core.topology.identity import assign_ids
 from csr_core.topology.incremental import update_topology
 from csr_core.topology.instances import (
     TopologyResult,
-    assign_ids,
     feature_from_fused,
     finish,
     fuse_type,
@@ -84,13 +83,11 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     features = assign_ids(features, (*previous.features, *previous.suppressed) if previous is not None else (),
                           params)
     members = {f.feature_id: m for f, m in zip(features, member_lists, strict=True)}
-    # 5. centrelines derived from dividers and boundaries where none was perceived
-    features = with_derived_centerlines(features, paths, params, trip_times,
-                                        (*previous.features, *previous.suppressed) if previous is not None else ())
     t2 = time.perf_counter()
-    # 6.-7. lane graph, validation
+    # 5.-7. ghosts held back, centrelines derived where none was perceived, validation, lane graph
     result = finish(features, members, trip_probe_points(instances_per_trip), params, match_pairs,
-                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected, paths)
+                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected, paths,
+                    (*previous.features, *previous.suppressed) if previous is not None else ())
     log.info("topology: %d trips, %d features, %d flags in %.2f s", len(instances_per_trip),
              len(result.features), len(result.flags), time.perf_counter() - t0)
     return result

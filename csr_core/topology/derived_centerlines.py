@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.derived_connectors import derive_connectors, derived_properties
 from csr_core.topology.fusion import smooth_point_reflected
-from csr_core.topology.instances import assign_ids
+from csr_core.topology.identity import assign_ids
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
@@ -295,21 +295,3 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
 def is_derived(feature: MapFeature) -> bool:
     """A centreline of this stage (recomputed with the map, never fused from trips)."""
     return "derived" in feature.properties
-
-
-def with_derived_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray],
-                             params: TopologyParams, trip_times: Mapping[str, object] | None,
-                             previous: Sequence[MapFeature]) -> list[MapFeature]:
-    """``features`` (the fused map, no derived centrelines) plus its derived centrelines, whose
-    ids continue the derived ones of ``previous`` (a whole earlier map) and never repeat a fused
-    feature's id."""
-    taken = {f.feature_id for f in features}
-    derived = derive_centerlines(features, probes, params, trip_times, [f for f in previous if is_derived(f)])
-    out = list(features)
-    for f in derived:
-        fid, n = f.feature_id, 2
-        while fid in taken:
-            fid, n = f"{f.feature_id}-d{n}", n + 1
-        taken.add(fid)
-        out.append(f if fid == f.feature_id else replace(f, feature_id=fid))
-    return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -82,4 +83,28 @@ def inherit_ids(new_features: Sequence[MapFeature], previous: Sequence[MapFeatur
         for r, c in zip(rows, cols, strict=True):
             if eligible[r, c]:
                 out[ni[r]] = previous[oi[c]].feature_id
+    return out
+
+
+def assign_ids(features: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
+               ) -> list[MapFeature]:
+    """Inherited ids where a previous instance continues, new deterministic ids elsewhere;
+    ``first_seen`` keeps the earliest of the previous and the new value."""
+    inherited = inherit_ids(features, previous, params)
+    prev_by_id = {f.feature_id: f for f in previous}
+    used: set[str] = set()
+    out = []
+    for f, fid in zip(features, inherited, strict=True):
+        props = dict(f.properties)
+        if fid is not None:
+            old = prev_by_id[fid].properties.get("first_seen")
+            if old is not None and (props["first_seen"] is None or old < props["first_seen"]):
+                props["first_seen"] = old
+        else:
+            fid = new_feature_id(f.type, props["first_trip"], f.points_xy_world[0])
+            base, n = fid, 2
+            while fid in used or fid in prev_by_id:
+                fid, n = f"{base}-{n}", n + 1
+        used.add(fid)
+        out.append(replace(f, feature_id=fid, properties=props))
     return out

@@ -29,11 +29,11 @@ import numpy as np
 
 from csr_core.errors import ReconstructionError
 from csr_core.topology.association import MAP_MEMBER_KEY, Member, associate_lines, associate_polygons
-from csr_core.topology.derived_centerlines import is_derived, with_derived_centerlines
+from csr_core.topology.derived_centerlines import is_derived
 from csr_core.topology.fusion import FusedInstance
+from csr_core.topology.identity import assign_ids
 from csr_core.topology.instances import (
     TopologyResult,
-    assign_ids,
     feature_from_fused,
     finish,
     fuse_type,
@@ -117,11 +117,10 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     members = {f.feature_id: previous.members[f.feature_id] for f in kept if f.feature_id in previous.members}
     members.update({f.feature_id: m for f, m in zip(refit, refit_members, strict=True)})
     trip_points = {**previous.trip_points, **trip_probe_points(new_instances_per_trip)}
-    features = with_derived_centerlines([_strip(f) for f in kept] + refit, trip_paths, params, times or None,
-                                        (*previous.features, *previous.suppressed))
+    features = [_strip(f) for f in kept] + refit
     return finish(features, members, trip_points, params, match_pairs,
                   {"fuse": t1 - t0, "refit_features": float(len(refit))}, times,
-                  (*previous.rejected_members, *rejected), trip_paths)
+                  (*previous.rejected_members, *rejected), trip_paths, (*previous.features, *previous.suppressed))
 
 
 def _strip(f: MapFeature) -> MapFeature:

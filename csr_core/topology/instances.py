@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from csr_core.se2 import compose, inverse
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member, associate_lines, associate_polygons
+from csr_core.topology.derived_centerlines import derive_centerlines, is_derived
 from csr_core.topology.fusion import (
     FusedInstance,
     absorb_pieces,
@@ -24,7 +25,6 @@ from csr_core.topology.fusion import (
     fuse_polygons,
     merge_twins,
 )
-from csr_core.topology.identity import inherit_ids, new_feature_id
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
 from csr_core.topology.validation import (
@@ -181,30 +181,6 @@ def feature_from_fused(fused: FusedInstance, members: Sequence[Member], trip_tim
                       feature_id=feature_id, properties=props)
 
 
-def assign_ids(features: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
-               ) -> list[MapFeature]:
-    """Inherited ids where a previous instance continues, new deterministic ids elsewhere;
-    ``first_seen`` keeps the earliest of the previous and the new value."""
-    inherited = inherit_ids(features, previous, params)
-    prev_by_id = {f.feature_id: f for f in previous}
-    used: set[str] = set()
-    out = []
-    for f, fid in zip(features, inherited, strict=True):
-        props = dict(f.properties)
-        if fid is not None:
-            old = prev_by_id[fid].properties.get("first_seen")
-            if old is not None and (props["first_seen"] is None or old < props["first_seen"]):
-                props["first_seen"] = old
-        else:
-            fid = new_feature_id(f.type, props["first_trip"], f.points_xy_world[0])
-            base, n = fid, 2
-            while fid in used or fid in prev_by_id:
-                fid, n = f"{base}-{n}", n + 1
-        used.add(fid)
-        out.append(replace(f, feature_id=fid, properties=props))
-    return out
-
-
 def trip_probe_points(instances_per_trip: Mapping[str, Sequence[TripInstance]], spacing_m: float = 5.0
                       ) -> dict[str, np.ndarray]:
     out = {}
@@ -255,15 +231,33 @@ def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
 def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]],
            trip_points: dict[str, np.ndarray], params: TopologyParams, match_pairs: Sequence,
            timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None,
-           rejected_members: Sequence[Member] = (), trip_paths: Mapping[str, np.ndarray] | None = None
-           ) -> TopologyResult:
-    """Validation over the whole map, flags copied into each feature; lines that at least
-    ``SUPPRESS_MIN_PASSING`` trips drove alongside without seeing them, and that fewer than
-    ``LOW_SUPPORT_SHARE`` of the trips with them in view saw, are held back (``suppressed``);
-    the lane graph of the published ones. ``trip_paths``: see :func:`path_probes`."""
+           rejected_members: Sequence[Member] = (), trip_paths: Mapping[str, np.ndarray] | None = None,
+           previous: Sequence[MapFeature] = ()) -> TopologyResult:
+    """Lines that at least ``SUPPRESS_MIN_PASSING`` trips drove alongside without seeing them,
+    and that fewer than ``LOW_SUPPORT_SHARE`` of the trips with them in view saw, are held back
+    (``suppressed``); centrelines are derived where the published lines have none
+    (``derived_centerlines``; ids continue the derived ones of ``previous``, the earlier map);
+    validation over the whole map, flags copied into each feature; the lane graph of the
+    published ones. ``features``: the fused map (no derived centrelines); ``trip_paths``: see
+    :func:`path_probes`."""
     t0 = time.perf_counter()
-    cover = coverage_counts(features, trip_points, params.COVERAGE_RADIUS_M)
     passed = passing_counts(features, trip_paths or {}, params)
+    held = [_ghost(int(f.properties["support_trips"]), n, params) for f, n in zip(features, passed, strict=True)]
+    published = [f for f, h in zip(features, held, strict=True) if not h]
+    derived = derive_centerlines(published, trip_paths or {}, params, trip_times,
+                                 [f for f in previous if is_derived(f)])
+    taken = {f.feature_id for f in features}
+    for k, f in enumerate(derived):
+        fid, n = f.feature_id, 2
+        while fid in taken:
+            fid, n = f"{f.feature_id}-d{n}", n + 1
+        taken.add(fid)
+        derived[k] = replace(f, feature_id=fid)
+    features = [*features, *derived]
+    passed += [0] * len(derived)  # never perceived, so never passed unseen
+    held += [False] * len(derived)
+    t1 = time.perf_counter()
+    cover = coverage_counts(features, trip_points, params.COVERAGE_RADIUS_M)
     flags, quality = validate(features, cover, params, match_pairs, trip_sigmas(members.values()))
     by_feature: dict[str, list[str]] = {}
     for fl in flags:
@@ -272,14 +266,13 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     final = [replace(f, properties={**f.properties, "coverage_trips": c, "passed_trips": n,
                                     "flags": sorted(set(by_feature.get(f.feature_id, [])))})
              for f, c, n in zip(features, cover, passed, strict=True)]
-    held = [_ghost(int(f.properties["support_trips"]), n, params) for f, n in zip(final, passed, strict=True)]
-    published = tuple(f for f, h in zip(final, held, strict=True) if not h)
+    published_final = tuple(f for f, h in zip(final, held, strict=True) if not h)
     suppressed = tuple(f for f, h in zip(final, held, strict=True) if h)
-    t1 = time.perf_counter()
-    lane_graph = build_lane_graph(published, params)
     t2 = time.perf_counter()
-    return TopologyResult(published, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
-                          {**timings_s, "validate": t1 - t0, "lane_graph": t2 - t1}, suppressed,
+    lane_graph = build_lane_graph(published_final, params)
+    t3 = time.perf_counter()
+    return TopologyResult(published_final, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
+                          {**timings_s, "derive": t1 - t0, "validate": t2 - t1, "lane_graph": t3 - t2}, suppressed,
                           tuple(rejected_members), dict(trip_paths or {}))
 
 

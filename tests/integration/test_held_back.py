@@ -147,7 +147,11 @@ def test_held_back_lines_are_the_ones_the_version_counts(tiled: Tiled, planted: 
         published = http.get(f"/v1/tiles/{TILE.z}/{TILE.x}/{TILE.y}/versions/{planted.version}").json()
     held_ids = {f["id"] for f in doc["features"]}
     assert held_ids and not held_ids & {f["id"] for f in published["features"]}
-    assert Counter(f["properties"]["type"] for f in published["features"]) == {"lane_divider": 2}
+    # the two real dividers and the centreline derived between them (the lane the trips drove); no
+    # lane is derived beside the held-back ghost divider
+    assert Counter(f["properties"]["type"] for f in published["features"]) == {"lane_divider": 2, "centerline": 1}
+    (centre,) = [f for f in published["features"] if f["properties"]["type"] == "centerline"]
+    assert centre["properties"]["derived"] == "bounding_lines" and centre["properties"]["direction"] == "driven"
 
     # each held-back line is where its ghost was planted (tile frame, metres north of the road)
     frame = tile_frame(TILE.z, TILE.x, TILE.y)
