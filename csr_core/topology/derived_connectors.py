@@ -144,7 +144,7 @@ def derive_connectors(centerlines: Sequence[MapFeature], probes: Mapping[str, np
         path = _mean_path([p for _, p in passes], params)
         path = _onto_ends(path, pts[owner == a], pts[owner == b])
         length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
-        if length < params.LANE_MIN_LENGTH_M or _covered(path, pts, tans, owner, (a, b), params):
+        if length < params.LANE_MIN_LENGTH_M or _covered(path, tree, tans, owner, (a, b), params):
             continue
         out.append(_connector(path, [k for k, _ in passes], (lines[a], lines[b]), trip_times))
     return out
@@ -158,20 +158,17 @@ def _onto_ends(path: np.ndarray, a_pts: np.ndarray, b_pts: np.ndarray) -> np.nda
     return path + np.outer(1.0 - u, start - path[0]) + np.outer(u, end - path[-1])
 
 
-def _covered(path: np.ndarray, pts: np.ndarray, tans: np.ndarray, owner: np.ndarray, ends: tuple[int, int],
+def _covered(path: np.ndarray, tree: cKDTree, tans: np.ndarray, owner: np.ndarray, ends: tuple[int, int],
              params: TopologyParams) -> bool:
     """Step 4: more than half the connector within half a narrow lane of another centreline
-    running its way."""
-    others = ~np.isin(owner, ends)
-    if not others.any():
-        return False
-    tree = cKDTree(pts[others])
-    dist, idx = tree.query(path, distance_upper_bound=0.5 * params.MIN_LANE_WIDTH_M)
+    running its way (``tree``: every centreline sample, built once for all connectors)."""
     t = np.gradient(path, axis=0)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    near = np.isfinite(dist)
+    near = cKDTree(path).sparse_distance_matrix(tree, 0.5 * params.MIN_LANE_WIDTH_M, output_type="ndarray")
+    i, j = near["i"].astype(np.intp), near["j"].astype(np.intp)
+    ok = ~np.isin(owner[j], ends) & ((tans[j] * t[i]).sum(1) >= math.cos(params.PASS_MAX_ANGLE_RAD))
     along = np.zeros(len(path), bool)
-    along[near] = (tans[others][idx[near]] * t[near]).sum(1) >= math.cos(params.PASS_MAX_ANGLE_RAD)
+    along[i[ok]] = True
     return bool(along.mean() > 0.5)
 
 
