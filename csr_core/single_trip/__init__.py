@@ -367,7 +367,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     for inst, lat, alo in candidates:
         ref = noise[inst.type]
         if (not inst.type.is_polygon and len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
-                and robust_sigma(lat) > params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m):
+                and robust_sigma(lat) > max(params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m,
+                                            params.INSTANCE_MIXTURE_MIN_SIGMA_M)):
             log.debug("dropped %s from %s: lateral sigma %.2f m vs type %.2f m", inst.type.value,
                       np.round(inst.points_xy_world[0], 1), robust_sigma(lat), ref.lateral_sigma_m)
             n_dropped += 1

@@ -107,6 +107,11 @@ class SingleTripParams:
     TRACK_MIN_VISIBILITY_RATIO: float = 0.35  # seen / in-range tracked frames
     BEV_RANGE_MARGIN_M: float = 2.0  # an instance point counts as in range this far inside the BEV box
     INSTANCE_MAX_SIGMA_RATIO: float = 2.0  # own lateral residual sigma / its type's, above: a mixture
+    # ... and above this (metres): two painted elements side by side are at least a line's width
+    # (~0.15 m) apart, so a splice mixing them spreads its residuals by at least half of that. Without
+    # it, a perception with millimetre noise made every dashed divider a "mixture" (residuals of
+    # 1 cm from the dash chaining against a type sigma of 2 mm) and dropped it
+    INSTANCE_MIXTURE_MIN_SIGMA_M: float = 0.075
     INSTANCE_MIN_LENGTH_M: dict[ElementType, float] | None = None  # None: defaults below
 
     # --- splicing ------------------------------------------------------------------------------------

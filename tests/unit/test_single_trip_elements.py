@@ -6,12 +6,22 @@ import numpy as np
 import pytest
 import shapely
 
+from csr_core.metrics import map_scores
+from csr_core.scenario import (
+    geo_features_to_local,
+    list_trip_files,
+    load_trip,
+    read_map_geojson,
+    read_poses_dir,
+    read_scenario_meta,
+)
+from csr_core.sim.scenario import simulate_scenario
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.noise import robust_sigma
 from csr_core.single_trip.params import DEFAULT
 from csr_core.single_trip.synthetic import SynthLine, SynthSpec, line_points_world, make_trip
 from csr_core.single_trip.tracking import pair_distance, resample_flat
-from csr_core.types import DividerStyle, ElementType
+from csr_core.types import DividerStyle, ElementType, MapFeature
 
 pytestmark = pytest.mark.unit
 
@@ -394,3 +404,29 @@ def test_splice_running_on_past_its_end_is_cut_where_it_crosses_another_divider(
     assert longest[-1, 0] >= 30.0 and longest[-1, 1] < 2.0
     for part in kept:  # nothing of the tail where it crosses B, nor beyond
         assert not ((part[:, 1] > 3.0) & (part[:, 0] > 30.0)).any()
+
+
+
+@pytest.mark.parametrize("params", [DEFAULT, replace(DEFAULT, INSTANCE_MIXTURE_MIN_SIGMA_M=0.0)],
+                         ids=["as shipped", "without the mixture floor"])
+def test_noiseless_dashed_dividers_are_not_taken_for_mixtures(tmp_path, params):
+    # a simulated highway trip without any sensor error: the solid lines' residuals are ~0 (the
+    # type's sigma 2 mm), a dashed divider's a centimetre (its dashes chained into one line); only a
+    # spread wider than half a painted line marks a mixture of two elements
+    # (INSTANCE_MIXTURE_MIN_SIGMA_M). Without that floor, half the dividers went missing.
+    simulate_scenario("highway", 1, "noiseless", 1, tmp_path, trip_length_m=600.0)
+    meta = read_scenario_meta(tmp_path)
+    truth_map = geo_features_to_local(read_map_geojson(tmp_path / "truth" / "map.geojson"), meta.frame)
+    trip_file = list_trip_files(tmp_path)[0]
+    true_xy = meta.frame.to_local(read_poses_dir(tmp_path / "truth" / "poses")[trip_file.key].lonlat_deg)
+    rec = reconstruct_trip(load_trip(trip_file), meta.frame, params)
+    scores = map_scores([MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map, true_xy)
+    dividers = scores.per_type[ElementType.LANE_DIVIDER]
+    dashed = [i for i in _instances(rec, ElementType.LANE_DIVIDER) if i.style == DividerStyle.DASHED]
+    if params.INSTANCE_MIXTURE_MIN_SIGMA_M > 0:
+        assert dashed
+        assert dividers.completeness > 0.99
+        assert dividers.cd < 0.01
+    else:
+        assert not dashed
+        assert dividers.completeness < 0.6
