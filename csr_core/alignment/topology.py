@@ -42,7 +42,19 @@ class TopologyDescriptor:
     pose_sigma_m: float  # smoothed-pose sigma at the anchor (sets tau_rc)
 
 
-def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> TopologyDescriptor:
+@dataclass(frozen=True, slots=True)
+class CrossSection:
+    """What one sub-map shows on its circle's cross-section (lateral coordinates, metres):
+    crossings of dividers and boundaries (sorted), of boundaries alone, its vehicle's position,
+    and the divider and centreline ends inside the circle."""
+
+    crossings_m: np.ndarray
+    boundaries_m: np.ndarray
+    vehicle_m: float
+    split_merge_count: int
+
+
+def cross_section(submap: Submap, circle: Circle) -> CrossSection:
     direction = np.array([np.cos(circle.heading_rad), np.sin(circle.heading_rad)])
     normal = np.array([-direction[1], direction[0]])
     pts_world = submap.element_points_world()
@@ -61,17 +73,29 @@ def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> 
         if e.type in _END_TYPES:
             r = np.linalg.norm(pts[[0, -1]] - circle.centre_xy_world, axis=1)
             ends += int(np.sum(r < circle.radius_m - 3.0))
-    xs = np.sort(np.asarray(crossings))
     vehicle = float((submap.world_T_submap[:2] - circle.centre_xy_world) @ normal)
-    b = np.asarray(boundaries)
-    left, right = b[b > vehicle], b[b < vehicle]
+    return CrossSection(np.sort(np.asarray(crossings, float)), np.asarray(boundaries, float), vehicle, ends)
+
+
+def descriptor_at(section: CrossSection, lateral_m: float, pose_sigma_m: float) -> TopologyDescriptor:
+    """Eq. 3's quantities of the road around ``lateral_m`` on the cross-section (the nearest
+    boundary on each side of it) as ``section`` shows it; unknown where it shows no boundary on
+    one side."""
+    xs, b = section.crossings_m, section.boundaries_m
+    left, right = b[b > lateral_m], b[b < lateral_m]
     if len(left) and len(right):
         lo, hi = float(right.max()), float(left.min())
         width, centre = hi - lo, 0.5 * (hi + lo)
         lanes = int(np.sum((np.diff(xs) > 1.0) & (xs[1:] <= hi + 0.5) & (xs[:-1] >= lo - 0.5)))
     else:
         width, centre, lanes = float("nan"), float("nan"), -1
-    return TopologyDescriptor(lanes, width, ends, centre, pose_sigma_m)
+    return TopologyDescriptor(lanes, width, section.split_merge_count, centre, pose_sigma_m)
+
+
+def topology_descriptor(submap: Submap, circle: Circle, pose_sigma_m: float) -> TopologyDescriptor:
+    """Eq. 3's quantities of the road the sub-map's own vehicle drove."""
+    section = cross_section(submap, circle)
+    return descriptor_at(section, section.vehicle_m, pose_sigma_m)
 
 
 def topology_consistent(
@@ -93,6 +117,22 @@ def topology_consistent(
     if np.isfinite(a.road_centre_m) and np.isfinite(b.road_centre_m) and abs(a.road_centre_m - b.road_centre_m) > tau_rc:
         return False
     return True
+
+
+def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float, pose_sigma_b_m: float,
+                         noise: NoiseScales, params: AlignmentParams) -> bool:
+    """Eq. 3 on the same road: the road each of the two vehicles drove, as both sub-maps show it.
+
+    Two trips on the two carriageways of a divided road (paired since the frame graph reaches
+    across them, docs/alignment.md session 11) each drove their own road; comparing one's
+    carriageway with the other's compared two roads and always failed (road centres a median
+    apart), so a trip that only ever met a trip on the other carriageway was failed
+    (``no_consistent_match``). Compared at each vehicle's position, a carriageway is compared
+    with itself where the other sub-map shows it and skipped where it does not; for two
+    vehicles on one road both comparisons are the one before."""
+    return all(topology_consistent(descriptor_at(a, at, pose_sigma_a_m), descriptor_at(b, at, pose_sigma_b_m),
+                                   noise, params)
+               for at in {a.vehicle_m, b.vehicle_m})
 
 
 def sliding_window_vote(keys: Sequence[tuple], order: np.ndarray, votes: np.ndarray, half_window: int,
@@ -120,11 +160,15 @@ def topology_filter(
     trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
 ) -> np.ndarray:
     """Step 1 for all candidate pairs: Eq. 3, then voting over each trip pair's sequence."""
-    desc = {}
+    sections: dict[int, CrossSection] = {}
+    sigmas: dict[int, float] = {}
     for s in submaps:
         sigma = float(trips[s.trip_index].pose_sigma_xy_m[s.anchor_frame]) if not s.is_prior else 0.0
-        desc[s.submap_id] = topology_descriptor(s, circles[s.circle_id], sigma if np.isfinite(sigma) else 1.0)
-    raw = np.array([topology_consistent(desc[i], desc[j], noise, params) for i, j in pairs], bool)
+        sections[s.submap_id] = cross_section(s, circles[s.circle_id])
+        sigmas[s.submap_id] = sigma if np.isfinite(sigma) else 1.0
+
+    raw = np.array([same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
+                    for i, j in pairs], bool)
     keys = [(submaps[i].trip_index, submaps[j].trip_index) for i, j in pairs]
     order = np.array([submaps[i].anchor_frame for i, _ in pairs], float)
     return sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)

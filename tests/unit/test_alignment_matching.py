@@ -25,6 +25,9 @@ from csr_core.alignment.registration import register_elements
 from csr_core.alignment.submaps import Circle, Submap, SubmapElement
 from csr_core.alignment.topology import (
     TopologyDescriptor,
+    cross_section,
+    descriptor_at,
+    same_road_consistent,
     sliding_window_vote,
     topology_consistent,
     topology_descriptor,
@@ -158,6 +161,28 @@ def test_topology_descriptors_and_eq3_thresholds():
     far = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 12.0])), 1, 1, (0.0, 12.0, 0.0)),
                               circle, 0.5)
     assert not topology_consistent(full, far, NOISE, P)  # a parallel road, not the same one
+
+
+def test_eq3_compares_each_carriageway_with_itself():
+    """Two trips on the two carriageways of a divided road (medians' boundaries 4 m apart): each
+    sub-map shows its own carriageway whole and of the other only the near boundary. Their own
+    roads differ by the median (road centres 19 m apart), which failed every such pair; compared
+    at each vehicle's position, each carriageway is compared with itself, or skipped where the
+    other sub-map does not show it whole. A view of the same carriageway with a lane missing
+    still fails."""
+    circle = Circle(0, np.zeros(2), 0.0, 25.0)
+    north = [(o + 19.0, t) for o, t in ROAD] + [(7.5, B)]  # and the southern carriageway's near boundary
+    south = straight_road(ROAD + [(11.5, B)])
+    a = cross_section(_submap(south, 0, 0), circle)
+    b = cross_section(_submap(straight_road(north), 1, 1, (0.0, 19.0, 0.0)), circle)
+    assert a.vehicle_m == pytest.approx(0.0) and b.vehicle_m == pytest.approx(19.0)
+    assert not topology_consistent(descriptor_at(a, a.vehicle_m, 0.5), descriptor_at(b, b.vehicle_m, 0.5), NOISE, P)
+    assert same_road_consistent(a, b, 0.5, 0.5, NOISE, P)
+    # the same carriageway, one of its dividers unseen in the other sub-map: 3 lanes against 4...
+    # and two missing: 2 against 4, beyond Eq. 3's lane tolerance of 1
+    fewer = cross_section(_submap(straight_road([r for r in ROAD if r[0] not in (-3.5, 0.0)]), 1, 1), circle)
+    assert not same_road_consistent(a, fewer, 0.5, 0.5, NOISE, P)
+    assert same_road_consistent(a, cross_section(_submap(straight_road(ROAD), 1, 1), circle), 0.5, 0.5, NOISE, P)
 
 
 def test_split_merge_counts_are_compared_within_their_counting_noise():
