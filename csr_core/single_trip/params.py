@@ -106,6 +106,11 @@ class SingleTripParams:
     TRACK_MIN_FRAMES_AT_TRIP_END: int = 2
     TRACK_MIN_VISIBILITY_RATIO: float = 0.35  # seen / in-range tracked frames
     BEV_RANGE_MARGIN_M: float = 2.0  # an instance point counts as in range this far inside the BEV box
+    # an instance is kept within this of the trip's path at most (and within its BEV's lateral reach):
+    # the corridor the map is defined and scored in (contract section 6: truth within 15 m of the
+    # trips' frames). A sensor that reaches farther sees the rest at its far edge, where it is
+    # noisiest, and the trips that drive there see it better
+    INSTANCE_MAX_LATERAL_M: float = 15.0
     INSTANCE_MAX_SIGMA_RATIO: float = 2.0  # own lateral residual sigma / its type's, above: a mixture
     # ... and above this (metres): two painted elements side by side are at least a line's width
     # (~0.15 m) apart, so a splice mixing them spreads its residuals by at least half of that. Without

@@ -430,3 +430,21 @@ def test_noiseless_dashed_dividers_are_not_taken_for_mixtures(tmp_path, params):
     else:
         assert not dashed
         assert dividers.completeness < 0.6
+
+
+def test_a_wide_sensor_keeps_instances_within_the_map_corridor():
+    # a BEV of +-25 m: the boundary 20 m to the left is seen all along, but only its part within
+    # INSTANCE_MAX_LATERAL_M (15 m, the corridor contract section 6 scores) of the path is kept:
+    # here none of it; the lines within 15 m are kept whole
+    far = SynthLine(ElementType.ROAD_BOUNDARY, 21.75)
+    spec = SynthSpec(length_m=200.0, element_sigma_m=0.02, seed=3, bev_y_m=(-25.0, 25.0),
+                     lines=(*SynthSpec().lines, far))
+    trip, _, frame = make_trip(spec)
+    far_truth = line_points_world(spec, far, 0.1)
+    assert any(e.points_xy_vehicle[:, 1].min() > 18.0 for f in trip.elements for e in f)  # perceived
+    for params, kept in ((DEFAULT, False), (replace(DEFAULT, INSTANCE_MAX_LATERAL_M=30.0), True)):
+        rec = reconstruct_trip(trip, frame, params)
+        near_far = [i for i in _instances(rec, ElementType.ROAD_BOUNDARY)
+                    if np.median(_dist_to_line(i.points_xy_world, far_truth)) < 0.5]
+        assert bool(near_far) == kept
+        assert len(rec.instances) >= len(SynthSpec().lines)
