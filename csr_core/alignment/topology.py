@@ -2,7 +2,10 @@
 
 Descriptors are read on a cross-section of each sub-map: the line through the circle centre
 perpendicular to the circle's reference heading (world frame, initial poses), so sub-maps of
-one circle are compared on the same line whatever their anchor frames.
+one circle are compared on the same line whatever their anchor frames. Each descriptor is of
+the road its own vehicle drove; a trip none of whose pairs passes that is read again on the same
+road, each vehicle's road as both sub-maps show it (:func:`same_road_consistent`: the two
+carriageways of a divided road, each with only the other's trips).
 
 - ``N_nl`` lane count: lateral crossings of dividers and boundaries (merged within 1 m) minus 1;
 - ``N_rw`` road width: between the nearest boundary crossing on each side of the vehicle;
@@ -129,7 +132,10 @@ def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float
     apart), so a trip that only ever met a trip on the other carriageway was failed
     (``no_consistent_match``). Compared at each vehicle's position, a carriageway is compared
     with itself where the other sub-map shows it and skipped where it does not; for two
-    vehicles on one road both comparisons are the one before."""
+    vehicles on one road both comparisons are the one before. ``topology_filter`` uses it only
+    for trips that no pair ties otherwise: for every pair it tied the two carriageways of the
+    benchmark's highways too, with right registrations, and lost ATE on two of four fleets
+    (docs/alignment.md, session 30)."""
     return all(topology_consistent(descriptor_at(a, at, pose_sigma_a_m), descriptor_at(b, at, pose_sigma_b_m),
                                    noise, params)
                for at in {a.vehicle_m, b.vehicle_m})
@@ -159,7 +165,8 @@ def topology_filter(
     pairs: Sequence[tuple[int, int]], submaps: Sequence[Submap], circles: Sequence[Circle],
     trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
 ) -> np.ndarray:
-    """Step 1 for all candidate pairs: Eq. 3, then voting over each trip pair's sequence."""
+    """Step 1 for all candidate pairs: Eq. 3, then voting over each trip pair's sequence (a
+    second reading for trips that meet nobody in the first, module docstring)."""
     sections: dict[int, CrossSection] = {}
     sigmas: dict[int, float] = {}
     for s in submaps:
@@ -167,8 +174,21 @@ def topology_filter(
         sections[s.submap_id] = cross_section(s, circles[s.circle_id])
         sigmas[s.submap_id] = sigma if np.isfinite(sigma) else 1.0
 
-    raw = np.array([same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
-                    for i, j in pairs], bool)
     keys = [(submaps[i].trip_index, submaps[j].trip_index) for i, j in pairs]
     order = np.array([submaps[i].anchor_frame for i, _ in pairs], float)
-    return sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)
+    # Eq. 3 on each vehicle's own road (the road it drove against the road the other drove)
+    own = {k: descriptor_at(sec, sec.vehicle_m, sigmas[k]) for k, sec in sections.items()}
+    raw = np.array([topology_consistent(own[i], own[j], noise, params) for i, j in pairs], bool)
+    kept = sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)
+    # a trip none of whose pairs passed shares no road with the others by that reading: the two
+    # carriageways of a divided road, when each only has the other. Its pairs are read again on
+    # the same road (``same_road_consistent``), each carriageway against itself
+    met = {t for (a, b), ok in zip(keys, kept, strict=True) if ok for t in (a, b)}
+    alone = {t for k in keys for t in k if t >= 0} - met
+    again = np.array([bool(alone & set(k)) for k in keys], bool)
+    if again.any():
+        raw = raw.copy()
+        raw[again] = [same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
+                      for (i, j), a in zip(pairs, again, strict=True) if a]
+        kept = sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)
+    return kept

@@ -31,6 +31,7 @@ from csr_core.alignment.topology import (
     sliding_window_vote,
     topology_consistent,
     topology_descriptor,
+    topology_filter,
 )
 from csr_core.types import ElementType
 from tests.unit.test_alignment_synthetic import LANE_W
@@ -183,6 +184,26 @@ def test_eq3_compares_each_carriageway_with_itself():
     fewer = cross_section(_submap(straight_road([r for r in ROAD if r[0] not in (-3.5, 0.0)]), 1, 1), circle)
     assert not same_road_consistent(a, fewer, 0.5, 0.5, NOISE, P)
     assert same_road_consistent(a, cross_section(_submap(straight_road(ROAD), 1, 1), circle), 0.5, 0.5, NOISE, P)
+
+
+def test_a_trip_that_only_meets_the_other_carriageway_is_read_on_the_same_road():
+    """Step 1 reads each vehicle's own road first; a trip none of whose pairs pass that (each
+    carriageway of a divided road with only the other's trips) has its pairs read again on the
+    same road, and only such a trip: a trip that meets its own carriageway keeps the first reading."""
+    from types import SimpleNamespace
+
+    circle = Circle(0, np.zeros(2), 0.0, 25.0)
+    south = straight_road(ROAD + [(11.5, B)])
+    north = straight_road([(o + 19.0, t) for o, t in ROAD] + [(7.5, B)])
+    trips = [SimpleNamespace(pose_sigma_xy_m=np.full(20, 0.3)) for _ in range(4)]
+    subs = [_submap(south, 0, 0), _submap(north, 1, 1, (0.0, 19.0, 0.0)),
+            _submap(south, 2, 2, (0.0, 0.3, 0.0)), _submap(north, 3, 3, (0.0, 19.2, 0.0))]
+    # two trips, one per carriageway: the across pair passes on the second reading
+    assert topology_filter([(0, 1)], subs, [circle], trips, NOISE, P).tolist() == [True]
+    # trip 1 alone on the north carriageway, trips 0 and 2 together on the south one
+    assert topology_filter([(0, 1), (0, 2), (1, 2)], subs, [circle], trips, NOISE, P).tolist() == [True] * 3
+    # both carriageways have two trips each: the across pairs keep the own-road reading
+    assert topology_filter([(0, 1), (0, 2), (1, 3)], subs, [circle], trips, NOISE, P).tolist() == [False, True, True]
 
 
 def test_split_merge_counts_are_compared_within_their_counting_noise():
