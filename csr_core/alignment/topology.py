@@ -187,7 +187,6 @@ def topology_filter(
     alone = {t for k in keys for t in k if t >= 0} - met
     again = np.array([bool(alone & set(k)) for k in keys], bool)
     if again.any():
-        raw = raw.copy()
         raw[again] = [same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
                       for (i, j), a in zip(pairs, again, strict=True) if a]
         kept = sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)
