@@ -48,6 +48,10 @@ from csr_core.types import DividerStyle, ElementType
 #: the longest dash gap of a trip's lines, as a quantile of the gaps it saw (a missed dash makes
 #: a few gaps of two periods)
 DASH_GAP_QUANTILE = 0.9
+#: a track holding two lines side by side over more tracked frames than this many times the frames
+#: one dash stays in view holds two lines running side by side (the splicer separates them by their
+#: offsets from the path), not lines converging in a junction
+SIDE_BY_SIDE_MAX_VIEWS = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -208,16 +212,68 @@ def dash_labels(points_w: np.ndarray, params: SingleTripParams) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+def side_by_side_frames(pieces: Pieces, members: np.ndarray, params: SingleTripParams) -> np.ndarray:
+    """The tracked frames (ascending) in which the observations ``members`` hold two pieces side
+    by side: seen over a common stretch ahead of the vehicle (their x ranges in the vehicle frame
+    overlap by at least ``SPLICE_BIN_M``) with their middles more than twice the merge gate
+    (``TRACK_MERGE_GATE_M``) apart across it. The dashes of one line along the path follow one
+    another in x; two lines that the tracker joined into one track (guide lines converging in a
+    junction) lie side by side."""
+    frame = pieces.frame[members]
+    order = np.argsort(frame, kind="stable")
+    members, frame = members[order], frame[order]
+    start = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    counts = np.diff(np.r_[start, len(frame)])
+    found = []
+    for first, n in zip(start[counts > 1].tolist(), counts[counts > 1].tolist(), strict=True):
+        pv = pieces.points_v[members[first:first + n]]  # (n, k, 2)
+        x_lo, x_hi = pv[..., 0].min(1), pv[..., 0].max(1)
+        overlap = np.minimum(x_hi[:, None], x_hi[None, :]) - np.maximum(x_lo[:, None], x_lo[None, :])
+        y_mid = pv[..., 1].mean(1)
+        apart = np.abs(y_mid[:, None] - y_mid[None, :]) > 2.0 * params.TRACK_MERGE_GATE_M
+        if bool((apart & (overlap >= params.SPLICE_BIN_M)).any()):
+            found.append(int(frame[first]))
+    return np.asarray(found, dtype=np.int64)
+
+
 def dash_units(pieces: Pieces, track: Track, params: SingleTripParams) -> list[np.ndarray]:
     """The pieces of ``track`` as units for chaining: the whole track when one line or circle
-    carries it or when it runs along the path (the splicer separates the lines of such a track
-    along the path: split into dashes, long lines round a roundabout or along a highway came out
-    in pieces with the smoothed poses), else its dashes (``dash_labels``)."""
-    if dash_chord(0, pieces.points_w[track.pieces], params) is not None or not runs_across_path(
-            pieces, track.pieces, params):
-        return [track.pieces]
-    labels = dash_labels(pieces.points_w[track.pieces], params)
-    return [track.pieces[labels == k] for k in np.unique(labels)]
+    carries it; its dashes (``dash_labels``) when it runs across the path; when it runs along
+    the path, the dashes of the stretch where it holds lines side by side
+    (``side_by_side_frames``, widened by the frames one dash stays in view) and the rest as
+    whole runs. Along the path the splicer separates a track's lines by their offset from the
+    path, except where they converge; split whole, long lines round a roundabout or along a
+    highway came out in pieces with the smoothed poses."""
+    members = track.pieces
+    if dash_chord(0, pieces.points_w[members], params) is not None:
+        return [members]
+    if runs_across_path(pieces, members, params):
+        labels = dash_labels(pieces.points_w[members], params)
+        return [members[labels == k] for k in np.unique(labels)]
+    mixed = side_by_side_frames(pieces, members, params)
+    if not len(mixed):
+        return [members]
+    x = pieces.points_v[members, :, 0]
+    in_view = int(np.ceil(float(x.max() - x.min()) / params.TRACK_STEP_M))  # frames one dash stays in view
+    # stretches of mixed frames (gaps shorter than a dash's time in view joined); a stretch longer
+    # than a few views is two lines running side by side, which the splicer separates by their
+    # offsets from the path
+    stretch = np.r_[0, np.cumsum(np.diff(mixed) > in_view)]
+    span = np.array([np.ptp(mixed[stretch == k]) for k in range(int(stretch[-1]) + 1)])
+    mixed = mixed[span[stretch] <= SIDE_BY_SIDE_MAX_VIEWS * in_view]
+    if not len(mixed):
+        return [members]
+    frame = pieces.frame[members]
+    near = np.abs(frame[:, None] - mixed[None, :]).min(axis=1) <= in_view
+    units = []
+    zone = members[near]
+    if len(zone):
+        labels = dash_labels(pieces.points_w[zone], params)
+        units += [zone[labels == k] for k in np.unique(labels)]
+    rest = members[~near]
+    run = np.searchsorted(mixed, pieces.frame[rest])  # runs of the track between its mixed stretches
+    units += [rest[run == k] for k in np.unique(run)]
+    return units
 
 
 def _attach_leftovers(pieces: Pieces, units: list[np.ndarray], source: list[int], chorded: set[int],

@@ -139,3 +139,49 @@ def test_a_mixed_track_along_the_path_is_left_to_the_splicer():
     pieces = Pieces(pieces.frame, pieces.element, pieces.type_code, along, pieces.points_w)
     out = chain_dash_tracks(pieces, tracks, elements, frames, DEFAULT)
     assert any(np.array_equal(t.pieces, tracks[0].pieces) for t in out)
+
+
+def _two_lines_side_by_side(n_frames: int, seed: int = 5):
+    """One track holding two straight dashed lines 3.5 m apart (y = 0 and y = 3.5, 3 m dashes,
+    6 m gaps, the second line's dashes 1 m further on), as the tracker leaves two lines it joined;
+    the vehicle drives along +x, 5 m per tracked frame, and sees the dashes within -15..30 m."""
+    rng = np.random.default_rng(seed)
+    frame, points_v, points_w, line_of, elements = [], [], [], [], []
+    for f in range(n_frames):
+        x_vehicle = 5.0 * f
+        seen = []
+        for line, (y, phase) in enumerate(((0.0, 0.0), (3.5, 1.0))):
+            for start in np.arange(phase, 5.0 * n_frames + 40.0, 9.0):
+                if -15.0 <= start - x_vehicle and start + 3.0 - x_vehicle <= 30.0:
+                    w = _line((start, y), 0.0, 0.0, 3.0) + rng.normal(0.0, 0.03, (K, 2))
+                    frame.append(f)
+                    points_w.append(w)
+                    points_v.append(w - [x_vehicle, 0.0])
+                    line_of.append(line)
+                    seen.append(PerceivedElement(ElementType.LANE_DIVIDER, w - [x_vehicle, 0.0], DividerStyle.DASHED))
+        elements.append(tuple(seen))
+    frame_arr = np.array(frame)
+    element_index = np.concatenate([np.arange(np.sum(frame_arr == f)) for f in range(n_frames)])
+    pieces = Pieces(frame_arr, element_index, np.full(len(frame), TYPE_CODES[ElementType.LANE_DIVIDER]),
+                    np.array(points_v), np.array(points_w))
+    track = Track(ElementType.LANE_DIVIDER, np.arange(len(frame)), np.arange(n_frames))
+    return pieces, [track], elements, np.arange(n_frames), np.array(line_of)
+
+
+def test_two_lines_side_by_side_for_a_junction_s_length_are_cut_into_their_lines():
+    # along the path, but side by side over a few frames only (guide lines converging in a
+    # junction, which the splicer's offsets from the path do not separate): each line comes out alone
+    pieces, tracks, elements, frames, line_of = _two_lines_side_by_side(6)
+    out = chain_dash_tracks(pieces, tracks, elements, frames, DEFAULT)
+    assert len(out) == 2
+    assert sorted(sorted(t.pieces.tolist()) for t in out) == sorted(np.flatnonzero(line_of == k).tolist()
+                                                                    for k in (0, 1))
+
+
+def test_two_lines_side_by_side_over_a_long_stretch_are_left_to_the_splicer():
+    # side by side over more than three views (two lanes' dividers joined by the tracker over a
+    # whole road): the splicer separates them by their offsets from the path; split into dashes,
+    # long lines came out in pieces with the smoothed poses
+    pieces, tracks, elements, frames, _ = _two_lines_side_by_side(40)
+    out = chain_dash_tracks(pieces, tracks, elements, frames, DEFAULT)
+    assert len(out) == 1 and np.array_equal(out[0].pieces, tracks[0].pieces)
