@@ -312,14 +312,27 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                                      follow_bends=track.type == ElementType.LANE_DIVIDER):
                 lat = piece.lateral_residuals_m
                 parts = [piece]
+                resplit = False
                 if len(lat) >= params.NOISE_MIN_SAMPLES and robust_sigma(lat) > mixed_above:
                     # a mixture of elements (a junction): split its observations apart, splice each
                     parts = _resplice_mixture(piece.observations, pieces.points_w[track.pieces], track_frames,
                                               pts_w, obs_id, offsets, end_free, original, track_params)
-                for part in parts:
+                    resplit = True
+                queue = list(parts)
+                while queue:
+                    part = queue.pop(0)
                     kept = runs_along_observations(part.points_xy_world, pts_w, obs_id, part.observations,
                                                    params.TRACK_MAX_ANGLE_RAD, params.TRACK_GATE_M,
                                                    params.SPLICE_ACROSS_WINDOW_M)
+                    if not kept and not resplit and params.SPLICE_REGROUP_ACROSS:
+                        # no part of it runs along its observations: it joined elements that meet at
+                        # an angle (a kerb's two legs at an island's corner); regroup and splice each
+                        log.debug("%s from %s: runs across its observations everywhere, regrouped",
+                                  track.type.value, np.round(part.points_xy_world[0], 1))
+                        queue = _resplice_mixture(part.observations, pieces.points_w[track.pieces], track_frames,
+                                                  pts_w, obs_id, offsets, end_free, original, track_params)
+                        resplit = True
+                        continue
                     if len(kept) != 1 or len(kept[0]) != len(part.points_xy_world):
                         log.debug("%s from %s: cut where it runs across its observations, %d parts left",
                                   track.type.value, np.round(part.points_xy_world[0], 1), len(kept))

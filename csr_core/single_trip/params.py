@@ -131,6 +131,10 @@ class SingleTripParams:
     SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
     SPLICE_ALONG_GUIDE_MIN: float = 0.9  # |d arclength on the path| / chord: element runs along the path
     SPLICE_ACROSS_WINDOW_M: float = 2.5  # a splice is cut where, within this either side, its observations cross it
+    # a splice no part of which runs along its observations (it joined elements that meet at an
+    # angle: a kerb's two legs round a traffic island) is regrouped like a mixture and each group
+    # spliced on its own shape, instead of dropped (docs/single-trip.md, "Session 31")
+    SPLICE_REGROUP_ACROSS: bool = True
     SPLICE_STRAIGHT_BELOW_M: float = 10.0  # shorter elements (stop lines) spliced on their principal axis
     SPLICE_BACKBONE_SMOOTH_M: float = 3.0  # Gaussian smoothing of a backbone grown from observations
     SPLICE_OUTPUT_SPACING_M: float = 1.0

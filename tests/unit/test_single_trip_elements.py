@@ -448,3 +448,31 @@ def test_a_wide_sensor_keeps_instances_within_the_map_corridor():
                     if np.median(_dist_to_line(i.points_xy_world, far_truth)) < 0.5]
         assert bool(near_far) == kept
         assert len(rec.instances) >= len(SynthSpec().lines)
+
+
+def test_a_splice_across_its_observations_everywhere_is_regrouped_not_dropped(tmp_path):
+    # a Karlsruhe trip past traffic islands, true poses: a kerb track that took in two legs of an
+    # island (or both of its sides) splices into a line that runs along none of its observations.
+    # Regrouped and spliced group by group, the kerbs come back (SPLICE_REGROUP_ACROSS); before, the
+    # whole track was dropped
+    from csr_core.se2 import heading_deg_to_yaw_rad
+    from csr_core.single_trip.pose_graph import SmoothedPoses
+
+    simulate_scenario("karlsruhe", 1, "standard", 3, tmp_path, trip_length_m=800.0)
+    meta = read_scenario_meta(tmp_path)
+    truth_map = geo_features_to_local(read_map_geojson(tmp_path / "truth" / "map.geojson"), meta.frame)
+    trip_file = list_trip_files(tmp_path)[0]
+    truth = read_poses_dir(tmp_path / "truth" / "poses")[trip_file.key]
+    true_xy = meta.frame.to_local(truth.lonlat_deg)
+    n = len(true_xy)
+    poses = SmoothedPoses(np.column_stack([true_xy, heading_deg_to_yaw_rad(truth.heading_deg)]), np.zeros(n),
+                          np.zeros(n), np.ones(n, bool), np.zeros(3))
+    trip = load_trip(trip_file)
+    boundaries = {}
+    for regroup in (True, False):
+        rec = reconstruct_trip(trip, meta.frame, replace(DEFAULT, SPLICE_REGROUP_ACROSS=regroup), smoothed=poses)
+        scores = map_scores([MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map,
+                            true_xy)
+        boundaries[regroup] = scores.per_type[ElementType.ROAD_BOUNDARY]
+    assert boundaries[True].completeness > boundaries[False].completeness + 0.01
+    assert boundaries[True].correctness >= boundaries[False].correctness - 0.002
