@@ -332,6 +332,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                         queue = _resplice_mixture(part.observations, pieces.points_w[track.pieces], track_frames,
                                                   pts_w, obs_id, offsets, end_free, original, track_params)
                         resplit = True
+                        n_dropped += not queue
                         continue
                     if len(kept) != 1 or len(kept[0]) != len(part.points_xy_world):
                         log.debug("%s from %s: cut where it runs across its observations, %d parts left",
