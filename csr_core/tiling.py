@@ -121,6 +121,8 @@ def crop_reconstruction(recon: TripReconstruction, start: int, stop: int, *, suf
         keyframe_indices=keyframes,
         instances=tuple(instances),
         gnss_inlier=recon.gnss_inlier[start:stop] if recon.gnss_inlier is not None else None,
+        white_poses_xyyaw_world=(recon.white_poses_xyyaw_world[start:stop]
+                                 if recon.white_poses_xyyaw_world is not None else None),
     )
 
 
@@ -165,6 +167,8 @@ def reframe_reconstruction(recon: TripReconstruction, src: LocalFrame, dst: Loca
     return replace(
         recon,
         poses_xyyaw_world=reframe_poses(recon.poses_xyyaw_world, src, dst),
+        white_poses_xyyaw_world=(None if recon.white_poses_xyyaw_world is None
+                                 else reframe_poses(recon.white_poses_xyyaw_world, src, dst)),
         instances=tuple(replace(i, points_xy_world=reframe_points(i.points_xy_world, src, dst))
                         for i in recon.instances),
     )

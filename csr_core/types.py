@@ -177,7 +177,10 @@ class TripReconstruction:
     """Result of single-trip reconstruction (paper section III-C), the input of alignment.
 
     ``poses_xyyaw_world`` are the smoothed world_T_vehicle poses of every uploaded frame (Eq. 2);
-    ``pose_sigma_xy_m`` their marginal horizontal standard deviation.
+    ``pose_sigma_xy_m`` their marginal horizontal standard deviation. ``white_poses_xyyaw_world``
+    (optional, with the single-trip GNSS bias state): the white-noise solve before the bias state,
+    from which the alignment's e^sm chain takes the trip's relative poses
+    (``AlignmentParams.submap_chain_from_white_solve``).
     """
 
     trip: Trip
@@ -190,11 +193,14 @@ class TripReconstruction:
     gnss_inlier: np.ndarray | None = None
     # optional: per-trip estimates and timings (odometry scale, yaw-rate bias, GNSS latency, ...)
     diagnostics: dict = field(default_factory=dict)
+    white_poses_xyyaw_world: np.ndarray | None = None  # (N, 3)
 
     def __post_init__(self) -> None:
         n = self.trip.n_frames
         _check_shape("poses_xyyaw_world", self.poses_xyyaw_world, (n, 3))
         _check_shape("pose_sigma_xy_m", self.pose_sigma_xy_m, (n,))
+        if self.white_poses_xyyaw_world is not None:
+            _check_shape("white_poses_xyyaw_world", self.white_poses_xyyaw_world, (n, 3))
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,7 +22,7 @@ from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 
 # Bump when single-trip reconstruction changes its results: rows of other versions are kept,
 # `csr reprocess --stale` recomputes the trips without a row of this version.
-ALGORITHM_VERSION = "single_trip-4"
+ALGORITHM_VERSION = "single_trip-5"
 
 _POINT_DECIMALS = 3  # millimetres: far below the perception noise
 
@@ -30,19 +30,22 @@ _POINT_DECIMALS = 3  # millimetres: far below the perception noise
 def encode_arrays(recon: TripReconstruction) -> bytes:
     n = recon.trip.n_frames
     inlier = recon.gnss_inlier if recon.gnss_inlier is not None else recon.trip.has_fix
+    arrays = {
+        "poses_xyyaw_world": np.asarray(recon.poses_xyyaw_world, np.float64).reshape(n, 3),
+        "pose_sigma_xy_m": np.asarray(recon.pose_sigma_xy_m, np.float32).reshape(n),
+        "keyframe_indices": np.asarray(recon.keyframe_indices, np.int32),
+        "gnss_inlier": np.asarray(inlier, bool).reshape(n),
+    }
+    if recon.white_poses_xyyaw_world is not None:
+        arrays["white_poses_xyyaw_world"] = np.asarray(recon.white_poses_xyyaw_world, np.float64).reshape(n, 3)
     buffer = io.BytesIO()
-    np.savez_compressed(
-        buffer,
-        poses_xyyaw_world=np.asarray(recon.poses_xyyaw_world, np.float64).reshape(n, 3),
-        pose_sigma_xy_m=np.asarray(recon.pose_sigma_xy_m, np.float32).reshape(n),
-        keyframe_indices=np.asarray(recon.keyframe_indices, np.int32),
-        gnss_inlier=np.asarray(inlier, bool).reshape(n),
-    )
+    np.savez_compressed(buffer, **arrays)
     return buffer.getvalue()
 
 
 def decode_arrays(blob: bytes) -> dict[str, np.ndarray]:
-    """``{"poses_xyyaw_world" (N, 3), "pose_sigma_xy_m" (N,), "keyframe_indices" (K,), "gnss_inlier" (N,)}``."""
+    """``{"poses_xyyaw_world" (N, 3), "pose_sigma_xy_m" (N,), "keyframe_indices" (K,), "gnss_inlier" (N,)}``
+    and, when the single-trip stage kept them apart, ``"white_poses_xyyaw_world" (N, 3)``."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
         return {name: npz[name] for name in npz.files}
 

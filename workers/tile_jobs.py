@@ -293,6 +293,7 @@ def reconstruction_from_row(row: TripReconstructionRecord, trip) -> TripReconstr
         noise=noise_from_json(row.noise),
         gnss_inlier=arrays["gnss_inlier"],
         diagnostics=dict(row.diagnostics or {}),
+        white_poses_xyyaw_world=arrays.get("white_poses_xyyaw_world"),
     )
 
 
@@ -325,7 +326,12 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
             if recon is None or len(idx) == 0 or idx.max() >= recon.trip.n_frames:
                 continue
             aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
-            msg = bias_message(recon.trip.timestamps_s[idx], recon.poses_xyyaw_world[idx, :2], aligned[:, :2],
+            # the bias is the shift from the poses e^g holds the trip's sub-maps at
+            prior_poses = recon.white_poses_xyyaw_world
+            if prior_poses is None or not ALIGNMENT_DEFAULT.gnss_prior_from_white_solve:
+                prior_poses = recon.poses_xyyaw_world
+            gnss_prior_xy = prior_poses[:, :2]
+            msg = bias_message(recon.trip.timestamps_s[idx], gnss_prior_xy[idx], aligned[:, :2],
                                arrays["weights"], n_tied, ALIGNMENT_DEFAULT)
             if msg is not None:
                 out.setdefault(r.trip_pk, []).append(msg)

@@ -115,6 +115,14 @@ class AlignmentParams:
     # ATE; 0.9 made 17 of 100 hard-profile trips exceed 0.5 m against 13 (docs/alignment.md).
     gnss_bias_tau_s: float = 300.0
     gnss_bias_share: float = 0.5
+    # With the single-trip GNSS bias state a trip carries two trajectories: the bias state's (its
+    # poses, the frame of its sub-maps' contents) and the white-noise solve before it
+    # (``TripReconstruction.white_poses_xyyaw_world``). e^g holds each sub-map at the first (the
+    # bias state's absolute positions are the better ones); the e^sm chain holds consecutive
+    # sub-maps at the second's relative pose (with the bias state's, the dense fleets lost:
+    # docs/alignment.md, "Session 32", where all four combinations are measured).
+    gnss_prior_from_white_solve: bool = False
+    submap_chain_from_white_solve: bool = True
     reg_alpha: float = 1.0  # alpha of Eq. 12
     # Eq. 12's information divided by the pair's variance factor (pose_graph.registration_variance_factors):
     # the redundancy of the accepted pairs of its circle, m_c / (n_c - 1), and its residual RMS

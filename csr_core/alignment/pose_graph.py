@@ -25,9 +25,11 @@ Factors (Eq. 9/10):
   (:func:`registration_variance_factors`: the redundancy of the pairs of its circle and its own
   residual against the batch's typical one);
 - ``e^sm`` consecutive (overlapping) sub-maps of one trip share frames: their relative pose is
-  held at the smoothed one with the sigmas the trip's odometry gives over the seconds and metres
-  between them (:mod:`csr_core.alignment.odometry_noise`: its heading's random walk, read from
-  the trip's own yaw increments, and the lateral error that makes), its translation scaled
+  held at the smoothed one (with the single-trip GNSS bias state, the white-noise solve's before
+  it: ``submap_chain_from_white_solve``, docs/alignment.md "Session 32"; e^g stays at the bias
+  state's anchors) with the sigmas the trip's odometry gives over the seconds and metres between
+  them (:mod:`csr_core.alignment.odometry_noise`: its heading's random walk, read from the trip's
+  own yaw increments, and the lateral error that makes), its translation scaled
   by ``1 + k``, ``k`` the trip's odometry scale correction (a variable ``K(trip)`` with a prior
   of ``odom_scale_sigma``): the single-trip calibration sets the scale from the trip's own GNSS,
   0.04 % off (RMS; 0.6 m over a 1.5 km trip); registrations to other trips refine it.
@@ -176,12 +178,13 @@ def build_factor_graph(
             sig = np.array([params.gnss_sigma_base_xy_m] * 2 + [params.gnss_sigma_base_yaw_rad]) / np.sqrt(w)
         known.append(g.size())
         if s.is_prior or params.gnss_bias_tau_s <= 0:
-            g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
+            g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
                                          gtsam.noiseModel.Diagonal.Sigmas(sig)))
         else:  # e^g through the trip's bias: B^-1 S = g (B a pure shift), the independent share only
             independent = sig * np.array([np.sqrt(1.0 - params.gnss_bias_share)] * 2 + [1.0])
             init.insert(B(s.submap_id), gtsam.Pose2())
-            g.add(gtsam.BetweenFactorPose2(B(s.submap_id), S(s.submap_id), gtsam.Pose2(*s.world_T_submap),
+            g.add(gtsam.BetweenFactorPose2(B(s.submap_id), S(s.submap_id),
+                                           gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
                                            gtsam.noiseModel.Diagonal.Sigmas(independent)))
     # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
     by_trip: dict[int, list[Submap]] = {}
@@ -199,7 +202,8 @@ def build_factor_graph(
         t = trips[k].trip.timestamps_s
         yaw_rw = trip_yaw_random_walk(trips[k], params)
         for a, b in zip(group[:-1], group[1:], strict=False):
-            rel = se2.between(a.world_T_submap, b.world_T_submap)
+            white = params.submap_chain_from_white_solve
+            rel = se2.between(a.gnss_prior_pose(white), b.gnss_prior_pose(white))
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
             if params.submap_chain_from_odometry:
                 sigmas = chain_sigmas(d, abs(float(t[b.anchor_frame] - t[a.anchor_frame])), yaw_rw,

@@ -64,10 +64,19 @@ class Submap:
     landmarks_xy_submap: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     landmark_dirs_submap: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     landmark_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    # the anchor's pose in the trip's white-noise solve (``TripReconstruction.white_poses_xyyaw_world``,
+    # with the single-trip GNSS bias state), for the alignment's e^g and e^sm (``gnss_prior_pose``)
+    white_world_T_submap: np.ndarray | None = None
 
     @property
     def is_prior(self) -> bool:
         return self.trip_index < 0
+
+    def gnss_prior_pose(self, white_solve: bool) -> np.ndarray:
+        """The anchor pose Eq. 9's e^g or the e^sm chain holds this sub-map to: the white-noise
+        solve's when ``white_solve`` and the trip has one, else ``world_T_submap``."""
+        return self.white_world_T_submap if white_solve and self.white_world_T_submap is not None \
+            else self.world_T_submap
 
     def landmarks_world(self, world_T_submap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Landmark points and unit directions in the world (at ``world_T_submap``)."""
@@ -269,6 +278,8 @@ def split_submaps(
                     _limit(elems, params.max_elements_per_submap),
                     se2.transform_points(inv, lm.points_xy[sel]),
                     lm.direction_xy[sel] @ np.array([[c, -s_], [s_, c]]), lm.count[sel],
+                    white_world_T_submap=(None if tr.white_poses_xyyaw_world is None
+                                         else tr.white_poses_xyyaw_world[anchor].copy()),
                 ))
     return circles, submaps
 

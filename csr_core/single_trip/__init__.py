@@ -407,4 +407,5 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     }
     return TripReconstruction(trip=trip, poses_xyyaw_world=poses, pose_sigma_xy_m=smoothed.sigma_xy_m,
                               keyframe_indices=keyframes, instances=tuple(instances), noise=noise,
-                              gnss_inlier=smoothed.gnss_inlier, diagnostics=diagnostics)
+                              gnss_inlier=smoothed.gnss_inlier, diagnostics=diagnostics,
+                              white_poses_xyyaw_world=smoothed.white_poses_xyyaw_world)

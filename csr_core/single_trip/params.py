@@ -26,13 +26,14 @@ class SingleTripParams:
     GNSS_CORRELATION_S: float = 30.0
     # A last solve with the GNSS error as a Gauss-Markov bias state per node (gnss_bias.py): each
     # fix then weighs only its white part, and the trip keeps its shape where the bias wanders.
-    # Off by default: the single trip gains (issue 4's figures), but the alignment's GNSS priors
-    # (e^g, built for the white model's error shape) then lose on some fleets and in the per-tile
-    # service (docs/single-trip.md, "Session 23"). TAU is the bias's correlation time: longer than
+    # The white solve before this one is kept with the trip (``TripReconstruction.white_poses_xyyaw_world``):
+    # the alignment's e^sm chain takes a trip's relative poses from it (with the bias state's, the
+    # alignment lost on the dense fleets and in the per-tile service: docs/single-trip.md, sessions
+    # 23, 26 and 27; docs/alignment.md, session 32). TAU is the bias's correlation time: longer than
     # the tens of seconds GNSS_CORRELATION_S assumes, shorter than the real u-blox log's (its
     # offset stays within 0.1 m over a minute, docs/gnss-model.md); 30-300 s all beat the white
     # model on every world. The white sigma is measured per trip and status.
-    GNSS_BIAS_STATE: bool = False
+    GNSS_BIAS_STATE: bool = True
     GNSS_BIAS_TAU_S: float = 120.0
     GNSS_WHITE_SIGMA_MIN_M: float = 0.01
     # GNSS latency (fix stamped t = position at t - L), estimated per trip; windows remove the bias

@@ -42,6 +42,9 @@ class SmoothedPoses:
     odom_scale: float = 1.0  # estimated odometry distance scale (applied)
     odom_yaw_rate_bias_rad_s: float = 0.0  # estimated yaw-rate bias (removed)
     gnss_latency_s: float = 0.0  # estimated GNSS latency (compensated)
+    # with ``GNSS_BIAS_STATE``: the poses of the white-noise solve before the bias state (the
+    # alignment's e^sm chain takes a trip's relative poses from them); None without it
+    white_poses_xyyaw_world: np.ndarray | None = None
 
 
 def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams,
@@ -384,7 +387,9 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
         if not changed:
             break
         node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
+    white_poses = None
     if params.GNSS_BIAS_STATE:
+        white_poses = graph.frame_poses(node_poses)
         # the bias's own sigma is the receiver's, unfloored: an RTK fix's 2 cm, not the white
         # stages' 5 cm floor (which would let the odometry move a fixed spell by that much)
         bias_sigma = run_sigmas_m(gnss_status, gnss_sigmas_m(gnss_status, gnss_std_m, params,
@@ -397,7 +402,7 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     log.debug("pose graph: %d frames, %d nodes, %d fixes, %d rejected, scale %.4f, yaw bias %.4f deg/s",
               n, len(nodes), len(fix_idx), int((~inlier[fix_idx]).sum()), scale, np.degrees(yaw_bias))
     log.debug("gnss latency %.3f s", latency)
-    return SmoothedPoses(poses, sigma_xy, sigma, inlier, world_T_odom, scale, yaw_bias, latency)
+    return SmoothedPoses(poses, sigma_xy, sigma, inlier, world_T_odom, scale, yaw_bias, latency, white_poses)
 
 
 class _NodeGraph:

@@ -8,6 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from csr_core import se2
 from csr_core.alignment.params import AlignmentParams
 from csr_core.alignment.pose_graph import add_gnss_bias_chain, optimize_submap_poses
 from csr_core.alignment.submaps import Submap
@@ -86,3 +87,38 @@ def test_bias_chain_step_is_the_gauss_markov_difference_and_a_status_change_free
     assert same < 0.15 * sigma(2.0)  # two seconds apart: almost the same bias
     changed = np.asarray(g.at(2).noiseModel().sigmas())[0]
     assert changed > 0.8 * sigma(2.0)  # to RTK fixed: the old bias does not constrain the new one
+
+
+def _with_white_solve(subs, rng):
+    """The sub-maps with a white-noise solve that differs from their contents' poses: shifted by
+    (0.4, -0.3) m and bent by a few centimetres per sub-map."""
+    shift = np.array([0.4, -0.3, 0.0])
+    return [replace(s, white_world_T_submap=s.world_T_submap + shift + np.r_[0.05 * rng.standard_normal(2), 0.01 * k])
+            for k, s in enumerate(subs)]
+
+
+@pytest.mark.parametrize("params", [BIAS, INDEPENDENT], ids=["bias-chain", "independent"])
+def test_e_g_holds_the_smoothed_anchor_and_the_chain_the_white_solve_s_relative_pose(params):
+    """A trip that carries the single-trip white solve beside its bias-state poses: e^g holds each
+    sub-map at its (bias-state) anchor pose, the e^sm chain holds consecutive sub-maps at the white
+    solve's relative pose (``submap_chain_from_white_solve``); ``gnss_prior_from_white_solve``
+    moves e^g to the white solve too, and with nothing registered the sub-maps then sit on it."""
+    trips, _ = make_scenario(1, seed=1, length_m=200.0, perception=False)
+    subs, _ = submaps_every_20_frames(trips)
+    both = _with_white_solve(subs, np.random.default_rng(5))
+    res = optimize_submap_poses(trips, both, [], params)
+    got = np.array([res.poses_xyyaw[s.submap_id] for s in both])
+    # the chain (centimetres) is far stiffer than the GNSS priors (a metre): the shape is the white
+    # solve's, placed where the smoothed anchors are on average (not 0.5 m off with the white solve)
+    for k in range(len(both) - 1):
+        want = se2.between(both[k].white_world_T_submap, both[k + 1].white_world_T_submap)
+        np.testing.assert_allclose(se2.between(got[k], got[k + 1]), want, atol=5e-3)
+    smoothed_mean = np.mean([s.world_T_submap[:2] for s in both], axis=0)
+    assert np.linalg.norm(got[:, :2].mean(axis=0) - smoothed_mean) < 0.05
+    on_white = replace(params, gnss_prior_from_white_solve=True)
+    res = optimize_submap_poses(trips, both, [], on_white)
+    for s in both:
+        np.testing.assert_allclose(res.poses_xyyaw[s.submap_id], s.white_world_T_submap, atol=2e-3)
+    plain = optimize_submap_poses(trips, subs, [], params)
+    for s in subs:  # without a white solve: the contents' own poses
+        np.testing.assert_allclose(plain.poses_xyyaw[s.submap_id], s.world_T_submap, atol=2e-3)

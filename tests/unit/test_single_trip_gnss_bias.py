@@ -148,3 +148,18 @@ def test_a_wandering_gnss_bias_does_not_bend_the_trajectory():
             errors[name].append(metrics.position_errors(aligned, true[:, :2]))
     rms = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in errors.items()}
     assert rms["state"] < 0.85 * rms["white"], rms
+
+
+def test_the_bias_state_keeps_the_white_solve_for_the_alignment_s_priors():
+    """With the bias state the stage returns two trajectories: its own (the bias state's) and the
+    white-noise solve before it, exactly what the stage gives with the bias state off; the
+    alignment's e^sm chain takes a trip's relative poses from the second
+    (``TripReconstruction.white_poses_xyyaw_world``)."""
+    t, _, odom, gnss, status, std = _wander_trip(0)
+    heading = np.full(len(t), np.nan)
+    on = smooth_poses(t, gnss, status, std, heading, odom, dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True))
+    off = smooth_poses(t, gnss, status, std, heading, odom, dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False))
+    assert off.white_poses_xyyaw_world is None
+    np.testing.assert_allclose(on.white_poses_xyyaw_world, off.poses_xyyaw_world, atol=1e-9)
+    moved = np.linalg.norm(on.poses_xyyaw_world[:, :2] - on.white_poses_xyyaw_world[:, :2], axis=1)
+    assert np.median(moved) > 0.01  # the bias state did change the trajectory

@@ -52,6 +52,8 @@ def test_a_stored_reconstruction_decodes_to_what_was_computed():
     np.testing.assert_array_equal(arrays["poses_xyyaw_world"], recon.poses_xyyaw_world)
     np.testing.assert_allclose(arrays["pose_sigma_xy_m"], recon.pose_sigma_xy_m, rtol=1e-6)
     np.testing.assert_array_equal(arrays["keyframe_indices"], recon.keyframe_indices)
+    assert recon.white_poses_xyyaw_world is not None  # the bias state's white solve, kept apart
+    np.testing.assert_array_equal(arrays["white_poses_xyyaw_world"], recon.white_poses_xyyaw_world)
     for stored, computed in zip(values["instances"], recon.instances, strict=True):
         back = instance_from_json(stored)
         assert (back.type, back.style, back.n_observations) == (
@@ -65,3 +67,25 @@ def test_a_stored_reconstruction_decodes_to_what_was_computed():
     for kind, computed_noise in recon.noise.items():
         assert noise[kind].lateral_sigma_m == pytest.approx(computed_noise.lateral_sigma_m)
         assert noise[kind].n_samples == computed_noise.n_samples
+
+
+def test_the_alignment_s_prior_poses_follow_a_reconstruction_through_crop_and_reframe():
+    """The white-noise solve's poses are cut with the frames of a tile piece and re-projected
+    with the smoothed ones; a reconstruction without them stores none."""
+    from dataclasses import replace
+
+    from csr_core.geo import LocalFrame
+    from csr_core.tiling import crop_reconstruction, reframe_reconstruction
+
+    trip = decode_trip(straight_trip(vehicle_id="veh-1", trip_id="t-1", length_m=200.0))
+    frame = region_frame_for(trip.gnss_lonlat_deg[0])
+    recon = reconstruct_trip(trip, frame)
+    prior = recon.white_poses_xyyaw_world
+    piece = crop_reconstruction(recon, 20, 120, suffix="a")
+    np.testing.assert_array_equal(piece.white_poses_xyyaw_world, prior[20:120])
+    other = LocalFrame(frame.origin_lat + 0.01, frame.origin_lon + 0.01)
+    moved = reframe_reconstruction(recon, frame, other)
+    np.testing.assert_allclose(moved.white_poses_xyyaw_world[:, :2],
+                               other.to_local(frame.to_lonlat(prior[:, :2])), atol=1e-6)
+    without = replace(recon, white_poses_xyyaw_world=None)
+    assert "white_poses_xyyaw_world" not in decode_arrays(row_values(without, frame)["arrays"])
