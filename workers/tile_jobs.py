@@ -52,6 +52,7 @@ from csr_core.alignment import (
     bias_message,
 )
 from csr_core.alignment.corrections import PRIOR_KEY
+from csr_core.alignment.submaps import gnss_prior_poses_xyyaw
 from csr_core.errors import AlignmentFailed
 from csr_core.geo import LocalFrame, tile_bounds_lonlat
 from csr_core.se2 import yaw_rad_to_heading_deg
@@ -327,11 +328,8 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
                 continue
             aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
             # the bias is the shift from the poses e^g holds the trip's sub-maps at
-            prior_poses = recon.white_poses_xyyaw_world
-            if prior_poses is None or not ALIGNMENT_DEFAULT.gnss_prior_from_white_solve:
-                prior_poses = recon.poses_xyyaw_world
-            gnss_prior_xy = prior_poses[:, :2]
-            msg = bias_message(recon.trip.timestamps_s[idx], gnss_prior_xy[idx], aligned[:, :2],
+            prior = gnss_prior_poses_xyyaw(recon, ALIGNMENT_DEFAULT.gnss_prior_from_white_solve)
+            msg = bias_message(recon.trip.timestamps_s[idx], prior[idx, :2], aligned[:, :2],
                                arrays["weights"], n_tied, ALIGNMENT_DEFAULT)
             if msg is not None:
                 out.setdefault(r.trip_pk, []).append(msg)

@@ -187,6 +187,7 @@ def build_factor_graph(
                                            gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
                                            gtsam.noiseModel.Diagonal.Sigmas(independent)))
     # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
+    chain_white = params.submap_chain_from_white_solve
     by_trip: dict[int, list[Submap]] = {}
     for s in submaps:
         if not s.is_prior:
@@ -202,8 +203,7 @@ def build_factor_graph(
         t = trips[k].trip.timestamps_s
         yaw_rw = trip_yaw_random_walk(trips[k], params)
         for a, b in zip(group[:-1], group[1:], strict=False):
-            white = params.submap_chain_from_white_solve
-            rel = se2.between(a.gnss_prior_pose(white), b.gnss_prior_pose(white))
+            rel = se2.between(a.gnss_prior_pose(chain_white), b.gnss_prior_pose(chain_white))
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
             if params.submap_chain_from_odometry:
                 sigmas = chain_sigmas(d, abs(float(t[b.anchor_frame] - t[a.anchor_frame])), yaw_rw,

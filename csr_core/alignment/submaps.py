@@ -47,6 +47,14 @@ class SubmapElement:
     closed: bool = False
 
 
+def gnss_prior_poses_xyyaw(trip: TripReconstruction, white_solve: bool) -> np.ndarray:
+    """A trip's poses as Eq. 9's e^g or the e^sm chain takes them (``(N, 3)``): its white-noise solve
+    when ``white_solve`` and it has one, else its smoothed poses (``Submap.gnss_prior_pose`` per anchor)."""
+    if white_solve and trip.white_poses_xyyaw_world is not None:
+        return trip.white_poses_xyyaw_world
+    return trip.poses_xyyaw_world
+
+
 @dataclass(frozen=True, slots=True)
 class Submap:
     """One trip's data inside one circle. ``trip_index == -1`` marks a pre-built-map patch."""

@@ -150,7 +150,7 @@ def test_a_wandering_gnss_bias_does_not_bend_the_trajectory():
     assert rms["state"] < 0.85 * rms["white"], rms
 
 
-def test_the_bias_state_keeps_the_white_solve_for_the_alignment_s_priors():
+def test_the_bias_state_keeps_the_white_solve_for_the_alignment_s_chain():
     """With the bias state the stage returns two trajectories: its own (the bias state's) and the
     white-noise solve before it, exactly what the stage gives with the bias state off; the
     alignment's e^sm chain takes a trip's relative poses from the second

@@ -69,7 +69,7 @@ def test_a_stored_reconstruction_decodes_to_what_was_computed():
         assert noise[kind].n_samples == computed_noise.n_samples
 
 
-def test_the_alignment_s_prior_poses_follow_a_reconstruction_through_crop_and_reframe():
+def test_the_white_solve_follows_a_reconstruction_through_crop_and_reframe():
     """The white-noise solve's poses are cut with the frames of a tile piece and re-projected
     with the smoothed ones; a reconstruction without them stores none."""
     from dataclasses import replace
