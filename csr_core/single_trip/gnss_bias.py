@@ -21,11 +21,11 @@ translation residual) and a free rotation; the chain is linear (``add_gauss_mark
 The fixes and the odometry are those the white-noise stages kept and calibrated
 (``pose_graph.smooth_poses``); this stage only re-weighs them.
 
-Off by default (``GNSS_BIAS_STATE``): the single trip gains, but the alignment's GNSS priors
-(e^g), which are these poses, were modelled for the white stages' error shape and lose with it
-(docs/single-trip.md, "Session 23"; "Session 27": the loss is in the chain between a trip's
-sub-maps, and ``python -m csr_core.alignment.compare_single_trip`` measures a change like this one
-through the alignment).
+On since session 32 (``GNSS_BIAS_STATE``). Sessions 23-31 left it off: the single trip gained,
+but the alignment lost with these poses in its e^sm chain (docs/single-trip.md, "Session 23" and
+"Session 27"). The white solve before this one is now kept with the trip for that chain
+("Session 32"); ``python -m csr_core.alignment.compare_single_trip`` measures a change like this
+one through the alignment.
 """
 
 from __future__ import annotations

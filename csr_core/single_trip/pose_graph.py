@@ -5,13 +5,13 @@
 Built-in gtsam factors only (Python custom factors are 30-100x slower):
 ``BetweenFactorPose2`` for odometry increments (sigma grows with the distance travelled),
 ``PoseTranslationPrior2D`` for GNSS positions (sigma from the receiver's ``std_m``, else from the
-status table), ``PoseRotationPrior2D`` for the GNSS course when the vehicle moves. Frames without
-a fix get no GNSS factor: odometry alone bridges them. Two LM stages with the fixes as white noise
-(inflated by their correlation time): Huber from a robust rigid fit of the odometry to GNSS
-(convex, so the warm start is safe), then Cauchy from the Huber solution, which leaves GNSS jumps
-(tunnels, urban canyons) with almost no weight. Optionally (``GNSS_BIAS_STATE``, off by default)
-a last solve on the fixes kept holds the GNSS error as a Gauss-Markov bias state (``gnss_bias``),
-so that its slow wander does not bend the trip.
+status table), ``PoseRotationPrior2D`` for the GNSS course when the vehicle moves (one per node;
+or, off by default, every fix's with its sigma measured on the trip: ``gnss_course``). Frames
+without a fix get no GNSS factor: odometry alone bridges them. Two LM stages with the fixes as
+white noise (inflated by their correlation time): Huber from a robust rigid fit of the odometry
+to GNSS (convex, so the warm start is safe), then Cauchy from the Huber solution, which leaves
+GNSS jumps (tunnels, urban canyons) with almost no weight. A last solve on the fixes kept (``GNSS_BIAS_STATE``, on) holds the GNSS error as a
+Gauss-Markov bias state (``gnss_bias``), so that its slow wander does not bend the trip.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 from csr_core import se2
 from csr_core.errors import ReconstructionError
 from csr_core.single_trip.gnss_bias import build_bias_graph, run_sigmas_m, white_sigmas_m
+from csr_core.single_trip.gnss_course import CourseNoise, course_noise
 from csr_core.single_trip.keyframes import every_travel_or_time
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import GnssStatus
@@ -81,19 +82,23 @@ def robust_rigid_fit(odom_xy: np.ndarray, world_xy: np.ndarray, sigma_m: np.ndar
     return pose
 
 
-def _heading_yaw(heading_deg: np.ndarray, odom_xyyaw: np.ndarray, timestamps_s: np.ndarray,
-                 params: SingleTripParams) -> np.ndarray:
-    """GNSS course as yaw (rad), NaN where absent or the vehicle is too slow for a course."""
+def _odometry_speed_mps(odom_xyyaw: np.ndarray, timestamps_s: np.ndarray) -> np.ndarray:
+    """(N,) speed from the odometry: the larger of the steps into and out of each frame."""
     n = len(timestamps_s)
-    step = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
-    dt = np.maximum(np.diff(timestamps_s), 1e-6)
     speed = np.zeros(n)
     if n > 1:
-        v = step / dt
+        v = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1) / np.maximum(np.diff(timestamps_s), 1e-6)
         speed[:-1] = v
         speed[1:] = np.maximum(speed[1:], v) if n > 2 else v
+    return speed
+
+
+def _heading_yaw(heading_deg: np.ndarray, status: np.ndarray, speed_mps: np.ndarray,
+                 params: SingleTripParams) -> np.ndarray:
+    """GNSS course as yaw (rad), NaN where absent, where the frame has no new fix (status none:
+    a held frame repeats its epoch's course) or the vehicle is too slow for a course."""
     yaw = np.where(np.isfinite(heading_deg), se2.heading_deg_to_yaw_rad(np.nan_to_num(heading_deg)), np.nan)
-    yaw[speed < params.GNSS_HEADING_MIN_SPEED_MPS] = np.nan
+    yaw[(speed_mps < params.GNSS_HEADING_MIN_SPEED_MPS) | (np.asarray(status) == GnssStatus.NONE)] = np.nan
     return yaw
 
 
@@ -336,7 +341,10 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
 
     # warm start: odometry rigidly fitted to GNSS (robust); fixes too close together need the course
     spread = np.ptp(odom_xyyaw[fix_idx, :2], axis=0).max() if len(fix_idx) > 1 else 0.0
-    heading_yaw = _heading_yaw(gnss_heading_deg, odom_xyyaw, timestamps_s, params)
+    speed = _odometry_speed_mps(odom_xyyaw, timestamps_s)
+    heading_yaw = _heading_yaw(gnss_heading_deg, gnss_status, speed, params)
+    course = (course_noise(heading_yaw, odom_xyyaw[:, 2], speed, timestamps_s, params)
+              if params.GNSS_HEADING_PER_FIX else None)
     if spread > 3.0 * np.median(sigma[fix_idx]) + 1.0:
         world_T_odom = robust_rigid_fit(odom_xyyaw[fix_idx, :2], gnss_xy_world[fix_idx], sigma[fix_idx])
     else:
@@ -353,7 +361,7 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     dist0 = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
     nodes = every_travel_or_time(np.r_[0.0, np.cumsum(dist0)], timestamps_s, params.POSE_NODE_SPACING_M,
                                  params.POSE_NODE_PERIOD_S, keep_last=True)
-    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, params,
+    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, course, params,
                        factor_inflation=inflation)
     node_poses = se2.compose(world_T_odom[None, :], odom_xyyaw[nodes])
 
@@ -377,8 +385,8 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
             scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
             incr[:, :2] *= scale
             corrected = integrate_increments(odom_xyyaw[0], incr)
-        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, params, latency,
-                           factor_inflation=inflation)
+        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, course, params,
+                           latency, factor_inflation=inflation)
     # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
     # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
     node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
@@ -411,7 +419,7 @@ class _NodeGraph:
     is moved by it, with the node's current yaw); frames in between follow the odometry."""
 
     def __init__(self, nodes: np.ndarray, timestamps_s: np.ndarray, odom_xyyaw: np.ndarray,
-                 gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray,
+                 gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray, course: CourseNoise | None,
                  params: SingleTripParams, gnss_latency_s: float = 0.0, factor_inflation: float = 1.0) -> None:
         n = len(timestamps_s)
         self.params = params
@@ -440,6 +448,8 @@ class _NodeGraph:
         self.node_sig_xy = np.sqrt(cum_xy[nodes[1:]] - cum_xy[nodes[:-1]])
         self.node_sig_yaw = np.sqrt(cum_yaw[nodes[1:]] - cum_yaw[nodes[:-1]])
         self.node_heading = heading_yaw[nodes]
+        self.heading_yaw = heading_yaw
+        self.course = course
         self._fixed: tuple[gtsam.NonlinearFactorGraph, gtsam.NonlinearFactorGraph] | None = None
         self._gnss_models: dict[str, dict[float, gtsam.noiseModel.Base]] = {}
 
@@ -455,9 +465,20 @@ class _NodeGraph:
                 odometry.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*self.node_incr[k]), model))
             course = gtsam.NonlinearFactorGraph()
             head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
-            head_model = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
-            for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():
-                course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(float(self.node_heading[node])), head_model))
+            if self.course is not None:
+                # every fix's course on its node, the odometry's yaw from the node to the
+                # instant the course refers to taken off (gnss_course.py)
+                frames = self.course.frames
+                measured = self.heading_yaw[frames] - self.node_T_fix[frames, 2]
+                for node, yaw, sig in zip(self.node_of[frames].tolist(), measured.tolist(),
+                                          self.course.sigma_rad.tolist(), strict=True):
+                    one = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, sig))
+                    course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(yaw), one))
+            else:
+                head_model = gtsam.noiseModel.Robust.Create(
+                    head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
+                for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():
+                    course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(float(self.node_heading[node])), head_model))
             self._fixed = (odometry, course)
         return self._fixed
 
