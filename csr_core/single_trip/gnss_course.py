@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from csr_core import se2
+from csr_core.single_trip.noise import robust_sigma
 from csr_core.single_trip.params import SingleTripParams
 
-MAD_TO_SIGMA = 1.4826
 SPEED_BANDS = 4  # quartiles of the trip's speeds with a course
 MAX_NEIGHBOUR_CORRELATION = 0.95
 
@@ -50,26 +50,21 @@ class CourseNoise:
     neighbour_correlation: float  # rho between consecutive fixes (0: white)
 
 
-def _robust_sigma(x: np.ndarray) -> float:
-    return MAD_TO_SIGMA * float(np.median(np.abs(x - np.median(x))))
-
-
 def _change_sigmas(residual_rad: np.ndarray, frames: np.ndarray, lag: int, bands: np.ndarray,
-                   n_bands: int, min_pairs: int) -> np.ndarray:
-    """Per speed band, the per-fix sigma from the changes of ``residual`` between fixes ``lag``
-    frames apart (both with a course): robust spread / sqrt(2); NaN where a band has too few."""
+                   min_pairs: int) -> tuple[float, np.ndarray]:
+    """The per-fix sigma from the changes of ``residual`` between fixes ``lag`` frames apart (both
+    with a course): robust spread / sqrt(2), over all pairs and per speed band (``bands`` of
+    ``frames``, 0..SPEED_BANDS-1); NaN where there are fewer than ``min_pairs``."""
     has = np.zeros(int(frames.max()) + lag + 1, bool)
     has[frames] = True
-    first = frames[has[frames + lag]]
+    paired = has[frames + lag]
+    first = frames[paired]
     change = np.asarray(se2.wrap_angle(residual_rad[first + lag] - residual_rad[first]))
-    band_of = np.full(len(has), -1)
-    band_of[frames] = bands
-    out: np.ndarray = np.full(n_bands, np.nan)
-    for b in range(n_bands):
-        mine = change[band_of[first] == b]
-        if len(mine) >= min_pairs:
-            out[b] = _robust_sigma(mine) / np.sqrt(2.0)
-    return out
+    band = bands[paired]
+    per_band = np.array([robust_sigma(change[band == b]) if np.sum(band == b) >= min_pairs else np.nan
+                         for b in range(SPEED_BANDS)]) / np.sqrt(2.0)
+    pooled = robust_sigma(change) / np.sqrt(2.0) if len(change) >= min_pairs else float("nan")
+    return pooled, per_band
 
 
 def course_noise(heading_yaw_rad: np.ndarray, odom_yaw_rad: np.ndarray, speed_mps: np.ndarray,
@@ -87,15 +82,13 @@ def course_noise(heading_yaw_rad: np.ndarray, odom_yaw_rad: np.ndarray, speed_mp
     residual[frames] = se2.wrap_angle(heading_yaw_rad[frames] - odom_yaw_rad[frames])
     edges = np.quantile(speed_mps[frames], np.linspace(0.0, 1.0, SPEED_BANDS + 1)[1:-1])
     bands = np.searchsorted(edges, speed_mps[frames])
-    pooled = np.zeros(len(frames), int)
-    next_fix = _change_sigmas(residual, frames, 1, pooled, 1, min_pairs)[0]
-    decorrelated = _change_sigmas(residual, frames, lag, pooled, 1, min_pairs)[0]
+    next_fix, next_fix_bands = _change_sigmas(residual, frames, 1, bands, min_pairs)
+    decorrelated, decorrelated_bands = _change_sigmas(residual, frames, lag, bands, min_pairs)
     if not (np.isfinite(next_fix) and np.isfinite(decorrelated)) or decorrelated <= 0.0:
         return None
     rho = float(np.clip(1.0 - (next_fix / decorrelated) ** 2, 0.0, MAX_NEIGHBOUR_CORRELATION))
     inflation = np.sqrt((1.0 + rho) / (1.0 - rho))
-    per_band = np.fmax(_change_sigmas(residual, frames, 1, bands, SPEED_BANDS, min_pairs),
-                       _change_sigmas(residual, frames, lag, bands, SPEED_BANDS, min_pairs))
+    per_band = np.fmax(next_fix_bands, decorrelated_bands)
     per_band = np.where(np.isfinite(per_band), per_band, max(next_fix, decorrelated))
     sigma = np.maximum(per_band[bands], params.GNSS_COURSE_SIGMA_FLOOR_RAD) * inflation
     return CourseNoise(frames, sigma, rho)
