@@ -59,6 +59,33 @@ class LocalFrame:
         lon, lat = self._inverse.transform(points_xy_m[:, 0], points_xy_m[:, 1])
         return np.column_stack([lon, lat])
 
+    def convergence_rad(self, lonlat_deg: np.ndarray) -> np.ndarray:
+        """``(N,)`` meridian convergence at each point: the angle (radians, counter-clockwise) from
+        the frame's grid north to true north there (pyproj's ``meridian_convergence``). Zero on the
+        frame's central meridian, about ``(lon - lon_0) sin(lat)`` off it: 0.13 degrees 13 km east
+        of it at 49 N, which a trip's GNSS course (clockwise from true north) must not bring into
+        the plane as a heading bias. 0 where a point is not finite."""
+        lonlat_deg = np.asarray(lonlat_deg, float).reshape(-1, 2)
+        factors = self._proj.get_factors(lonlat_deg[:, 0], lonlat_deg[:, 1])
+        gamma = np.radians(np.asarray(factors.meridian_convergence, float).reshape(-1))
+        return np.where(np.isfinite(gamma), gamma, 0.0)
+
+    def grid_heading_deg(self, true_heading_deg: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
+        """Courses clockwise from true north (the upload's ``heading_deg``) at ``lonlat_deg (N, 2)``
+        -> clockwise from the frame's grid north (what ``se2.heading_deg_to_yaw_rad`` turns into a
+        yaw of this plane). NaN stays NaN."""
+        grid = np.asarray(true_heading_deg, float) - np.degrees(self.convergence_rad(lonlat_deg))
+        return np.mod(grid, 360.0)
+
+    def true_heading_deg(self, grid_heading_deg: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`grid_heading_deg`: clockwise from grid north -> from true north."""
+        true = np.asarray(grid_heading_deg, float) + np.degrees(self.convergence_rad(lonlat_deg))
+        return np.mod(true, 360.0)
+
+    @cached_property
+    def _proj(self) -> pyproj.Proj:
+        return pyproj.Proj(self._crs)
+
 
 def tiles_touched(lonlat_deg: np.ndarray, zoom: int = DEFAULT_TILE_ZOOM) -> list[tuple[int, int, int]]:
     """Sorted unique web-mercator XYZ tiles ``(z, x, y)`` containing any of the points.

@@ -294,8 +294,9 @@ def write_reconstruction(
             continue
         if poses.shape != (trip.n_frames, 3):
             raise ValueError(f"{trip.key}: poses shape {poses.shape} != ({trip.n_frames}, 3)")
+        lonlat = frame.to_lonlat(poses[:, :2])
         body = _poses_csv_bytes(
-            trip.timestamps_s, frame.to_lonlat(poses[:, :2]), np.asarray(yaw_rad_to_heading_deg(poses[:, 2]))
+            trip.timestamps_s, lonlat, frame.true_heading_deg(yaw_rad_to_heading_deg(poses[:, 2]), lonlat)
         )
         (poses_dir / f"{trip.key}.csv").write_bytes(body)
         written.append(trip.key)

@@ -441,7 +441,7 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
     if t is None or len(t) != len(poses):
         return False
     lonlat = own.to_lonlat(poses[:, :2])
-    blob = _npz(t=t, lat=lonlat[:, 1], lon=lonlat[:, 0], heading_deg=yaw_rad_to_heading_deg(poses[:, 2]))
+    blob = _npz(t=t, lat=lonlat[:, 1], lon=lonlat[:, 0], heading_deg=own.true_heading_deg(yaw_rad_to_heading_deg(poses[:, 2]), lonlat))
     existing = session.get(TripPoses, trip_pk)
     if existing is None:
         session.add(TripPoses(trip_pk=trip_pk, job_id=job_id, arrays=blob, created_at=utcnow()))

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from csr_core import se2
 from csr_core.metrics import apply_se2, umeyama_se2
 from csr_core.scenario import list_trip_files, load_trip, read_poses_dir, read_scenario_meta
 from csr_core.single_trip.params import DEFAULT as SINGLE_TRIP_DEFAULT
@@ -87,8 +88,9 @@ def _truth(scenario: Path):
     meta = read_scenario_meta(scenario)
     tracks = read_poses_dir(scenario / "truth" / "poses")
     xy = {k: meta.frame.to_local(t.lonlat_deg) for k, t in tracks.items()}
-    # heading_deg is a compass heading (0 north, clockwise) -> yaw from east, counter-clockwise
-    yaw = {k: np.radians(90.0 - t.heading_deg) for k, t in tracks.items()}
+    # heading_deg is clockwise from true north -> yaw in the plane, counter-clockwise from grid east
+    yaw = {k: se2.heading_deg_to_yaw_rad(meta.frame.grid_heading_deg(t.heading_deg, t.lonlat_deg))
+           for k, t in tracks.items()}
     return meta, xy, yaw
 
 

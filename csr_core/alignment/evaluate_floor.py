@@ -57,7 +57,8 @@ OFF_M = 0.5  # a registration further than this from the truth counts as off
 def true_poses(scenario: Path, frame, keys: Sequence[str]) -> dict[str, np.ndarray]:
     """Trip key -> true world_T_vehicle ``(N, 3)`` in ``frame`` (the pipeline's world frame)."""
     truth = read_poses_dir(scenario / "truth" / "poses")
-    return {k: np.column_stack([frame.to_local(truth[k].lonlat_deg), heading_deg_to_yaw_rad(truth[k].heading_deg)])
+    return {k: np.column_stack([frame.to_local(truth[k].lonlat_deg),
+                                heading_deg_to_yaw_rad(frame.grid_heading_deg(truth[k].heading_deg, truth[k].lonlat_deg))])
             for k in keys}
 
 

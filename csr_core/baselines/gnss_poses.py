@@ -24,11 +24,12 @@ def _circular_mean(angles_rad: np.ndarray) -> float:
     return float(np.arctan2(np.sin(angles_rad).mean(), np.cos(angles_rad).mean()))
 
 
-def odom_to_world_yaw_offset(trip: Trip, fixes_xy_world: np.ndarray) -> float:
-    """Yaw offset ``world yaw - odom yaw`` of a trip (radians)."""
-    has_heading = trip.has_fix & np.isfinite(trip.gnss_heading_deg)
+def odom_to_world_yaw_offset(trip: Trip, fixes_xy_world: np.ndarray, grid_heading_deg: np.ndarray) -> float:
+    """Yaw offset ``world yaw - odom yaw`` of a trip (radians); ``grid_heading_deg`` the GNSS course
+    clockwise from the plane's grid north (``LocalFrame.grid_heading_deg``)."""
+    has_heading = trip.has_fix & np.isfinite(grid_heading_deg)
     if has_heading.any():
-        yaw = heading_deg_to_yaw_rad(trip.gnss_heading_deg[has_heading])
+        yaw = heading_deg_to_yaw_rad(grid_heading_deg[has_heading])
         return _circular_mean(np.asarray(wrap_angle(yaw - trip.odom_xyyaw[has_heading, 2])))
     idx = np.flatnonzero(trip.has_fix)
     if len(idx) >= 2:
@@ -52,10 +53,11 @@ def gnss_poses_xyyaw(trip: Trip, frame: LocalFrame) -> np.ndarray:
     if not fix.any():
         raise ReconstructionError(f"{trip.key}: no GNSS fix in the whole trip")
     xy = frame.to_local(trip.gnss_lonlat_deg)
-    offset = odom_to_world_yaw_offset(trip, xy)
+    grid_heading = frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg)
+    offset = odom_to_world_yaw_offset(trip, xy, grid_heading)
     yaw = np.asarray(wrap_angle(trip.odom_xyyaw[:, 2] + offset))
-    has_heading = fix & np.isfinite(trip.gnss_heading_deg)
-    yaw[has_heading] = heading_deg_to_yaw_rad(trip.gnss_heading_deg[has_heading])
+    has_heading = fix & np.isfinite(grid_heading)
+    yaw[has_heading] = heading_deg_to_yaw_rad(grid_heading[has_heading])
     poses = np.column_stack([xy, yaw])
     if fix.all():
         return poses

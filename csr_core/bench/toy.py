@@ -140,7 +140,8 @@ def make_toy_trips(
         odom = [np.array([0.0, 0.0, 0.0])]
         for d in incr:
             odom.append(compose(odom[-1], d))
-        heading = yaw_rad_to_heading_deg(wrap_angle(poses[:, 2] + rng.normal(0, 0.005, n)))
+        heading = frame.true_heading_deg(yaw_rad_to_heading_deg(wrap_angle(poses[:, 2] + rng.normal(0, 0.005, n))),
+                                         frame.to_lonlat(poses[:, :2]))
         trip = Trip(
             vehicle_id=f"toy-{k % 2}",
             trip_id=f"trip-{k:03d}",
@@ -189,7 +190,7 @@ def write_toy_scenario(out_dir: str | Path, spec: ToySpec = ToySpec()) -> Path:
                 trip.timestamps_s,
                 lonlat[:, 1],
                 lonlat[:, 0],
-                np.asarray(yaw_rad_to_heading_deg(p[:, 2])),
+                frame.true_heading_deg(yaw_rad_to_heading_deg(p[:, 2]), lonlat),
                 strict=False,
             )
         ]

@@ -106,9 +106,11 @@ def simulate_trip(
     elements = perceive_trip(index, poses, profile.perception, rng_perc)
 
     has_fix = gnss.status != GnssStatus.NONE
-    lonlat = np.round(frame.to_lonlat(_forward_fill_fixes(gnss.position_xy_world, has_fix)), 9).tolist()
+    lonlat_deg = frame.to_lonlat(_forward_fill_fixes(gnss.position_xy_world, has_fix))
+    lonlat = np.round(lonlat_deg, 9).tolist()
     std = np.round(np.maximum(np.nan_to_num(gnss.std_m, nan=1.0), 0.001), 3).tolist()
-    heading = np.round(gnss.heading_deg, 3)
+    # the simulated course is clockwise from the plane's grid north; a receiver's is from true north
+    heading = np.round(frame.true_heading_deg(gnss.heading_deg, lonlat_deg), 3)
     heading = np.where(heading >= 360.0, 0.0, heading).tolist()
     odom_r = np.column_stack([np.round(odom[:, :2], 3), np.round(odom[:, 2], 6)]).tolist()
     status = gnss.status.tolist()
@@ -157,7 +159,7 @@ def simulate_trip(
 
 def _truth_poses_csv(frame: LocalFrame, t: np.ndarray, poses: np.ndarray) -> bytes:
     lonlat = frame.to_lonlat(poses[:, :2])
-    heading = np.mod(np.round(yaw_rad_to_heading_deg(poses[:, 2]), 3), 360.0)
+    heading = np.mod(np.round(frame.true_heading_deg(yaw_rad_to_heading_deg(poses[:, 2]), lonlat), 3), 360.0)
     lines = ["t,lat,lon,heading_deg"]
     lines += [
         f"{a:.3f},{b:.9f},{c:.9f},{d:.3f}"

@@ -235,7 +235,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # 2. pose smoothing, Eq. 2
     if smoothed is None:
         smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.fix_status, trip.gnss_std_m,
-                                trip.gnss_heading_deg, trip.odom_xyyaw, params)
+                                frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
+                                trip.odom_xyyaw, params)
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]
     t_pose = time.perf_counter()

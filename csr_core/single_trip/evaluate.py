@@ -88,7 +88,8 @@ def load_scenario(scenario_dir: str | Path) -> LoadedScenario:
     for tf in list_trip_files(scenario_dir):
         track = truth_poses[tf.key]
         true_xy = frame.to_local(track.lonlat_deg)
-        trips.append(LoadedTrip(load_trip(tf), np.column_stack([true_xy, heading_deg_to_yaw_rad(track.heading_deg)])))
+        trips.append(LoadedTrip(load_trip(tf), np.column_stack([
+            true_xy, heading_deg_to_yaw_rad(frame.grid_heading_deg(track.heading_deg, track.lonlat_deg))])))
     return LoadedScenario(meta.name, frame, tuple(trips), tuple(truth_map))
 
 
@@ -247,7 +248,8 @@ def pose_only(scenario_dir: str | Path, params: SingleTripParams = DEFAULT) -> d
         trip = load_trip(tf)
         true_xy = frame.to_local(truth_poses[tf.key].lonlat_deg)
         sp = smooth_poses(trip.timestamps_s, frame.to_local(trip.gnss_lonlat_deg), trip.fix_status,
-                          trip.gnss_std_m, trip.gnss_heading_deg, trip.odom_xyyaw, params)
+                          trip.gnss_std_m, frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
+                          trip.odom_xyyaw, params)
         est = sp.poses_xyyaw_world[:, :2]
         a.append(metrics.position_errors(est, true_xy))
         al.append(metrics.position_errors(metrics.apply_se2(metrics.umeyama_se2(est, true_xy), est), true_xy))

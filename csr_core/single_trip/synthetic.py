@@ -148,7 +148,7 @@ def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
     lonlat = frame.to_lonlat(gnss_xy)
     trip = Trip(vehicle_id="synth", trip_id=f"seed{spec.seed}", started_at="2026-11-21T00:00:00Z",
                 timestamps_s=t, gnss_lonlat_deg=lonlat, gnss_status=status, gnss_std_m=std,
-                gnss_heading_deg=heading, odom_xyyaw=odom, elements=tuple(elements),
+                gnss_heading_deg=frame.true_heading_deg(heading, lonlat), odom_xyyaw=odom, elements=tuple(elements),
                 sensor_setup={"bev_range_m": {"x": list(spec.bev_x_m), "y": list(spec.bev_y_m)},
                               "rate_hz": spec.rate_hz})
     return trip, true, frame
