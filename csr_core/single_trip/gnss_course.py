@@ -8,9 +8,9 @@ gives; docs/single-trip.md, "Session 33"). Averaged over the fixes of a few seco
 yaw far better than the gyro's random walk, and the yaw over tens of seconds is the trajectory's
 sideways shape: what the position bias cannot be told apart from.
 
-By default the graph takes one course per node (every 5 m or 1 s) at a fixed 3 degrees. With
-``GNSS_HEADING_PER_FIX`` (off: the single trip and the batch alignment gain, the per-tile service
-loses; docs/single-trip.md, "Session 33") every fix with a course is a ``PoseRotationPrior2D`` on
+With ``GNSS_HEADING_PER_FIX`` (on; off, the graph takes one course per node, every 5 m or 1 s, at a
+fixed 3 degrees: docs/single-trip.md, "Session 33" and "Session 34") every fix with a course is a
+``PoseRotationPrior2D`` on
 its node (the odometry's yaw from the node to the instant the course refers to taken off), with a
 sigma measured on the trip:
 

@@ -50,10 +50,10 @@ class SingleTripParams:
     GNSS_HEADING_MIN_SPEED_MPS: float = 3.0
     GNSS_HEADING_CAUCHY_C_SIGMAS: float = 2.0
     # Every fix's course, its sigma measured on the trip (gnss_course.py, session 33). Off: one
-    # course per node at GNSS_HEADING_SIGMA_RAD (also the fallback with too few courses). Built
-    # and left off: the single trip and the batch alignment gain, the per-tile service loses
-    # (docs/single-trip.md, "Session 33").
-    GNSS_HEADING_PER_FIX: bool = False
+    # course per node at GNSS_HEADING_SIGMA_RAD (also the fallback with too few courses). On since
+    # session 34, once courses came into the plane through its meridian convergence: the
+    # per-tile service had lost with it only for that (docs/single-trip.md, "Session 34").
+    GNSS_HEADING_PER_FIX: bool = True
     COURSE_DECORRELATION_S: float = 1.0  # course changes over this long measure the noise
     GNSS_COURSE_SIGMA_FLOOR_RAD: float = math.radians(0.05)
     # Hard rejection of GNSS jumps: residual norm over (sigma x data scale) above this (Rayleigh
