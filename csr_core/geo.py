@@ -13,6 +13,8 @@ import mercantile
 import numpy as np
 import pyproj
 
+from csr_core.se2 import heading_deg_to_yaw_rad, wrap_angle, yaw_rad_to_heading_deg
+
 DEFAULT_TILE_ZOOM = 16
 
 
@@ -81,6 +83,15 @@ class LocalFrame:
         """Inverse of :meth:`grid_heading_deg`: clockwise from grid north -> from true north."""
         true = np.asarray(grid_heading_deg, float) + np.degrees(self.convergence_rad(lonlat_deg))
         return np.mod(true, 360.0)
+
+    def yaw_rad(self, true_heading_deg: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
+        """Headings clockwise from true north (a poses CSV's ``heading_deg``) at ``lonlat_deg (N, 2)``
+        -> yaws in this plane (radians, counter-clockwise from grid east, in [-pi, pi))."""
+        return np.asarray(wrap_angle(heading_deg_to_yaw_rad(self.grid_heading_deg(true_heading_deg, lonlat_deg))))
+
+    def heading_deg(self, yaw_rad: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`yaw_rad`: yaws in this plane -> clockwise from true north, in [0, 360)."""
+        return self.true_heading_deg(yaw_rad_to_heading_deg(yaw_rad), lonlat_deg)
 
     @cached_property
     def _proj(self) -> pyproj.Proj:

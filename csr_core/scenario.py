@@ -32,7 +32,6 @@ import orjson
 
 from csr_core.errors import ScenarioError, UploadError
 from csr_core.geo import LocalFrame
-from csr_core.se2 import yaw_rad_to_heading_deg
 from csr_core.types import DividerStyle, ElementType, MapFeature, Reconstruction, Trip
 from csr_core.upload import decode_trip, validate_upload_json
 
@@ -296,7 +295,7 @@ def write_reconstruction(
             raise ValueError(f"{trip.key}: poses shape {poses.shape} != ({trip.n_frames}, 3)")
         lonlat = frame.to_lonlat(poses[:, :2])
         body = _poses_csv_bytes(
-            trip.timestamps_s, lonlat, frame.true_heading_deg(yaw_rad_to_heading_deg(poses[:, 2]), lonlat)
+            trip.timestamps_s, lonlat, frame.heading_deg(poses[:, 2], lonlat)
         )
         (poses_dir / f"{trip.key}.csv").write_bytes(body)
         written.append(trip.key)

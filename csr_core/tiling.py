@@ -141,9 +141,8 @@ def _clip_to_box(inst: TripInstance, lo: np.ndarray, hi: np.ndarray) -> list[np.
 def grid_rotation_rad(src: LocalFrame, dst: LocalFrame, at_xy_src: np.ndarray) -> float:
     """Angle to add to a heading in ``src`` to get it in ``dst`` (their grid norths differ by the
     meridian convergence between their origins), measured at ``at_xy_src``."""
-    p = np.asarray(at_xy_src, float).reshape(2)
-    a, b = dst.to_local(src.to_lonlat(np.array([p, p + [0.0, 100.0]])))
-    return float(np.arctan2(b[1] - a[1], b[0] - a[0]) - np.pi / 2)
+    lonlat = src.to_lonlat(np.asarray(at_xy_src, float).reshape(1, 2))
+    return float(dst.convergence_rad(lonlat)[0] - src.convergence_rad(lonlat)[0])
 
 
 def reframe_poses(poses_xyyaw: np.ndarray, src: LocalFrame, dst: LocalFrame) -> np.ndarray:

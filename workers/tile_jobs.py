@@ -55,7 +55,6 @@ from csr_core.alignment.corrections import PRIOR_KEY
 from csr_core.alignment.submaps import gnss_prior_poses_xyyaw
 from csr_core.errors import AlignmentFailed
 from csr_core.geo import LocalFrame, tile_bounds_lonlat
-from csr_core.se2 import yaw_rad_to_heading_deg
 from csr_core.tiling import (
     assemble_poses,
     blend_weight,
@@ -441,7 +440,7 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
     if t is None or len(t) != len(poses):
         return False
     lonlat = own.to_lonlat(poses[:, :2])
-    blob = _npz(t=t, lat=lonlat[:, 1], lon=lonlat[:, 0], heading_deg=own.true_heading_deg(yaw_rad_to_heading_deg(poses[:, 2]), lonlat))
+    blob = _npz(t=t, lat=lonlat[:, 1], lon=lonlat[:, 0], heading_deg=own.heading_deg(poses[:, 2], lonlat))
     existing = session.get(TripPoses, trip_pk)
     if existing is None:
         session.add(TripPoses(trip_pk=trip_pk, job_id=job_id, arrays=blob, created_at=utcnow()))

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from csr_core import se2
 from csr_core.metrics import apply_se2, umeyama_se2
 from csr_core.scenario import list_trip_files, load_trip, read_poses_dir, read_scenario_meta
 from csr_core.single_trip.params import DEFAULT as SINGLE_TRIP_DEFAULT
@@ -89,8 +88,7 @@ def _truth(scenario: Path):
     tracks = read_poses_dir(scenario / "truth" / "poses")
     xy = {k: meta.frame.to_local(t.lonlat_deg) for k, t in tracks.items()}
     # heading_deg is clockwise from true north -> yaw in the plane, counter-clockwise from grid east
-    yaw = {k: se2.heading_deg_to_yaw_rad(meta.frame.grid_heading_deg(t.heading_deg, t.lonlat_deg))
-           for k, t in tracks.items()}
+    yaw = {k: meta.frame.yaw_rad(t.heading_deg, t.lonlat_deg) for k, t in tracks.items()}
     return meta, xy, yaw
 
 

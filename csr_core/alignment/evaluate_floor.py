@@ -49,7 +49,6 @@ from csr_core.alignment.params import DEFAULT, AlignmentParams
 from csr_core.metrics import apply_se2, umeyama_se2
 from csr_core.param_overrides import replace_fields
 from csr_core.scenario import read_poses_dir
-from csr_core.se2 import heading_deg_to_yaw_rad
 
 OFF_M = 0.5  # a registration further than this from the truth counts as off
 
@@ -58,7 +57,7 @@ def true_poses(scenario: Path, frame, keys: Sequence[str]) -> dict[str, np.ndarr
     """Trip key -> true world_T_vehicle ``(N, 3)`` in ``frame`` (the pipeline's world frame)."""
     truth = read_poses_dir(scenario / "truth" / "poses")
     return {k: np.column_stack([frame.to_local(truth[k].lonlat_deg),
-                                heading_deg_to_yaw_rad(frame.grid_heading_deg(truth[k].heading_deg, truth[k].lonlat_deg))])
+                                frame.yaw_rad(truth[k].heading_deg, truth[k].lonlat_deg)])
             for k in keys}
 
 

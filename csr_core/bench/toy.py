@@ -20,7 +20,7 @@ import shapely
 
 from csr_core.geo import LocalFrame
 from csr_core.scenario import map_features_to_geojson
-from csr_core.se2 import between, compose, inverse, wrap_angle, yaw_rad_to_heading_deg
+from csr_core.se2 import between, compose, inverse
 from csr_core.types import DividerStyle, ElementType, GnssStatus, MapFeature, PerceivedElement, Trip
 from csr_core.upload import encode_trip
 
@@ -140,8 +140,7 @@ def make_toy_trips(
         odom = [np.array([0.0, 0.0, 0.0])]
         for d in incr:
             odom.append(compose(odom[-1], d))
-        heading = frame.true_heading_deg(yaw_rad_to_heading_deg(wrap_angle(poses[:, 2] + rng.normal(0, 0.005, n))),
-                                         frame.to_lonlat(poses[:, :2]))
+        heading = frame.heading_deg(poses[:, 2] + rng.normal(0, 0.005, n), frame.to_lonlat(poses[:, :2]))
         trip = Trip(
             vehicle_id=f"toy-{k % 2}",
             trip_id=f"trip-{k:03d}",
@@ -190,7 +189,7 @@ def write_toy_scenario(out_dir: str | Path, spec: ToySpec = ToySpec()) -> Path:
                 trip.timestamps_s,
                 lonlat[:, 1],
                 lonlat[:, 0],
-                frame.true_heading_deg(yaw_rad_to_heading_deg(p[:, 2]), lonlat),
+                frame.heading_deg(p[:, 2], lonlat),
                 strict=False,
             )
         ]

@@ -53,7 +53,6 @@ from csr_core.scenario import (
     read_poses_dir,
     read_scenario_meta,
 )
-from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses
@@ -89,7 +88,7 @@ def load_scenario(scenario_dir: str | Path) -> LoadedScenario:
         track = truth_poses[tf.key]
         true_xy = frame.to_local(track.lonlat_deg)
         trips.append(LoadedTrip(load_trip(tf), np.column_stack([
-            true_xy, heading_deg_to_yaw_rad(frame.grid_heading_deg(track.heading_deg, track.lonlat_deg))])))
+            true_xy, frame.yaw_rad(track.heading_deg, track.lonlat_deg)])))
     return LoadedScenario(meta.name, frame, tuple(trips), tuple(truth_map))
 
 

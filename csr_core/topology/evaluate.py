@@ -43,7 +43,6 @@ from csr_core.scenario import (
     read_poses_dir,
     read_scenario_meta,
 )
-from csr_core.se2 import heading_deg_to_yaw_rad
 from csr_core.topology import (
     DEFAULT,
     SUSPECT,
@@ -80,7 +79,7 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_o
         trip = load_trip(tf)
         pt = truth[tf.key]
         true_poses = np.column_stack([frame.to_local(pt.lonlat_deg),
-                                          heading_deg_to_yaw_rad(frame.grid_heading_deg(pt.heading_deg, pt.lonlat_deg))])
+                                          frame.yaw_rad(pt.heading_deg, pt.lonlat_deg)])
         if poses == "truth":
             n = len(true_poses)
             fixed = SmoothedPoses(true_poses, np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))

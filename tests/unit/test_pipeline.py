@@ -89,7 +89,7 @@ def test_outputs_round_trip_through_the_scenario_readers(tmp_path):
     np.testing.assert_allclose(xy, recon.poses_xyyaw_world[trips[0].key][:, :2], atol=1e-3)
     # headings are written from true north: back into the plane through its meridian convergence
     track = tracks[trips[0].key]
-    yaw = np.pi / 2 - np.radians(frame.grid_heading_deg(track.heading_deg, track.lonlat_deg))
+    yaw = frame.yaw_rad(track.heading_deg, track.lonlat_deg)
     assert np.abs(wrap_angle(yaw - recon.poses_xyyaw_world[trips[0].key][:, 2])).max() < 1e-5
     feats = geo_features_to_local(read_map_geojson(tmp_path / "map.geojson"), frame)
     assert len(feats) == len(recon.map_features)
