@@ -13,7 +13,7 @@ import mercantile
 import numpy as np
 import pyproj
 
-from csr_core.se2 import heading_deg_to_yaw_rad, wrap_angle, yaw_rad_to_heading_deg
+from csr_core.se2 import heading_deg_to_yaw_rad, yaw_rad_to_heading_deg
 
 DEFAULT_TILE_ZOOM = 16
 
@@ -87,7 +87,7 @@ class LocalFrame:
     def yaw_rad(self, true_heading_deg: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
         """Headings clockwise from true north (a poses CSV's ``heading_deg``) at ``lonlat_deg (N, 2)``
         -> yaws in this plane (radians, counter-clockwise from grid east, in [-pi, pi))."""
-        return np.asarray(wrap_angle(heading_deg_to_yaw_rad(self.grid_heading_deg(true_heading_deg, lonlat_deg))))
+        return np.asarray(heading_deg_to_yaw_rad(self.grid_heading_deg(true_heading_deg, lonlat_deg)))
 
     def heading_deg(self, yaw_rad: np.ndarray | float, lonlat_deg: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`yaw_rad`: yaws in this plane -> clockwise from true north, in [0, 360)."""

@@ -25,6 +25,7 @@ from csr_core.geo import LocalFrame
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
+from csr_core.single_trip.paint_breaks import barrier_geometry, cut_at_paint_breaks
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import (
@@ -211,6 +212,39 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
     return [c for i, c in enumerate(candidates) if i not in dropped]
 
 
+def _cut_at_paint_breaks(candidates: list, params: SingleTripParams) -> tuple[list, int]:
+    """Lane dividers cut where an unseen stretch of theirs meets a stop line or crosswalk of the
+    trip (``paint_breaks``); parts shorter than the type's minimum length are dropped (counted),
+    the residuals stay with the longest part, and every part keeps the track's frames and
+    observation count."""
+    barrier = barrier_geometry([c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
+                               [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
+                               params.PAINT_BREAK_REACH_M)
+    if barrier is None:
+        return candidates, 0
+    out, n_dropped = [], 0
+    for cand in candidates:
+        inst, lat, alo, observed_w = cand
+        if inst.type != ElementType.LANE_DIVIDER or observed_w is None:
+            out.append(cand)
+            continue
+        parts = cut_at_paint_breaks(inst.points_xy_world, cKDTree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
+        if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):
+            out.append(cand)
+            continue
+        log.debug("%s from %s: cut at a stop line or crosswalk it was not seen across, %d parts",
+                  inst.type.value, np.round(inst.points_xy_world[0], 1), len(parts))
+        kept = 0
+        for points_w in sorted(parts, key=len, reverse=True):
+            if float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) < params.min_length_m(inst.type):
+                continue
+            out.append((replace(inst, points_xy_world=points_w), lat if not kept else lat[:0],
+                        alo if not kept else alo[:0], observed_w))
+            kept += 1
+        n_dropped += len(parts) - kept if parts else 1
+    return out, n_dropped
+
+
 def _style(styles: list) -> DividerStyle | None:
     votes = Counter(s for s in styles if s is not None and s != DividerStyle.UNKNOWN)
     if votes:
@@ -254,7 +288,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     lateral: dict[ElementType, list[np.ndarray]] = {}
     along: dict[ElementType, list[np.ndarray]] = {}
     n_dropped = 0
-    candidates: list[tuple[TripInstance, np.ndarray, np.ndarray]] = []
+    # (instance, lateral residuals, along residuals, its track's observed points or None)
+    candidates: list[tuple[TripInstance, np.ndarray, np.ndarray, np.ndarray | None]] = []
     whole_polygons: dict[int, np.ndarray] = {}  # polygon outlines fused from whole (unclipped) outlines, by id (kept alive)
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
@@ -294,6 +329,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
                                  s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        observed_w = None if track.type.is_polygon else pts_w
         if track.type.is_polygon:
             whole = np.logical_and.reduceat(_inside(pts_v, box, edge_margin), offsets[:-1])
             obs_w = np.split(pts_w, offsets[1:-1])
@@ -371,15 +407,18 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             candidates.append((TripInstance(
                 type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
-                lat, alo))
+                lat, alo, observed_w))
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
+    if params.PAINT_BREAKS:
+        candidates, n_cut = _cut_at_paint_breaks(candidates, params)
+        n_dropped += n_cut
     # 6. noise per element type from the residuals; a line whose own residuals are far wider
     # than its type's (a mixture of elements: connectors crossing in a junction) is dropped.
     # Not a polygon: its vertex residuals include vertices sliding along a side (a crosswalk's
     # intermediate vertices), so a whole, well-seen crosswalk looked like a mixture.
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in ElementType},
                            {t: [c[2] for c in candidates if c[0].type == t] for t in ElementType}, params)
-    for inst, lat, alo in candidates:
+    for inst, lat, alo, _ in candidates:
         ref = noise[inst.type]
         if (not inst.type.is_polygon and len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
                 and robust_sigma(lat) > max(params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m,

@@ -26,6 +26,18 @@ class SynthLine:
 
 
 @dataclass(frozen=True)
+class SynthCrossing:
+    """A stop line (a line) or crosswalk (a rectangle) across the road at arclength ``s_m``,
+    from lateral offset ``from_m`` to ``to_m``; perceived whole, in frames that hold all of it."""
+
+    type: ElementType
+    s_m: float
+    from_m: float
+    to_m: float
+    width_m: float = 4.0  # along the road (crosswalks)
+
+
+@dataclass(frozen=True)
 class SynthSpec:
     length_m: float = 300.0
     speed_mps: float = 10.0
@@ -52,6 +64,7 @@ class SynthSpec:
     odom_yaw_sigma_per_m: float = 0.0
     element_sigma_m: float = 0.0
     ghosts: tuple[tuple[int, int, int, float], ...] = ()  # (first, last, line index, shift m)
+    crossings: tuple[SynthCrossing, ...] = ()
     origin_lonlat: tuple[float, float] = (11.58, 48.137)
     seed: int = 0
     extra: dict = field(default_factory=dict)
@@ -75,6 +88,16 @@ def line_points_world(spec: SynthSpec, line: SynthLine, spacing_m: float = 0.25)
     ref = _curve(s, spec.curvature_1pm, spec.heading_rad)
     normal = np.stack([-np.sin(ref[:, 2]), np.cos(ref[:, 2])], axis=1)
     return ref[:, :2] + line.offset_m * normal
+
+
+def crossing_points_world(spec: SynthSpec, crossing: SynthCrossing) -> np.ndarray:
+    """World outline of a crosswalk ``(4, 2)``, or the two ends of a stop line ``(2, 2)``."""
+    half = crossing.width_m / 2 if crossing.type == ElementType.CROSSWALK else 0.0
+    out = []
+    for ds, offset in ((-half, crossing.from_m), (-half, crossing.to_m), (half, crossing.to_m), (half, crossing.from_m)):
+        ref = _curve(np.array([crossing.s_m + ds]), spec.curvature_1pm, spec.heading_rad)[0]
+        out.append(ref[:2] + offset * np.array([-np.sin(ref[2]), np.cos(ref[2])]))
+    return np.array(out if half else out[:2])
 
 
 def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
@@ -143,6 +166,12 @@ def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
                         continue
                     c = c + rng.normal(size=c.shape) * spec.element_sigma_m
                     frame_elems.append(PerceivedElement(line.type, c, style=line.style, score=0.9))
+        for crossing in spec.crossings:
+            pts = se2.transform_points(veh_T_world, crossing_points_world(spec, crossing))
+            if ((pts[:, 0] >= spec.bev_x_m[0]) & (pts[:, 0] <= spec.bev_x_m[1])
+                    & (pts[:, 1] >= spec.bev_y_m[0]) & (pts[:, 1] <= spec.bev_y_m[1])).all():
+                pts = pts + rng.normal(size=pts.shape) * spec.element_sigma_m
+                frame_elems.append(PerceivedElement(crossing.type, pts, score=0.9))
         elements.append(tuple(frame_elems))
 
     lonlat = frame.to_lonlat(gnss_xy)

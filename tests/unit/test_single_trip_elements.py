@@ -19,7 +19,14 @@ from csr_core.sim.scenario import simulate_scenario
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.noise import robust_sigma
 from csr_core.single_trip.params import DEFAULT
-from csr_core.single_trip.synthetic import SynthLine, SynthSpec, line_points_world, make_trip
+from csr_core.single_trip.synthetic import (
+    SynthCrossing,
+    SynthLine,
+    SynthSpec,
+    crossing_points_world,
+    line_points_world,
+    make_trip,
+)
 from csr_core.single_trip.tracking import pair_distance, resample_flat
 from csr_core.types import DividerStyle, ElementType, MapFeature
 
@@ -119,6 +126,51 @@ def test_dashed_divider_stays_one_instance():
     assert length > 300.0  # spans the gaps, from first to last dash seen
     truth = line_points_world(spec, spec.lines[1], 0.1)
     assert _dist_to_line(d.points_xy_world, truth).max() < 0.1
+
+
+def _crossing_geometry(spec, crossing):
+    pts = crossing_points_world(spec, crossing)
+    return shapely.Polygon(pts) if crossing.type == ElementType.CROSSWALK else shapely.LineString(pts)
+
+
+@pytest.mark.parametrize("crossing_type", [ElementType.CROSSWALK, ElementType.STOP_LINE])
+def test_dashed_divider_is_cut_where_its_paint_breaks_at_a_crossing(crossing_type):
+    # the paint stops 4 m before a crosswalk / stop line and starts again 4 m after it: an 8 m gap,
+    # which the splice bridges like a dash gap (6 m here) unless the crossing in it breaks the line
+    dashed = dict(type=ElementType.LANE_DIVIDER, offset_m=1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0))
+    crossing = SynthCrossing(crossing_type, s_m=142.0, from_m=-1.9, to_m=5.4)
+    spec = SynthSpec(
+        length_m=300.0, element_sigma_m=0.03, seed=6, crossings=(crossing,),
+        lines=(SynthLine(ElementType.ROAD_BOUNDARY, -1.9), SynthLine(**dashed, s_range_m=(0.0, 138.0)),
+               SynthLine(**dashed, s_range_m=(146.0, 400.0)), SynthLine(ElementType.ROAD_BOUNDARY, 5.4)))
+    trip, _, frame = make_trip(spec)
+    geometry = _crossing_geometry(spec, crossing)
+    assert _instances(reconstruct_trip(trip, frame), crossing_type)
+
+    def across(params):
+        return [i for i in _instances(reconstruct_trip(trip, frame, params), ElementType.LANE_DIVIDER)
+                if shapely.LineString(i.points_xy_world).distance(geometry) < 1.0]
+
+    assert across(replace(DEFAULT, PAINT_BREAKS=False))  # bridged without the rule
+    assert not across(DEFAULT)
+    dividers = _instances(reconstruct_trip(trip, frame), ElementType.LANE_DIVIDER)
+    assert len(dividers) == 2
+    on_line = [[np.percentile(_dist_to_line(d.points_xy_world, line_points_world(spec, line, 0.1)), 95) < 0.2
+                for line in spec.lines[1:3]] for d in dividers]
+    assert sorted(on_line) == [[False, True], [True, False]]  # one instance on each painted line
+
+
+def test_a_divider_seen_across_a_crosswalk_is_not_cut():
+    crossing = SynthCrossing(ElementType.CROSSWALK, s_m=145.0, from_m=-1.9, to_m=5.4)
+    spec = SynthSpec(length_m=300.0, element_sigma_m=0.03, seed=6, crossings=(crossing,))
+    trip, _, frame = make_trip(spec)
+    rec = reconstruct_trip(trip, frame)
+    assert _instances(rec, ElementType.CROSSWALK)
+    geometry = _crossing_geometry(spec, crossing)
+    solid = [i for i in _instances(rec, ElementType.LANE_DIVIDER)
+             if shapely.LineString(i.points_xy_world).intersects(geometry)]
+    assert len(solid) == 2  # both dividers of the default road run through it, whole
+    assert all(np.linalg.norm(np.diff(i.points_xy_world, axis=0), axis=1).sum() > 280.0 for i in solid)
 
 
 def test_noise_estimate_recovers_the_injected_sigma():

@@ -1,0 +1,62 @@
+"""Painted lines break at stop lines and crosswalks: a divider's unseen stretch across one is cut.
+
+A dashed divider is spliced across its dash gaps (``SPLICE_MAX_GAP_M``), so one instance spans
+the gaps between its dashes, which the map counts as part of the line. Paint also stops at a stop
+line and at a crosswalk, and the junction's guide line (or the next road's divider) starts a few
+metres on; the splice bridges that break just as it bridges a dash gap, and the bridge lies where
+the truth has no line (Karlsruhe, docs/single-trip.md "Session 35": 3-6 m bridges at most of its
+stop lines and crosswalks, in every trip that passes them).
+
+The trip tells the two gaps apart by what lies in them: a stretch of the instance with none of its
+own observations within ``gate_m`` that reaches a stop line or crosswalk of the same trip (within
+the ``reach_m`` of :func:`barrier_geometry`) is a break in the paint, and the instance is cut there. A stretch
+that was observed is never cut: a line painted through a crosswalk stays whole.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+from scipy.spatial import cKDTree
+
+
+def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
+                     reach_m: float) -> shapely.Geometry | None:
+    """The trip's stop lines and crosswalk outlines widened by ``reach_m``, as one prepared
+    geometry (``None`` when the trip has neither)."""
+    parts = [shapely.LineString(p) for p in stop_lines_xy if len(p) >= 2]
+    parts += [shapely.Polygon(p) for p in crosswalks_xy if len(p) >= 3]
+    if not parts:
+        return None
+    barrier = shapely.union_all([shapely.buffer(g, reach_m) for g in parts])
+    shapely.prepare(barrier)
+    return barrier
+
+
+def unseen_runs(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list[tuple[int, int]]:
+    """Half-open index ranges ``[a, b)`` of the maximal runs of vertices of ``points_xy`` with no
+    observation within ``gate_m``."""
+    seen = observed.query(points_xy, distance_upper_bound=gate_m + 1e-9)[0] <= gate_m
+    return _true_runs(~seen)
+
+
+def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def cut_at_paint_breaks(points_xy: np.ndarray, observed: cKDTree, barrier: shapely.Geometry | None,
+                        gate_m: float) -> list[np.ndarray]:
+    """``points_xy`` ``(M, 2)`` split where an unseen run (:func:`unseen_runs`), together with the
+    segments joining it to its seen neighbours, meets ``barrier``; the run itself is dropped.
+    Parts of fewer than two vertices are dropped. One part, the input itself, when nothing is cut."""
+    if barrier is None or len(points_xy) < 2:
+        return [points_xy]
+    cut = np.zeros(len(points_xy), bool)
+    for a, b in unseen_runs(points_xy, observed, gate_m):
+        span = points_xy[max(a - 1, 0):min(b + 1, len(points_xy))]
+        if len(span) >= 2 and barrier.intersects(shapely.LineString(span)):
+            cut[a:b] = True
+    if not cut.any():
+        return [points_xy]
+    return [points_xy[a:b] for a, b in _true_runs(~cut) if b - a >= 2]
