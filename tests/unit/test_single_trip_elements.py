@@ -145,15 +145,16 @@ def test_dashed_divider_is_cut_where_its_paint_breaks_at_a_crossing(crossing_typ
                SynthLine(**dashed, s_range_m=(146.0, 400.0)), SynthLine(ElementType.ROAD_BOUNDARY, 5.4)))
     trip, _, frame = make_trip(spec)
     geometry = _crossing_geometry(spec, crossing)
-    assert _instances(reconstruct_trip(trip, frame), crossing_type)
 
-    def across(params):
-        return [i for i in _instances(reconstruct_trip(trip, frame, params), ElementType.LANE_DIVIDER)
+    def across(rec):
+        return [i for i in _instances(rec, ElementType.LANE_DIVIDER)
                 if shapely.LineString(i.points_xy_world).distance(geometry) < 1.0]
 
-    assert across(replace(DEFAULT, PAINT_BREAKS=False))  # bridged without the rule
-    assert not across(DEFAULT)
-    dividers = _instances(reconstruct_trip(trip, frame), ElementType.LANE_DIVIDER)
+    assert across(reconstruct_trip(trip, frame, replace(DEFAULT, PAINT_BREAKS=False)))  # bridged without the rule
+    rec = reconstruct_trip(trip, frame)
+    assert _instances(rec, crossing_type)
+    assert not across(rec)
+    dividers = _instances(rec, ElementType.LANE_DIVIDER)
     assert len(dividers) == 2
     on_line = [[np.percentile(_dist_to_line(d.points_xy_world, line_points_world(spec, line, 0.1)), 95) < 0.2
                 for line in spec.lines[1:3]] for d in dividers]
@@ -169,7 +170,7 @@ def test_a_divider_seen_across_a_crosswalk_is_not_cut():
     geometry = _crossing_geometry(spec, crossing)
     solid = [i for i in _instances(rec, ElementType.LANE_DIVIDER)
              if shapely.LineString(i.points_xy_world).intersects(geometry)]
-    assert len(solid) == 2  # both dividers of the default road run through it, whole
+    assert len(solid) == 2  # both dividers of the default road, perceived unbroken through it, stay whole
     assert all(np.linalg.norm(np.diff(i.points_xy_world, axis=0), axis=1).sum() > 280.0 for i in solid)
 
 
