@@ -25,7 +25,7 @@ from csr_core.geo import LocalFrame
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
-from csr_core.single_trip.paint_breaks import barrier_geometry, cut_at_paint_breaks
+from csr_core.single_trip.paint_breaks import barrier_geometry, cut_at_paint_breaks, cut_unseen
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import (
@@ -40,6 +40,8 @@ from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_obse
 from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
+# types with no dash gaps: an unseen stretch of one is not part of it (paint_breaks.cut_unseen)
+_CONTINUOUS = frozenset({ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE})
 
 __all__ = ["DEFAULT", "SingleTripParams", "bev_range_m", "reconstruct_trip"]
 
@@ -214,25 +216,28 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
 
 def _cut_at_paint_breaks(candidates: list, params: SingleTripParams) -> tuple[list, int]:
     """Lane dividers cut where an unseen stretch of theirs meets a stop line or crosswalk of the
-    trip (``paint_breaks``); parts shorter than the type's minimum length are dropped (counted),
+    trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``); parts shorter than the type's minimum length are dropped (counted),
     the residuals stay with the longest part, and every part keeps the track's frames and
     observation count."""
     barrier = barrier_geometry([c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
                                [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
-                               params.PAINT_BREAK_REACH_M)
-    if barrier is None:
-        return candidates, 0
+                               params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None
     out, n_dropped = [], 0
     for cand in candidates:
         inst, lat, alo, observed_w = cand
-        if inst.type != ElementType.LANE_DIVIDER or observed_w is None:
+        if observed_w is None:
             out.append(cand)
             continue
-        parts = cut_at_paint_breaks(inst.points_xy_world, cKDTree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
+        if inst.type == ElementType.LANE_DIVIDER and barrier is not None:
+            parts = cut_at_paint_breaks(inst.points_xy_world, cKDTree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
+        elif inst.type in _CONTINUOUS and params.CONTINUOUS_UNSEEN_CUT:
+            parts = cut_unseen(inst.points_xy_world, cKDTree(observed_w), params.PAINT_BREAK_GATE_M)
+        else:
+            parts = [inst.points_xy_world]
         if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):
             out.append(cand)
             continue
-        log.debug("%s from %s: cut at a stop line or crosswalk it was not seen across, %d parts",
+        log.debug("%s from %s: cut where it was not seen, %d parts",
                   inst.type.value, np.round(inst.points_xy_world[0], 1), len(parts))
         kept = 0
         for points_w in sorted(parts, key=len, reverse=True):
@@ -331,9 +336,11 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         observed_w = None if track.type.is_polygon else pts_w
         if track.type.is_polygon:
-            whole = np.logical_and.reduceat(_inside(pts_v, box, edge_margin), offsets[:-1])
+            inside = _inside(pts_v, box, edge_margin)
+            whole = np.logical_and.reduceat(inside, offsets[:-1])
             obs_w = np.split(pts_w, offsets[1:-1])
-            outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2])
+            outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2],
+                                               np.split(inside, offsets[1:-1]) if params.POLYGON_EDGE_AXES else None)
             spliced.append((outline, lat, alo, track.frames))
             if whole.any():
                 whole_polygons[id(outline)] = outline
@@ -409,7 +416,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
                 lat, alo, observed_w))
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
-    if params.PAINT_BREAKS:
+    if params.PAINT_BREAKS or params.CONTINUOUS_UNSEEN_CUT:
         candidates, n_cut = _cut_at_paint_breaks(candidates, params)
         n_dropped += n_cut
     # 6. noise per element type from the residuals; a line whose own residuals are far wider

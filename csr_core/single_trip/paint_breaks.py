@@ -11,6 +11,13 @@ The trip tells the two gaps apart by what lies in them: a stretch of the instanc
 own observations within ``gate_m`` that reaches a stop line or crosswalk of the same trip (within
 the ``reach_m`` of :func:`barrier_geometry`) is a break in the paint, and the instance is cut there. A stretch
 that was observed is never cut: a line painted through a crosswalk stays whole.
+
+Road boundaries and centrelines have no dash gaps: they are continuous where they exist, so
+every stretch of one that none of its own observations comes within ``gate_m`` of is cut
+(:func:`cut_unseen`), wherever it lies. Such a stretch is a bridge the splice made across a gap
+of up to ``SPLICE_MAX_GAP_M`` (a kerb across a side street's mouth, a centreline round the
+U-turn the trip made at a dead end) or an end carried past what was seen, and on every
+simulated world it lies off the truth (docs/single-trip.md, "Session 36").
 """
 
 from __future__ import annotations
@@ -43,6 +50,18 @@ def unseen_runs(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list
 def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def cut_unseen(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list[np.ndarray]:
+    """``points_xy`` ``(M, 2)`` with its unseen runs (:func:`unseen_runs`) dropped; parts of
+    fewer than two vertices are dropped. One part, the input itself, when all of it was seen."""
+    runs = unseen_runs(points_xy, observed, gate_m) if len(points_xy) >= 2 else []
+    if not runs:
+        return [points_xy]
+    cut = np.zeros(len(points_xy), bool)
+    for a, b in runs:
+        cut[a:b] = True
+    return [points_xy[a:b] for a, b in _true_runs(~cut) if b - a >= 2]
 
 
 def cut_at_paint_breaks(points_xy: np.ndarray, observed: cKDTree, barrier: shapely.Geometry | None,

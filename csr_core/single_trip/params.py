@@ -136,8 +136,16 @@ class SingleTripParams:
     PAINT_BREAKS: bool = True
     PAINT_BREAK_GATE_M: float = 1.0
     PAINT_BREAK_REACH_M: float = 1.0
+    # road boundaries and centrelines are continuous: a stretch of one with none of its own
+    # observations within PAINT_BREAK_GATE_M is not a dash gap but a bridge across a junction
+    # mouth or a turn the trip made (a U-turn), or an end carried past what was seen; the
+    # instance is cut there, whatever lies beside it
+    CONTINUOUS_UNSEEN_CUT: bool = True
 
     # --- splicing ------------------------------------------------------------------------------------
+    # a polygon never seen whole: its rectangle's axes from its observed sides, not from the
+    # principal axes of the clipped outlines (splicing._robust_rectangle)
+    POLYGON_EDGE_AXES: bool = True
     SPLICE_BIN_M: float = 1.0  # arclength bins of the robust lateral profile
     SPLICE_SMOOTH_SIGMA_M: float = 2.0  # Gaussian smoothing of the lateral profile along arclength
     SPLICE_OUTLIER_SIGMAS: float = 3.0

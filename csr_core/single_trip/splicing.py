@@ -722,14 +722,42 @@ def polygon_area(poly: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, y[nxt]) - np.dot(y, x[nxt]))
 
 
-def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """An element never seen whole (a crosswalk wider than the BEV range): the rectangle on the
-    principal axes of all observed outline points, spanning their q..1-q quantiles. Residuals:
-    each observation's points beyond the rectangle, lateral/along the vehicle heading."""
+def _edge_axes(polys: list[np.ndarray], inside: list[np.ndarray]) -> np.ndarray | None:
+    """The axes (2, 2) of a rectangle from its observed edges: the length-weighted mean direction
+    of the outline edges whose both ends lie inside the BEV range (the element's own sides, not
+    the range's cut across it), modulo a right angle (a doubled-doubled angle average); None
+    without such edges."""
+    sum_sin = sum_cos = 0.0
+    for poly, ins in zip(polys, inside, strict=True):
+        nxt = np.roll(np.arange(len(poly)), -1)
+        keep = ins & ins[nxt]
+        if not keep.any():
+            continue
+        edge = poly[nxt[keep]] - poly[keep]
+        length = np.hypot(edge[:, 0], edge[:, 1])
+        angle4 = 4.0 * np.arctan2(edge[:, 1], edge[:, 0])
+        sum_sin += float(np.dot(length, np.sin(angle4)))
+        sum_cos += float(np.dot(length, np.cos(angle4)))
+    if math.hypot(sum_sin, sum_cos) < 1e-9:
+        return None
+    theta = 0.25 * math.atan2(sum_sin, sum_cos)
+    return np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
+
+
+def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02,
+                      inside: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An element never seen whole (a crosswalk wider than the BEV range): the rectangle spanning
+    the q..1-q quantiles of all observed outline points along its axes. The axes are those of its
+    observed sides (``_edge_axes``, ``inside`` (per outline, per vertex) marking the vertices
+    inside the BEV range), else the principal axes of the points: the part of a crosswalk that the
+    range lets through is a strip cut at the range's angle, whose principal axes can lie anywhere
+    (Karlsruhe s3, docs/single-trip.md "Session 36"). Residuals: each observation's points beyond
+    the rectangle, lateral/along the vehicle heading."""
     pts = np.concatenate(polys)
     mu = pts.mean(0)
-    _, _, vt = np.linalg.svd(pts - mu, full_matrices=False)
+    vt = _edge_axes(polys, inside) if inside is not None else None
+    if vt is None:
+        _, _, vt = np.linalg.svd(pts - mu, full_matrices=False)
     proj = (pts - mu) @ vt.T
     lo, hi = np.quantile(proj, q, axis=0), np.quantile(proj, 1 - q, axis=0)
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]) @ vt + mu
@@ -743,13 +771,14 @@ def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: floa
     return corners, lateral, along
 
 
-def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.ndarray,
+                   inside: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observed outlines (world) -> one outline, lateral and along residuals (vehicle heading).
 
-    ``whole`` (n_obs,) bool: the observation is not clipped by the BEV range."""
+    ``whole`` (n_obs,) bool: the observation is not clipped by the BEV range; ``inside`` (per
+    outline, per vertex): the vertex lies inside the range (for ``_robust_rectangle``)."""
     if not whole.any():
-        return _robust_rectangle(polys, headings_rad)
+        return _robust_rectangle(polys, headings_rad, inside=inside)
     cand = [i for i in range(len(polys)) if whole[i]]
     # consistent winding (counter-clockwise)
     signed = [polygon_area(p) for p in polys]

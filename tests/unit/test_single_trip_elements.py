@@ -174,6 +174,80 @@ def test_a_divider_seen_across_a_crosswalk_is_not_cut():
     assert all(np.linalg.norm(np.diff(i.points_xy_world, axis=0), axis=1).sum() > 280.0 for i in solid)
 
 
+def _u_turn(radius_m=1.8, lane_end_m=48.0, loop_from_m=50.0):
+    """A trip up the lane x = 0 to a dead end, round a U-turn and back down the lane x = 2 r: its
+    path (P, 2), and each lane's centreline seen piece by piece (flat points, observation ids)."""
+    up = np.column_stack([np.zeros(51), np.linspace(0.0, loop_from_m, 51)])
+    theta = np.linspace(np.pi, 0.0, 25)
+    loop = np.column_stack([radius_m + radius_m * np.cos(theta), loop_from_m + radius_m * np.sin(theta)])
+    path = np.vstack([up, loop[1:], up[::-1] + (2 * radius_m, 0.0)])
+    rng = np.random.default_rng(2)
+    points, ids = [], []
+    for y0 in np.arange(0.0, lane_end_m - 10.0, 5.0):  # 20 m pieces ahead of the car
+        for x, sense in ((0.0, 1.0), (2 * radius_m, -1.0)):
+            y = np.arange(y0, min(y0 + 20.0, lane_end_m) + 1e-9, 0.5)
+            piece = np.column_stack([np.full(len(y), x), y if sense > 0 else y[::-1]])
+            points.append(piece + rng.normal(0.0, 0.03, piece.shape))
+            ids.append(np.full(len(y), len(ids)))
+    return path, np.vstack(points), np.concatenate(ids)
+
+
+def test_centreline_spliced_round_a_u_turn_is_cut_back_to_what_was_seen():
+    # the centrelines of both lanes of a dead-end road lie on the path the trip drove (up one,
+    # back down the other), so one track holds both and the splice along the path bridges the
+    # U-turn between them, where no centreline was seen. A centreline has no dash gaps: the
+    # stretch none of its observations comes near is cut out, each lane keeps its own line
+    from scipy.spatial import cKDTree
+
+    from csr_core.single_trip.paint_breaks import cut_unseen
+    from csr_core.single_trip.splicing import splice_line
+
+    path, points, ids = _u_turn()
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    obs_ends = np.column_stack([starts, np.r_[starts[1:], len(ids)] - 1])
+    spliced = splice_line(points, ids, obs_ends, np.ones(obs_ends.shape, bool), path, DEFAULT)
+    assert len(spliced) == 1
+    line = spliced[0].points_xy_world
+    observed = cKDTree(points)
+    assert observed.query(line)[0].max() > 2.0  # it runs round the loop
+    parts = cut_unseen(line, observed, DEFAULT.PAINT_BREAK_GATE_M)
+    assert len(parts) == 2
+    for part in parts:
+        lane_x = 0.0 if abs(part[:, 0].mean()) < 1.0 else 3.6
+        assert np.abs(part[:, 0] - lane_x).max() < 0.3
+        assert np.ptp(part[:, 1]) > 40.0
+
+
+def test_crosswalk_never_seen_whole_keeps_the_axes_of_its_sides():
+    # a 12 m x 4 m crosswalk on a side arm, 35 degrees off the vehicle's heading, only ever seen cut
+    # by the BEV range's side (a line along the heading): the part seen is a strip cut at the
+    # range's angle. Its rectangle takes the axes of the crosswalk's own sides, not the strip's
+    from csr_core.single_trip.splicing import splice_polygon
+
+    angle = np.radians(35.0)
+    axis, across = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+    truth = shapely.Polygon([a * axis + b * across for a, b in ((0, 0), (12, 0), (12, 4), (0, 4))])
+    rng = np.random.default_rng(3)
+    polys, inside = [], []
+    for edge_y in np.linspace(4.0, 7.0, 12):  # the range's side y = edge_y in the world (heading 0)
+        seen = shapely.intersection(truth, shapely.box(-50.0, -50.0, 50.0, edge_y))
+        outline = np.asarray(seen.exterior.coords)[:-1]
+        polys.append(outline + rng.normal(0.0, 0.03, outline.shape))
+        inside.append(np.abs(outline[:, 1] - edge_y) > 1e-6)
+    headings = np.zeros(len(polys))
+
+    def axis_error_deg(outline):
+        side = outline[1] - outline[0]
+        err = (np.degrees(np.arctan2(side[1], side[0])) - 35.0) % 90.0
+        return min(err, 90.0 - err)
+
+    fused, _, _ = splice_polygon(polys, np.zeros(len(polys), bool), headings, inside)
+    assert axis_error_deg(fused) < 1.0
+    assert shapely.Polygon(fused).intersection(truth).area > 0.9 * shapely.Polygon(fused).area
+    principal, _, _ = splice_polygon(polys, np.zeros(len(polys), bool), headings)  # without the sides
+    assert axis_error_deg(principal) > 5.0
+
+
 def test_noise_estimate_recovers_the_injected_sigma():
     sigma = 0.12
     spec = SynthSpec(length_m=400.0, element_sigma_m=sigma, seed=8)
