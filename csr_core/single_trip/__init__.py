@@ -216,9 +216,9 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
 
 def _cut_at_paint_breaks(candidates: list, params: SingleTripParams) -> tuple[list, int]:
     """Lane dividers cut where an unseen stretch of theirs meets a stop line or crosswalk of the
-    trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``); parts shorter than the type's minimum length are dropped (counted),
-    the residuals stay with the longest part, and every part keeps the track's frames and
-    observation count."""
+    trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``); parts
+    shorter than the type's minimum length are dropped (counted), the residuals stay with the
+    longest part, and every part keeps the track's frames and observation count."""
     barrier = barrier_geometry([c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
                                [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
                                params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None

@@ -15,9 +15,9 @@ that was observed is never cut: a line painted through a crosswalk stays whole.
 Road boundaries and centrelines have no dash gaps: they are continuous where they exist, so
 every stretch of one that none of its own observations comes within ``gate_m`` of is cut
 (:func:`cut_unseen`), wherever it lies. Such a stretch is a bridge the splice made across a gap
-of up to ``SPLICE_MAX_GAP_M`` (a kerb across a side street's mouth, a centreline round the
-U-turn the trip made at a dead end) or an end carried past what was seen, and on every
-simulated world it lies off the truth (docs/single-trip.md, "Session 36").
+of up to ``SPLICE_MAX_GAP_M`` (most often a centreline round the U-turn the trip made at a dead
+end, from one lane's centreline to the other's) or an end carried past what was seen, and on
+every simulated world it lies off the truth (docs/single-trip.md, "Session 36").
 """
 
 from __future__ import annotations

@@ -137,9 +137,9 @@ class SingleTripParams:
     PAINT_BREAK_GATE_M: float = 1.0
     PAINT_BREAK_REACH_M: float = 1.0
     # road boundaries and centrelines are continuous: a stretch of one with none of its own
-    # observations within PAINT_BREAK_GATE_M is not a dash gap but a bridge across a junction
-    # mouth or a turn the trip made (a U-turn), or an end carried past what was seen; the
-    # instance is cut there, whatever lies beside it
+    # observations within PAINT_BREAK_GATE_M is not a dash gap but a bridge the splice made (round
+    # a U-turn the trip made at a dead end), or an end carried past what was seen; the instance
+    # is cut there, whatever lies beside it
     CONTINUOUS_UNSEEN_CUT: bool = True
 
     # --- splicing ------------------------------------------------------------------------------------
