@@ -214,7 +214,7 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
     return [c for i, c in enumerate(candidates) if i not in dropped]
 
 
-def _cut_at_paint_breaks(candidates: list, params: SingleTripParams) -> tuple[list, int]:
+def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list, int]:
     """Lane dividers cut where an unseen stretch of theirs meets a stop line or crosswalk of the
     trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``); parts
     shorter than the type's minimum length are dropped (counted), the residuals stay with the
@@ -417,7 +417,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 lat, alo, observed_w))
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
     if params.PAINT_BREAKS or params.CONTINUOUS_UNSEEN_CUT:
-        candidates, n_cut = _cut_at_paint_breaks(candidates, params)
+        candidates, n_cut = _cut_where_unseen(candidates, params)
         n_dropped += n_cut
     # 6. noise per element type from the residuals; a line whose own residuals are far wider
     # than its type's (a mixture of elements: connectors crossing in a junction) is dropped.
