@@ -52,10 +52,9 @@ def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
-def cut_unseen(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list[np.ndarray]:
-    """``points_xy`` ``(M, 2)`` with its unseen runs (:func:`unseen_runs`) dropped; parts of
-    fewer than two vertices are dropped. One part, the input itself, when all of it was seen."""
-    runs = unseen_runs(points_xy, observed, gate_m) if len(points_xy) >= 2 else []
+def _without_runs(points_xy: np.ndarray, runs: list[tuple[int, int]]) -> list[np.ndarray]:
+    """``points_xy`` split at the vertex ranges ``runs`` (dropped); parts of fewer than two
+    vertices are dropped. One part, the input itself, when ``runs`` is empty."""
     if not runs:
         return [points_xy]
     cut = np.zeros(len(points_xy), bool)
@@ -64,18 +63,20 @@ def cut_unseen(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list[
     return [points_xy[a:b] for a, b in _true_runs(~cut) if b - a >= 2]
 
 
+def cut_unseen(points_xy: np.ndarray, observed: cKDTree, gate_m: float) -> list[np.ndarray]:
+    """``points_xy`` ``(M, 2)`` with its unseen runs (:func:`unseen_runs`) dropped."""
+    if len(points_xy) < 2:
+        return [points_xy]
+    return _without_runs(points_xy, unseen_runs(points_xy, observed, gate_m))
+
+
 def cut_at_paint_breaks(points_xy: np.ndarray, observed: cKDTree, barrier: shapely.Geometry | None,
                         gate_m: float) -> list[np.ndarray]:
     """``points_xy`` ``(M, 2)`` split where an unseen run (:func:`unseen_runs`), together with the
-    segments joining it to its seen neighbours, meets ``barrier``; the run itself is dropped.
-    Parts of fewer than two vertices are dropped. One part, the input itself, when nothing is cut."""
+    segments joining it to its seen neighbours, meets ``barrier``; the run itself is dropped."""
     if barrier is None or len(points_xy) < 2:
         return [points_xy]
-    cut = np.zeros(len(points_xy), bool)
-    for a, b in unseen_runs(points_xy, observed, gate_m):
-        span = points_xy[max(a - 1, 0):min(b + 1, len(points_xy))]
-        if len(span) >= 2 and barrier.intersects(shapely.LineString(span)):
-            cut[a:b] = True
-    if not cut.any():
-        return [points_xy]
-    return [points_xy[a:b] for a, b in _true_runs(~cut) if b - a >= 2]
+    n = len(points_xy)  # a run with its seen neighbours always spans at least two vertices here
+    return _without_runs(points_xy, [
+        (a, b) for a, b in unseen_runs(points_xy, observed, gate_m)
+        if barrier.intersects(shapely.LineString(points_xy[max(a - 1, 0):min(b + 1, n)]))])
