@@ -37,7 +37,7 @@ from csr_core.single_trip.splicing import (
     unique_ids,
 )
 from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_observations, track_elements
-from csr_core.types import DividerStyle, ElementType, TripInstance, TripReconstruction
+from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
 # types with no dash gaps: an unseen stretch of one is not part of it (paint_breaks.cut_unseen)
@@ -214,14 +214,35 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
     return [c for i, c in enumerate(candidates) if i not in dropped]
 
 
+def _unseen_gate_m(noise: ElementNoise, params: SingleTripParams) -> float:
+    """How near one of its observations a vertex of a road boundary or centreline must lie to have
+    been seen: ``UNSEEN_CUT_SIGMAS`` of the type's lateral noise in this trip (floored at
+    ``INSTANCE_MIXTURE_MIN_SIGMA_M``, as for a near-noiseless perception) plus half the spacing of
+    the observation points, and never more than one splice bin (``PAINT_BREAK_GATE_M``, the gate
+    of session 36, which was used for every trip alike)."""
+    if not params.UNSEEN_CUT_SIGMAS:
+        return params.PAINT_BREAK_GATE_M
+    sigma_m = max(noise.lateral_sigma_m, params.INSTANCE_MIXTURE_MIN_SIGMA_M)
+    return min(params.UNSEEN_CUT_SIGMAS * sigma_m + params.UNSEEN_CUT_STEP_M / 2, params.PAINT_BREAK_GATE_M)
+
+
 def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list, int]:
     """Lane dividers cut where an unseen stretch of theirs meets a stop line or crosswalk of the
-    trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``); parts
-    shorter than the type's minimum length are dropped (counted), the residuals stay with the
-    longest part, and every part keeps the track's frames and observation count."""
+    trip, road boundaries and centrelines at every unseen stretch (``paint_breaks``; "unseen" for
+    these by the noise of their type in the trip, :func:`_unseen_gate_m`); parts shorter than the
+    type's minimum length are dropped (counted), the residuals stay with the longest part, and
+    every part keeps the track's frames and observation count."""
     barrier = barrier_geometry([c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
                                [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
                                params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None
+    noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in _CONTINUOUS}, {}, params)
+    trees: dict[int, cKDTree] = {}  # one per track: the instances cut from one track share its observations
+
+    def tree(observed_w: np.ndarray) -> cKDTree:
+        if id(observed_w) not in trees:
+            trees[id(observed_w)] = cKDTree(observed_w, balanced_tree=False)
+        return trees[id(observed_w)]
+
     out, n_dropped = [], 0
     for cand in candidates:
         inst, lat, alo, observed_w = cand
@@ -229,9 +250,9 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
             out.append(cand)
             continue
         if inst.type == ElementType.LANE_DIVIDER and barrier is not None:
-            parts = cut_at_paint_breaks(inst.points_xy_world, cKDTree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
+            parts = cut_at_paint_breaks(inst.points_xy_world, tree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
         elif inst.type in _CONTINUOUS and params.CONTINUOUS_UNSEEN_CUT:
-            parts = cut_unseen(inst.points_xy_world, cKDTree(observed_w), params.PAINT_BREAK_GATE_M)
+            parts = cut_unseen(inst.points_xy_world, tree(observed_w), _unseen_gate_m(noise[inst.type], params))
         else:
             parts = [inst.points_xy_world]
         if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):
@@ -335,6 +356,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                                  s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         observed_w = None if track.type.is_polygon else pts_w
+        if track.type in _CONTINUOUS and params.UNSEEN_CUT_SIGMAS:  # no gap between a detection's points
+            observed_w = densify_flat(pts_w, offsets, params.UNSEEN_CUT_STEP_M)[0]
         if track.type.is_polygon:
             inside = _inside(pts_v, box, edge_margin)
             whole = np.logical_and.reduceat(inside, offsets[:-1])

@@ -141,6 +141,13 @@ class SingleTripParams:
     # a U-turn the trip made at a dead end), or an end carried past what was seen; the instance
     # is cut there, whatever lies beside it
     CONTINUOUS_UNSEEN_CUT: bool = True
+    # "seen" for that cut: an observation within SIGMAS x the type's lateral noise in the trip
+    # (its residuals before the cut) plus half of STEP, the spacing the observations are densified
+    # to for it; at most PAINT_BREAK_GATE_M. 0: PAINT_BREAK_GATE_M for every trip (session 36).
+    # A splice standing 0.6-0.8 m off its own observations (fragments of junction centrelines,
+    # Karlsruhe) is inside 1 m but far outside the noise (docs/single-trip.md, "Session 37")
+    UNSEEN_CUT_SIGMAS: float = 3.0
+    UNSEEN_CUT_STEP_M: float = 0.25
 
     # --- splicing ------------------------------------------------------------------------------------
     # a polygon never seen whole: its rectangle's axes from its observed sides, not from the

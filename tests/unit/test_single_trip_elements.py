@@ -218,6 +218,34 @@ def test_centreline_spliced_round_a_u_turn_is_cut_back_to_what_was_seen():
         assert np.ptp(part[:, 1]) > 40.0
 
 
+def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut():
+    # a centreline observed with 0.1 m lateral noise, whose splice stands 0.7 m off its
+    # observations over 10 m (a junction's fragment, Karlsruhe s3): within the 1 m gate of
+    # session 36, yet far outside what the trip's noise allows. The gate is 3 sigma of the
+    # type's noise in the trip plus half the observations' spacing, so that stretch is cut
+    from scipy.spatial import cKDTree
+
+    from csr_core.single_trip import _unseen_gate_m
+    from csr_core.single_trip.paint_breaks import cut_unseen
+    from csr_core.types import ElementNoise
+
+    rng = np.random.default_rng(7)
+    x = np.arange(0.0, 40.0, DEFAULT.UNSEEN_CUT_STEP_M)
+    frames = [np.column_stack([x, 0.7 * ((x > 15) & (x < 25)) + rng.normal(0, 0.1, len(x))]) for _ in range(20)]
+    observed = cKDTree(np.vstack(frames))
+    line = np.column_stack([np.arange(0.0, 40.5, 1.0), np.zeros(41)])
+    sigma_m = robust_sigma(np.concatenate([f[:, 1] for f in frames])[np.tile((x <= 15) | (x >= 25), 20)])
+    gate_m = _unseen_gate_m(ElementNoise(lateral_sigma_m=sigma_m, along_sigma_m=0.5, n_samples=1000), DEFAULT)
+    assert 0.35 < gate_m < 0.5
+    parts = cut_unseen(line, observed, gate_m)
+    assert [(p[0, 0], p[-1, 0]) for p in parts] == [(0.0, 15.0), (25.0, 40.0)]
+    assert len(cut_unseen(line, observed, 1.0)) == 1  # session 36's gate kept it
+    # a near-noiseless perception: the gate keeps a floor, a line on its observations stays whole
+    tiny = _unseen_gate_m(ElementNoise(lateral_sigma_m=0.002, along_sigma_m=0.5, n_samples=1000), DEFAULT)
+    assert tiny >= 3 * DEFAULT.INSTANCE_MIXTURE_MIN_SIGMA_M
+    assert len(cut_unseen(line, cKDTree(np.column_stack([x, np.zeros(len(x))])), tiny)) == 1
+
+
 def test_crosswalk_never_seen_whole_keeps_the_axes_of_its_sides():
     # a 12 m x 4 m crosswalk on a side arm, 35 degrees off the vehicle's heading, only ever seen cut
     # by the BEV range's side (a line along the heading): the part seen is a strip cut at the
