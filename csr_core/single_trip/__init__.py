@@ -238,21 +238,26 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in _CONTINUOUS}, {}, params)
     trees: dict[int, cKDTree] = {}  # one per track: the instances cut from one track share its observations
 
-    def tree(observed_w: np.ndarray) -> cKDTree:
-        if id(observed_w) not in trees:
-            trees[id(observed_w)] = cKDTree(observed_w, balanced_tree=False)
-        return trees[id(observed_w)]
+    def tree(observed: tuple[np.ndarray, np.ndarray], step_m: float | None = None) -> cKDTree:
+        """The track's observed points (world, with their detections' offsets), densified to
+        ``step_m`` when given, as a KD-tree."""
+        points_w, offsets = observed
+        if id(points_w) not in trees:
+            dense = points_w if step_m is None else densify_flat(points_w, offsets, step_m)[0]
+            trees[id(points_w)] = cKDTree(dense, balanced_tree=False)
+        return trees[id(points_w)]
 
     out, n_dropped = [], 0
     for cand in candidates:
-        inst, lat, alo, observed_w = cand
-        if observed_w is None:
+        inst, lat, alo, observed = cand
+        if observed is None:
             out.append(cand)
             continue
         if inst.type == ElementType.LANE_DIVIDER and barrier is not None:
-            parts = cut_at_paint_breaks(inst.points_xy_world, tree(observed_w), barrier, params.PAINT_BREAK_GATE_M)
+            parts = cut_at_paint_breaks(inst.points_xy_world, tree(observed), barrier, params.PAINT_BREAK_GATE_M)
         elif inst.type in _CONTINUOUS and params.CONTINUOUS_UNSEEN_CUT:
-            parts = cut_unseen(inst.points_xy_world, tree(observed_w), _unseen_gate_m(noise[inst.type], params))
+            step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # session 36: as spliced
+            parts = cut_unseen(inst.points_xy_world, tree(observed, step_m), _unseen_gate_m(noise[inst.type], params))
         else:
             parts = [inst.points_xy_world]
         if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):
@@ -265,7 +270,7 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
             if float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) < params.min_length_m(inst.type):
                 continue
             out.append((replace(inst, points_xy_world=points_w), lat if not kept else lat[:0],
-                        alo if not kept else alo[:0], observed_w))
+                        alo if not kept else alo[:0], observed))
             kept += 1
         n_dropped += len(parts) - kept if parts else 1
     return out, n_dropped
@@ -314,8 +319,9 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     lateral: dict[ElementType, list[np.ndarray]] = {}
     along: dict[ElementType, list[np.ndarray]] = {}
     n_dropped = 0
-    # (instance, lateral residuals, along residuals, its track's observed points or None)
-    candidates: list[tuple[TripInstance, np.ndarray, np.ndarray, np.ndarray | None]] = []
+    # (instance, lateral residuals, along residuals, its track's observed points and their
+    # detections' offsets, or None for a polygon)
+    candidates: list[tuple[TripInstance, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]] = []
     whole_polygons: dict[int, np.ndarray] = {}  # polygon outlines fused from whole (unclipped) outlines, by id (kept alive)
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
@@ -355,9 +361,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
                                  s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        observed_w = None if track.type.is_polygon else pts_w
-        if track.type in _CONTINUOUS and params.UNSEEN_CUT_SIGMAS:  # no gap between a detection's points
-            observed_w = densify_flat(pts_w, offsets, params.UNSEEN_CUT_STEP_M)[0]
+        observed = None if track.type.is_polygon else (pts_w, offsets)  # for _cut_where_unseen
         if track.type.is_polygon:
             inside = _inside(pts_v, box, edge_margin)
             whole = np.logical_and.reduceat(inside, offsets[:-1])
@@ -437,7 +441,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             candidates.append((TripInstance(
                 type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
-                lat, alo, observed_w))
+                lat, alo, observed))
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
     if params.PAINT_BREAKS or params.CONTINUOUS_UNSEEN_CUT:
         candidates, n_cut = _cut_where_unseen(candidates, params)
