@@ -25,7 +25,7 @@ from csr_core.geo import LocalFrame
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
-from csr_core.single_trip.paint_breaks import barrier_geometry, cut_at_paint_breaks, cut_unseen
+from csr_core.single_trip.paint_breaks import ObservedPoints, barrier_geometry, cut_at_paint_breaks, cut_unseen
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import (
@@ -70,6 +70,21 @@ def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin
             & (points_v[..., 1] >= y0 + margin) & (points_v[..., 1] <= y1 - margin))
 
 
+def _within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float, brute_force_pairs: int = 40_000
+                   ) -> np.ndarray:
+    """``(P,)`` whether each of ``points (P, 2)`` lies within ``radius_m`` of one of ``others (Q, 2)``:
+    all pairs at once while there are few (a KD-tree built for one query costs several times
+    more), else a KD-tree."""
+    if len(points) * len(others) > brute_force_pairs:
+        return cKDTree(others).query(points, distance_upper_bound=radius_m + 1e-9)[0] <= radius_m
+    dx = points[:, 0, None] - others[None, :, 0]
+    dy = points[:, 1, None] - others[None, :, 1]
+    dx *= dx
+    dy *= dy
+    dx += dy
+    return dx.min(1) <= radius_m * radius_m
+
+
 def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
                       box: tuple[float, float, float, float], margin: float,
                       same_type_tree: cKDTree | None, same_type_frame: np.ndarray, corroborate_m: float,
@@ -93,7 +108,7 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
         return 1.0
     # frames farther than the box's corner from every sample cannot have it in range
     corner = float(np.hypot(max(abs(box[0]), abs(box[1])), max(abs(box[2]), abs(box[3]))))
-    cand = cand[cKDTree(samples).query(pos[cand], distance_upper_bound=corner + 1e-9)[0] <= corner]
+    cand = cand[_within_of_any(pos[cand], samples, corner)]
     if len(cand) == 0:
         return 1.0
     seen_mask = np.zeros(len(frames), dtype=bool)
@@ -236,16 +251,16 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
                                [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
                                params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in _CONTINUOUS}, {}, params)
-    trees: dict[int, cKDTree] = {}  # one per track: the instances cut from one track share its observations
+    step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # session 36: as spliced
+    tracks: dict[int, ObservedPoints] = {}  # one per track: the instances cut from one track share its observations
 
-    def tree(observed: tuple[np.ndarray, np.ndarray], step_m: float | None = None) -> cKDTree:
+    def observed_points(observed: tuple[np.ndarray, np.ndarray], dense_m: float | None) -> ObservedPoints:
         """The track's observed points (world, with their detections' offsets), densified to
-        ``step_m`` when given, as a KD-tree."""
+        ``dense_m`` when given (a track has one type, so one spacing)."""
         points_w, offsets = observed
-        if id(points_w) not in trees:
-            dense = points_w if step_m is None else densify_flat(points_w, offsets, step_m)[0]
-            trees[id(points_w)] = cKDTree(dense, balanced_tree=False)
-        return trees[id(points_w)]
+        if id(points_w) not in tracks:
+            tracks[id(points_w)] = ObservedPoints(points_w, offsets, dense_m)
+        return tracks[id(points_w)]
 
     out, n_dropped = [], 0
     for cand in candidates:
@@ -254,10 +269,10 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
             out.append(cand)
             continue
         if inst.type == ElementType.LANE_DIVIDER and barrier is not None:
-            parts = cut_at_paint_breaks(inst.points_xy_world, tree(observed), barrier, params.PAINT_BREAK_GATE_M)
+            parts = cut_at_paint_breaks(inst.points_xy_world, observed_points(observed, None), barrier,
+                                        params.PAINT_BREAK_GATE_M)
         elif inst.type in _CONTINUOUS and params.CONTINUOUS_UNSEEN_CUT:
-            step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # session 36: as spliced
-            parts = cut_unseen(inst.points_xy_world, tree(observed, step_m), _unseen_gate_m(noise[inst.type], params))
+            parts = cut_unseen(inst.points_xy_world, observed_points(observed, step_m), _unseen_gate_m(noise[inst.type], params))
         else:
             parts = [inst.points_xy_world]
         if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):

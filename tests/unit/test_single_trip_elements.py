@@ -197,9 +197,7 @@ def test_centreline_spliced_round_a_u_turn_is_cut_back_to_what_was_seen():
     # back down the other), so one track holds both and the splice along the path bridges the
     # U-turn between them, where no centreline was seen. A centreline has no dash gaps: the
     # stretch none of its observations comes near is cut out, each lane keeps its own line
-    from scipy.spatial import cKDTree
-
-    from csr_core.single_trip.paint_breaks import cut_unseen
+    from csr_core.single_trip.paint_breaks import ObservedPoints, cut_unseen
     from csr_core.single_trip.splicing import splice_line
 
     path, points, ids = _u_turn()
@@ -208,8 +206,8 @@ def test_centreline_spliced_round_a_u_turn_is_cut_back_to_what_was_seen():
     spliced = splice_line(points, ids, obs_ends, np.ones(obs_ends.shape, bool), path, DEFAULT)
     assert len(spliced) == 1
     line = spliced[0].points_xy_world
-    observed = cKDTree(points)
-    assert observed.query(line)[0].max() > 2.0  # it runs round the loop
+    observed = ObservedPoints(points)
+    assert observed.tree.query(line)[0].max() > 2.0  # it runs round the loop
     parts = cut_unseen(line, observed, DEFAULT.PAINT_BREAK_GATE_M)
     assert len(parts) == 2
     for part in parts:
@@ -223,16 +221,14 @@ def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut
     # observations over 10 m (a junction's fragment, Karlsruhe s3): within the 1 m gate of
     # session 36, yet far outside what the trip's noise allows. The gate is 3 sigma of the
     # type's noise in the trip plus half the observations' spacing, so that stretch is cut
-    from scipy.spatial import cKDTree
-
     from csr_core.single_trip import _unseen_gate_m
-    from csr_core.single_trip.paint_breaks import cut_unseen
+    from csr_core.single_trip.paint_breaks import ObservedPoints, cut_unseen
     from csr_core.types import ElementNoise
 
     rng = np.random.default_rng(7)
     x = np.arange(0.0, 40.0, DEFAULT.UNSEEN_CUT_STEP_M)
     frames = [np.column_stack([x, 0.7 * ((x > 15) & (x < 25)) + rng.normal(0, 0.1, len(x))]) for _ in range(20)]
-    observed = cKDTree(np.vstack(frames))
+    observed = ObservedPoints(np.vstack(frames))
     line = np.column_stack([np.arange(0.0, 40.5, 1.0), np.zeros(41)])
     sigma_m = robust_sigma(np.concatenate([f[:, 1] for f in frames])[np.tile((x <= 15) | (x >= 25), 20)])
     gate_m = _unseen_gate_m(ElementNoise(lateral_sigma_m=sigma_m, along_sigma_m=0.5, n_samples=1000), DEFAULT)
@@ -243,7 +239,7 @@ def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut
     # a near-noiseless perception: the gate keeps a floor, a line on its observations stays whole
     tiny = _unseen_gate_m(ElementNoise(lateral_sigma_m=0.002, along_sigma_m=0.5, n_samples=1000), DEFAULT)
     assert tiny >= 3 * DEFAULT.INSTANCE_MIXTURE_MIN_SIGMA_M
-    assert len(cut_unseen(line, cKDTree(np.column_stack([x, np.zeros(len(x))])), tiny)) == 1
+    assert len(cut_unseen(line, ObservedPoints(np.column_stack([x, np.zeros(len(x))])), tiny)) == 1
 
 
 def test_crosswalk_never_seen_whole_keeps_the_axes_of_its_sides():
@@ -631,3 +627,18 @@ def test_a_splice_across_its_observations_everywhere_is_regrouped_not_dropped(tm
         boundaries[regroup] = scores.per_type[ElementType.ROAD_BOUNDARY]
     assert boundaries[True].completeness > boundaries[False].completeness + 0.01
     assert boundaries[True].correctness >= boundaries[False].correctness - 0.002
+
+
+def test_observed_points_densified_see_a_vertex_between_two_points_as_given():
+    # observations 1 m apart along x; a vertex 0.3 m beside the middle of a step is 0.58 m from
+    # both points as given, but 0.3 m from the observed line: within a 0.4 m gate once the
+    # polyline is densified to 0.25 m, and not as given
+    from csr_core.single_trip.paint_breaks import ObservedPoints
+
+    points = np.column_stack([np.arange(0.0, 5.5, 1.0), np.zeros(6)])
+    vertex = np.array([[2.5, 0.3], [2.0, 0.1], [2.5, 0.6]])
+    assert ObservedPoints(points).seen(vertex, 0.4).tolist() == [False, True, False]
+    assert ObservedPoints(points, np.array([0, 6]), 0.25).seen(vertex, 0.4).tolist() == [True, True, False]
+    # two detections side by side: no step is inserted between one's last point and the next's first
+    two = ObservedPoints(np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [6.0, 0.0]]), np.array([0, 2, 4]), 0.25)
+    assert two.seen(np.array([[3.0, 0.0]]), 0.4).tolist() == [False]
