@@ -25,7 +25,12 @@ from csr_core.geo import LocalFrame
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
-from csr_core.single_trip.paint_breaks import ObservedPoints, barrier_geometry, cut_at_paint_breaks, cut_unseen
+from csr_core.single_trip.paint_breaks import (
+    ObservedPoints,
+    barrier_geometry,
+    cut_at_paint_breaks,
+    cut_unseen,
+)
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
 from csr_core.single_trip.splicing import (

@@ -91,12 +91,22 @@ def run_sigmas_m(status: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
 
 def median_per_node(node_of_fix: np.ndarray, values: np.ndarray, n_nodes: int) -> np.ndarray:
     """``(n_nodes, ...)`` the median of ``values`` (M, ...) over each node's fixes; NaN for a node
-    without a fix."""
-    out = np.full((n_nodes, *np.shape(values)[1:]), np.nan)
-    order = np.argsort(node_of_fix, kind="stable")
-    nodes, starts = np.unique(node_of_fix[order], return_index=True)
-    for node, part in zip(nodes.tolist(), np.split(np.asarray(values)[order], starts[1:]), strict=True):
-        out[node] = np.median(part, axis=0)
+    without a fix. All nodes at once: each column sorted by node, then by value; a node's median
+    is the middle of its run (the mean of the two middles for an even count, as ``np.median``)."""
+    values = np.asarray(values, float)
+    out = np.full((n_nodes, *values.shape[1:]), np.nan)
+    if len(node_of_fix) == 0:
+        return out
+    columns = values.reshape(len(values), -1)
+    by_node = np.sort(node_of_fix)
+    first = np.flatnonzero(np.r_[True, by_node[1:] != by_node[:-1]])
+    counts = np.diff(np.r_[first, len(by_node)])
+    lo, hi = first + (counts - 1) // 2, first + counts // 2
+    medians = np.empty((len(first), columns.shape[1]))
+    for j in range(columns.shape[1]):
+        ranked = columns[np.lexsort((columns[:, j], node_of_fix)), j]
+        medians[:, j] = 0.5 * (ranked[lo] + ranked[hi])
+    out.reshape(n_nodes, -1)[by_node[first]] = medians
     return out
 
 
@@ -129,11 +139,14 @@ def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarra
     for k, (x, y) in enumerate(bias_xy_lin.tolist()):
         lin.insert(_bias_key(k), gtsam.Pose2(x, y, 0.0))
     phi = np.where(np.diff(node_run) == 0, np.exp(-np.diff(node_time_s) / tau_s), 0.0)
-    for k in range(len(node_sigma_m) - 1):
-        a, b = phi[k] / node_sigma_m[k], 1.0 / node_sigma_m[k + 1]
+    a_all = phi / node_sigma_m[:-1]
+    b_all = 1.0 / node_sigma_m[1:]
+    rhs_all = np.zeros((len(phi), 3))
+    rhs_all[:, :2] = -(a_all[:, None] * bias_xy_lin[:-1] - b_all[:, None] * bias_xy_lin[1:])
+    for k, (a, b) in enumerate(zip(a_all.tolist(), b_all.tolist(), strict=True)):
         a_k = np.array([[a, 0.0, 0.0], [0.0, a, 0.0], [0.0, 0.0, 0.0]])
         a_next = np.array([[-b, 0.0, 0.0], [0.0, -b, 0.0], [0.0, 0.0, 1.0]])  # row 3: the next yaw at 0
-        rhs = np.r_[-(a * bias_xy_lin[k] - b * bias_xy_lin[k + 1]), 0.0]
+        rhs = rhs_all[k]
         step = float(np.sqrt(max(1.0 - phi[k] ** 2, 1e-12)))
         model = gtsam.noiseModel.Diagonal.Sigmas(np.array([step, step, BIAS_YAW_SIGMA_RAD]))
         jac = gtsam.JacobianFactor(_bias_key(k), a_k, _bias_key(k + 1), a_next, rhs, model)

@@ -22,11 +22,11 @@ every simulated world it lies off the truth (docs/single-trip.md, "Session 36").
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import shapely
 from scipy.spatial import cKDTree
-
-from csr_core.single_trip.tracking import densify_flat
 
 
 def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
@@ -48,28 +48,48 @@ class ObservedPoints:
 
     ``step_m``: the polylines count as densified to that spacing (``densify_flat``, which keeps
     every point as given). A vertex within the gate of a point as given is seen either way, and
-    almost every vertex is (Karlsruhe, urban: 99.5 %); only the rest are asked of the densified
-    points, whose KD-tree (four times the points at 0.25 m) is built the first time one is."""
+    almost every vertex is (Karlsruhe, urban: 99.5 %); for the rest only the steps that can come
+    within the gate are densified (a densified point within it lies within half a step of one
+    end of its step)."""
 
     def __init__(self, points_w: np.ndarray, offsets: np.ndarray | None = None, step_m: float | None = None) -> None:
         self.points_w = points_w
         self.offsets = np.array([0, len(points_w)]) if offsets is None else offsets
         self.step_m = step_m
         self.tree = cKDTree(points_w, balanced_tree=False)
-        self._dense_tree: cKDTree | None = None
+        # each point's step to the next point of its polyline (zero after a polyline's last point)
+        step = np.zeros_like(points_w)
+        step[:-1] = points_w[1:] - points_w[:-1]
+        step[self.offsets[1:] - 1] = 0.0
+        self._step = step
+        self._step_len = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
 
-    def _dense(self) -> cKDTree:
-        if self._dense_tree is None:
-            assert self.step_m is not None
-            self._dense_tree = cKDTree(densify_flat(self.points_w, self.offsets, self.step_m)[0], balanced_tree=False)
-        return self._dense_tree
+    def _densified_near(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
+        """The densified observed points (as ``densify_flat`` places them) of every step with an end
+        within ``gate_m`` plus half the longest step of ``points_xy``."""
+        assert self.step_m is not None
+        reach = gate_m + 0.5 * float(self._step_len.max(initial=0.0))
+        near = self.tree.query_ball_point(points_xy, reach, return_sorted=False)
+        ends = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64)
+        if len(ends) == 0:
+            return self.points_w[:0]
+        starts = np.unique(np.concatenate([ends, ends - 1]))  # the steps from and to each end
+        starts = starts[starts >= 0]
+        counts = np.maximum(np.ceil(self._step_len[starts] / self.step_m).astype(np.int64), 1)
+        which = np.repeat(np.arange(len(starts)), counts)
+        frac = (np.arange(int(counts.sum())) - (np.cumsum(counts) - counts)[which]) / counts[which]
+        return self.points_w[starts[which]] + frac[:, None] * self._step[starts[which]]
 
     def seen(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
         """``(M,)`` whether each of ``points_xy (M, 2)`` has an observed point within ``gate_m``."""
         seen = self.tree.query(points_xy, distance_upper_bound=gate_m + 1e-9)[0] <= gate_m
         if self.step_m is not None and not seen.all():
             rest = np.flatnonzero(~seen)
-            seen[rest] = self._dense().query(points_xy[rest], distance_upper_bound=gate_m + 1e-9)[0] <= gate_m
+            dense = self._densified_near(points_xy[rest], gate_m)
+            if len(dense):
+                dx = points_xy[rest, 0, None] - dense[None, :, 0]
+                dy = points_xy[rest, 1, None] - dense[None, :, 1]
+                seen[rest] = np.sqrt(dx * dx + dy * dy).min(1) <= gate_m
         return seen
 
 
