@@ -173,7 +173,9 @@ def _resplice_mixture(obs: np.ndarray, obs_points_w: np.ndarray, obs_frame: np.n
         group = obs[labels == lab]
         if len(np.unique(obs_frame[group])) < params.TRACK_MIN_FRAMES:
             continue
-        take = np.isin(obs_id, group)
+        in_group = np.zeros(len(offsets) - 1, dtype=bool)
+        in_group[group] = True
+        take = in_group[obs_id]  # np.isin(obs_id, group), without its sort
         counts = np.diff(offsets)[group]
         sub_off = np.concatenate([[0], np.cumsum(counts)])
         sub_ends = np.column_stack([sub_off[:-1], sub_off[1:] - 1])

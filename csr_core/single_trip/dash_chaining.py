@@ -37,13 +37,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.cluster.hierarchy import DisjointSet
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.single_trip.splicing import _BEND_MIN_RADIUS_M, kasa_circle
-from csr_core.single_trip.tracking import Pieces, Track, pair_distance
+from csr_core.single_trip.tracking import Pieces, Track, component_labels, pair_distance
 from csr_core.types import DividerStyle, ElementType
 
 #: the longest dash gap of a trip's lines, as a quantile of the gaps it saw (a missed dash makes
@@ -209,8 +207,7 @@ def dash_labels(points_w: np.ndarray, params: SingleTripParams) -> np.ndarray:
     cap = 3.0 * params.TRACK_MERGE_GATE_M
     ok = np.flatnonzero(pair_distance(points_w[b], points_w[a], 0.0, cap).mean(1) <= params.TRACK_MERGE_GATE_M)
     ok = ok[pair_distance(points_w[a[ok]], points_w[b[ok]], 0.0, cap).mean(1) <= params.TRACK_MERGE_GATE_M]
-    graph = coo_matrix((np.ones(len(ok)), (a[ok], b[ok])), shape=(m, m))
-    return connected_components(graph, directed=False)[1]
+    return component_labels(m, a[ok], b[ok])
 
 
 def side_by_side_frames(pieces: Pieces, members: np.ndarray, params: SingleTripParams) -> np.ndarray:

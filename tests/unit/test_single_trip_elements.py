@@ -642,3 +642,20 @@ def test_observed_points_densified_see_a_vertex_between_two_points_as_given():
     # two detections side by side: no step is inserted between one's last point and the next's first
     two = ObservedPoints(np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [6.0, 0.0]]), np.array([0, 2, 4]), 0.25)
     assert two.seen(np.array([[3.0, 0.0]]), 0.4).tolist() == [False]
+
+
+def test_component_labels_number_components_as_scipy_does():
+    # the union-find that regroups a track's observations must label exactly as scipy's
+    # connected_components (the splice iterates the labels in order), isolated nodes included
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from csr_core.single_trip.tracking import component_labels
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        m, e = int(rng.integers(1, 30)), int(rng.integers(0, 40))
+        a, b = rng.integers(0, m, e), rng.integers(0, m, e)
+        expected = connected_components(coo_matrix((np.ones(e), (a, b)), shape=(m, m)), directed=False)[1]
+        assert component_labels(m, a, b).tolist() == expected.tolist()
+    assert component_labels(4, np.array([3]), np.array([1])).tolist() == [0, 1, 2, 1]

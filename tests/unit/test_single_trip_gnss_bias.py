@@ -163,3 +163,19 @@ def test_the_bias_state_keeps_the_white_solve_for_the_alignment_s_chain():
     np.testing.assert_allclose(on.white_poses_xyyaw_world, off.poses_xyyaw_world, atol=1e-9)
     moved = np.linalg.norm(on.poses_xyyaw_world[:, :2] - on.white_poses_xyyaw_world[:, :2], axis=1)
     assert np.median(moved) > 0.01  # the bias state did change the trajectory
+
+
+def test_median_per_node_is_numpys_median_of_each_nodes_fixes():
+    from csr_core.single_trip.gnss_bias import median_per_node
+
+    rng = np.random.default_rng(5)
+    for trial in range(100):
+        n_nodes, m = int(rng.integers(1, 15)), int(rng.integers(1, 40))
+        nodes = rng.integers(0, n_nodes, m)
+        values = rng.normal(size=(m, 2)) if trial % 2 else rng.normal(size=m)
+        got = median_per_node(nodes, values, n_nodes)
+        for k in range(n_nodes):
+            if (nodes == k).any():
+                assert np.array_equal(got[k], np.median(values[nodes == k], axis=0))
+            else:
+                assert np.isnan(got[k]).all()
