@@ -84,14 +84,54 @@ class _Geometry(NamedTuple):
 
     columns: np.ndarray  # (4, B) x, y, unit tangent x, y: contiguous rows (the cheapest to gather)
     arclength: np.ndarray  # (B,)
-    tree: cKDTree
+    tree: cKDTree | None  # None: built by ``_nearest`` when a query needs it
 
 
-def _geometry(backbone: np.ndarray) -> _Geometry:
-    """A backbone (B, 2) with its arclength, unit tangents and KD-tree, computed once per
-    backbone (the path guide of a track is projected on twice)."""
+def _geometry(backbone: np.ndarray, with_tree: bool = False) -> _Geometry:
+    """A backbone (B, 2) with its arclength and unit tangents, computed once per backbone (the
+    path guide of a track is projected on twice); ``with_tree``: and its KD-tree (a backbone
+    queried by many points, the guide; most others are cheaper to query pair by pair)."""
     return _Geometry(np.concatenate([backbone.T, _unit_tangents(backbone).T]), _arclength(backbone),
-                     cKDTree(backbone))
+                     cKDTree(backbone) if with_tree else None)
+
+
+#: point-backbone pairs up to which ``_nearest`` compares all pairs: a KD-tree costs two to three
+#: times more below (its build and per-query overhead), the pairs' arrays leave the cache above
+BRUTE_FORCE_MAX_PAIRS = 20_000
+
+
+def _nearest_pairwise(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index ``(P,)`` of the nearest of the reference points (``ref_x``, ``ref_y``, (R,)) to each of
+    ``points (P, 2)`` and the squared distance to it, from all pairs."""
+    dx = points[:, 0, None] - ref_x[None, :]
+    dy = points[:, 1, None] - ref_y[None, :]
+    dx *= dx
+    dy *= dy
+    dx += dy
+    i = dx.argmin(1)
+    return i, dx[np.arange(len(points)), i]
+
+
+def _nearest(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, tree: cKDTree | None) -> np.ndarray:
+    """Index ``(P,)`` of the nearest of the reference points (``ref_x``, ``ref_y``, (R,)) to each
+    of ``points (P, 2)``: all pairs while there are at most ``BRUTE_FORCE_MAX_PAIRS``, else the
+    KD-tree ``tree`` (built here when None)."""
+    if len(points) * len(ref_x) <= BRUTE_FORCE_MAX_PAIRS:
+        return _nearest_pairwise(points, ref_x, ref_y)[0]
+    if tree is None:
+        tree = cKDTree(np.column_stack([ref_x, ref_y]))
+    return tree.query(points)[1]
+
+
+def _nearest_within(points: np.ndarray, ref: np.ndarray, bound_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index ``(P,)`` of the nearest of ``ref (R, 2)`` to each of ``points (P, 2)`` and whether it
+    lies closer than ``bound_m`` (strictly, as a KD-tree's ``distance_upper_bound``); the index
+    means nothing where it does not. All pairs or a KD-tree, as ``_nearest``."""
+    if len(points) * len(ref) <= BRUTE_FORCE_MAX_PAIRS:
+        i, d2 = _nearest_pairwise(points, ref[:, 0], ref[:, 1])
+        return i, d2 < bound_m * bound_m
+    dist, i = cKDTree(ref).query(points, distance_upper_bound=bound_m)
+    return i, np.isfinite(dist)
 
 
 @functools.lru_cache(maxsize=16)
@@ -125,8 +165,8 @@ def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
 def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
     sampled backbone (``_geometry``): from its nearest point (KD-tree), along its tangent."""
-    _, i = geom.tree.query(points)
     x, y, tan_x, tan_y = geom.columns
+    i = _nearest(points, x, y, geom.tree)
     rel_x, rel_y = points[:, 0] - x[i], points[:, 1] - y[i]
     t_x, t_y = tan_x[i], tan_y[i]
     s = geom.arclength[i] + rel_x * t_x + rel_y * t_y
@@ -424,7 +464,7 @@ def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extensi
     guide = _extend_ends(resample_polyline(path, bin_m), extension_m, bin_m)
     if len(guide) < 3:
         return None
-    geom = _geometry(guide)
+    geom = _geometry(guide, with_tree=True)
     for shared in (geom.columns, geom.arclength):  # cached: shared by every caller
         shared.setflags(write=False)
     return geom
@@ -658,8 +698,7 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
         return [line_xy]
     seg = points_w[start + 1] - points_w[start]
     seg_len = np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1])
-    dist, nearest = cKDTree(line_xy).query(points_w[start] + 0.5 * seg, distance_upper_bound=near_m)
-    near = np.isfinite(dist)
+    nearest, near = _nearest_within(points_w[start] + 0.5 * seg, line_xy, near_m)
     if not near.any():
         return [line_xy]
     seg, seg_len, nearest = seg[near], seg_len[near], nearest[near]
