@@ -108,6 +108,24 @@ _Item = TypeVar("_Item")
 _Result = TypeVar("_Result")
 
 
+def reference_cpu_seconds(repeats: int = 3) -> float:
+    """CPU seconds (best of ``repeats``) of a fixed workload of plain Python and numpy, the kind
+    of work the single-trip stage does: the machines these benchmarks run on differ by more than
+    2x from one day to the next (docs/single-trip.md, sessions 31-38), so a CPU figure is read
+    against this one, measured beside it."""
+    import numpy as np
+
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.process_time()
+        sum(i * i for i in range(1_000_000))
+        values = np.random.default_rng(0).random(500_000)
+        for _ in range(20):
+            np.sort(values)
+        best = min(best, time.process_time() - t0)
+    return best
+
+
 def map_in_processes(fn: Callable[[_Item], _Result], items: Sequence[_Item], jobs: int,
                      progress: Callable[[str], None] | None = None,
                      label: Callable[[_Result], str] = str) -> list[_Result]:

@@ -18,7 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from csr_core.bench.runner import ensure_scenario, map_in_processes, simulator_fingerprint
+from csr_core.bench.runner import (
+    ensure_scenario,
+    map_in_processes,
+    reference_cpu_seconds,
+    simulator_fingerprint,
+)
 from csr_core.bench.sets import WORLDS, ScenarioSpec, scenario_set
 from csr_core.bench.tables import duration_text, markdown_table
 
@@ -60,6 +65,7 @@ def run_single_trip_bench(cache_dir: Path, sets: Sequence[str] = SETS, jobs: int
     ``jobs`` processes. One dict per scenario and pose source (``true_poses`` False / True); the
     ``hard`` set's scenarios only with their smoothed poses (they are there for the jumps)."""
     fingerprint = simulator_fingerprint()
+    reference_s = reference_cpu_seconds()
     work = []
     for set_name in sets:
         for spec in scenario_set(set_name):
@@ -67,7 +73,7 @@ def run_single_trip_bench(cache_dir: Path, sets: Sequence[str] = SETS, jobs: int
                 progress(f"scenario {spec.name}")
             work.append(Job(spec, ensure_scenario(spec, cache_dir, fingerprint), spec.profile != "hard"))
     batches = map_in_processes(_evaluate, work, jobs, progress, label=lambda batch: batch[0]["spec"])
-    return [r for batch in batches for r in batch]
+    return [r | {"machine_reference_s": reference_s} for batch in batches for r in batch]
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -122,8 +128,28 @@ def world_summary(results: Sequence[dict]) -> list[dict]:
             "true_completeness": _mean([r["rigid"]["completeness"] for r in truth.get(world, [])]),
             "seconds_per_km": _mean([r["seconds_per_km"] for r in rs]),
             "speed_ok": all(r["seconds_per_km"] <= SECONDS_PER_KM_MAX for r in rs),
+            "stage_seconds_per_km": {stage: _mean([r["stage_seconds_per_km"].get(stage, float("nan")) for r in rs])
+                                     for stage in _stages(rs)},
         })
     return rows
+
+
+def _stages(results: Sequence[dict]) -> list[str]:
+    """The stages the results time (``single_trip.STAGES``, in its order), none for older results."""
+    for r in results:
+        if r.get("stage_seconds_per_km"):
+            return list(r["stage_seconds_per_km"])
+    return []
+
+
+def _machine_note(results: Sequence[dict]) -> str:
+    """The machine reference the CPU figures were measured beside (``runner.reference_cpu_seconds``)."""
+    refs = [r["machine_reference_s"] for r in results if "machine_reference_s" in r]
+    if not refs:
+        return "Machine reference not measured."
+    return (f"Machine reference: {float(np.median(refs)):.3f} CPU s for the fixed Python and numpy workload of "
+            "`runner.reference_cpu_seconds`, measured before the run: the CPU columns scale with it from one "
+            "machine to the next.")
 
 
 def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
@@ -171,6 +197,17 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         "- The gap between *rigid* and *local* is the GNSS error that changes within one trip (a bias with "
         "tens of seconds to minutes of correlation time): one trip's GNSS and odometry cannot see it, its "
         "size is the trip-aligned ATE below. The multi-trip alignment removes it sub-map by sub-map.",
+        "",
+        "### Where the CPU goes (s/km per stage, smoothed poses, means over the seeds)",
+        "",
+        markdown_table(["world", *_stages(results), "all"], [
+            [s["world"], *(_fmt(s["stage_seconds_per_km"].get(stage, float("nan")), 3) for stage in _stages(results)),
+             _fmt(s["seconds_per_km"], 3)] for s in summary]),
+        "",
+        f"{_machine_note(results)} Stages as `reconstruct_trip` reports them (`diagnostics[\"cpu_seconds\"]`): "
+        "poses = Eq. 2's smoothing (its LM solves are most of it), tracking = keyframes, tracking and dash "
+        "chaining, splicing = every track spliced and tested (ghosts, false positives, crossings), "
+        "unseen_cut = the paint-break and unseen cuts, noise = the noise estimate and the mixture test.",
         "",
         "### Hard profile: GNSS jumps",
         "",

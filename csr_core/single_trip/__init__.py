@@ -51,6 +51,12 @@ _CONTINUOUS = frozenset({ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE})
 __all__ = ["DEFAULT", "SingleTripParams", "bev_range_m", "reconstruct_trip"]
 
 
+#: the stages whose CPU seconds ``reconstruct_trip`` reports (``diagnostics["cpu_seconds"]``):
+#: pose smoothing (Eq. 2), keyframes and tracking (with dash chaining), splicing with its ghost
+#: and false-positive tests, the unseen cut, the noise estimate with the mixture test
+STAGES = ("poses", "tracking", "splicing", "unseen_cut", "noise")
+
+
 def bev_range_m(trip, quantile: float = 0.002) -> tuple[float, float, float, float]:
     """(x_min, x_max, y_min, y_max) of the perception range in the vehicle frame: from
     ``sensor_setup.bev_range_m`` when the vehicle states it, else from the detections."""
@@ -317,6 +323,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     Raises ``ReconstructionError`` when the trip has no usable GNSS fix.
     """
     t_start = time.perf_counter()
+    cpu = [time.process_time()]  # CPU seconds at each stage's end (STAGES)
     # 1. GNSS into the local plane (status none rows carry no fix)
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
     # 2. pose smoothing, Eq. 2
@@ -327,6 +334,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]
     t_pose = time.perf_counter()
+    cpu.append(time.process_time())
     # 3. keyframes by distance and time
     keyframes = select_keyframes(poses, trip.timestamps_s, params.KEYFRAME_DISTANCE_M, params.KEYFRAME_PERIOD_S)
     # 4. element tracking on frames spaced by travel/time
@@ -336,6 +344,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     if params.DASH_CHAINING:
         tracks = chain_dash_tracks(pieces, tracks, trip.elements, frames, params)
     t_track = time.perf_counter()
+    cpu.append(time.process_time())
     # 5. splicing; short-lived tracks (false positives) and ghosts dropped
     instances: list[TripInstance] = []
     lateral: dict[ElementType, list[np.ndarray]] = {}
@@ -465,9 +474,11 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
                 lat, alo, observed))
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
+    cpu.append(time.process_time())
     if params.PAINT_BREAKS or params.CONTINUOUS_UNSEEN_CUT:
         candidates, n_cut = _cut_where_unseen(candidates, params)
         n_dropped += n_cut
+    cpu.append(time.process_time())
     # 6. noise per element type from the residuals; a line whose own residuals are far wider
     # than its type's (a mixture of elements: connectors crossing in a junction) is dropped.
     # Not a polygon: its vertex residuals include vertices sliding along a side (a crosswalk's
@@ -488,6 +499,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         instances.append(inst)
     noise = estimate_noise(lateral, along, params)
     t_end = time.perf_counter()
+    cpu.append(time.process_time())
     log.info("trip %s: %d frames, %d tracks, %d instances (%d dropped); %.3f s (poses %.3f, tracking %.3f)",
              trip.key, trip.n_frames, len(tracks), len(instances), n_dropped, t_end - t_start,
              t_pose - t_start, t_track - t_pose)
@@ -500,6 +512,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         "tracks": len(tracks),
         "dropped": n_dropped,
         "seconds": {"poses": t_pose - t_start, "tracking": t_track - t_pose, "total": t_end - t_start},
+        "cpu_seconds": dict(zip(STAGES, np.diff(cpu).tolist(), strict=True)),
     }
     return TripReconstruction(trip=trip, poses_xyyaw_world=poses, pose_sigma_xy_m=smoothed.sigma_xy_m,
                               keyframe_indices=keyframes, instances=tuple(instances), noise=noise,

@@ -26,7 +26,8 @@ Per scenario, over all trips (trip-level figures, pooled):
   is of the frame-to-frame noise: the share of the error that an element keeps through all
   the frames of a trip cannot be seen within the trip, so the estimate is expected lower.
 - speed: CPU seconds (``time.process_time``, one core; the host is shared) of
-  ``reconstruct_trip`` per km of trip.
+  ``reconstruct_trip`` per km of trip, in all and per stage (``single_trip.STAGES``: poses,
+  tracking, splicing, unseen cut, noise).
 
 ``csr bench-single-trip`` runs this over the benchmark's fleets and writes BENCHMARKS.md's
 single-trip section.
@@ -53,7 +54,7 @@ from csr_core.scenario import (
     read_poses_dir,
     read_scenario_meta,
 )
-from csr_core.single_trip import reconstruct_trip
+from csr_core.single_trip import STAGES, reconstruct_trip
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
 from csr_core.single_trip.pose_graph import SmoothedPoses
 from csr_core.types import ElementType, GnssStatus, MapFeature, Trip
@@ -166,6 +167,7 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
     estimated: dict[ElementType, list[float]] = {t: [] for t in NOISE_TYPES}
     observed: dict[ElementType, list[np.ndarray]] = {t: [] for t in NOISE_TYPES}
     seconds, km = 0.0, 0.0
+    stage_seconds = dict.fromkeys(STAGES, 0.0)
     for loaded in scenario.trips:
         trip, true_xy = loaded.trip, loaded.true_poses_xyyaw[:, :2]
         fixed = None
@@ -176,6 +178,8 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         t0 = time.process_time()  # CPU seconds of this process: one core, unaffected by other load
         rec = reconstruct_trip(trip, frame, params, smoothed=fixed)
         seconds += time.process_time() - t0
+        for stage, cpu_s in rec.diagnostics["cpu_seconds"].items():
+            stage_seconds[stage] += cpu_s
         km += float(np.linalg.norm(np.diff(true_xy, axis=0), axis=1).sum()) / 1000.0
         est_xy = rec.poses_xyyaw_world[:, :2]
         gnss_xy = _forward_fill(frame.to_local(trip.gnss_lonlat_deg), trip.gnss_status != GnssStatus.NONE)
@@ -227,6 +231,7 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         "local_offset_m": local_offset_m,
         "noise": noise,
         "seconds_per_km": seconds / max(km, 1e-9),
+        "stage_seconds_per_km": {stage: v / max(km, 1e-9) for stage, v in stage_seconds.items()},
     }
 
 
@@ -296,6 +301,8 @@ def main(argv: list[str] | None = None) -> int:
         print("| " + " | ".join(cells) + " |")  # noqa: T201
         for name in ("rigid", "local"):
             print(f"  per type, {name}: " + json.dumps(r[name]["per_type"]))  # noqa: T201
+        print("  CPU s/km per stage: " + ", ".join(f"{k} {v:.3f}"  # noqa: T201
+                                                  for k, v in r["stage_seconds_per_km"].items()))
     return 0
 
 

@@ -54,3 +54,24 @@ def test_evaluate_param_names_a_field_or_is_refused(capsys):
         evaluate.main(["no-such-folder", "--param", "DASH_CHAINNG=false"])
     assert exc.value.code == 2
     assert "DASH_CHAINNG=false" in capsys.readouterr().err
+
+
+def test_the_cpu_per_stage_is_tabled_per_world_with_the_machine_reference():
+    stages = {"poses": 0.10, "tracking": 0.04, "splicing": 0.30, "unseen_cut": 0.03, "noise": 0.01}
+    results = [_result("urban", seed, 0.99) | {"stage_seconds_per_km": {k: v * seed for k, v in stages.items()},
+                                               "machine_reference_s": 0.16} for seed in (1, 2)]
+    text = render_section(results, None, None, 60.0, sets=("standard",))
+    table = text.split("### Where the CPU goes")[1].split("###")[0]
+    assert "| world | poses | tracking | splicing | unseen_cut | noise | all |" in table
+    assert "| urban | 0.150 | 0.060 | 0.450 | 0.045 | 0.015 | 0.300 |" in table  # means over the seeds
+    assert "Machine reference: 0.160 CPU s" in table
+
+
+def test_reconstruct_trip_reports_the_cpu_of_every_stage():
+    from csr_core.single_trip import STAGES, reconstruct_trip
+    from csr_core.single_trip.synthetic import SynthSpec, make_trip
+
+    trip, _, frame = make_trip(SynthSpec(length_m=150.0, gnss_sigma_m=0.2, seed=3))
+    cpu = reconstruct_trip(trip, frame).diagnostics["cpu_seconds"]
+    assert list(cpu) == list(STAGES)
+    assert all(v >= 0.0 for v in cpu.values()) and cpu["poses"] > 0.0
