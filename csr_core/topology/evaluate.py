@@ -166,6 +166,23 @@ def judge_instances(result: TopologyResult, truth_map, true_xy: np.ndarray) -> l
     return out
 
 
+def judged_rows(judged: list[tuple[MapFeature, bool, bool]]) -> list[dict]:
+    """One flat record per judged instance (``judge_instances``): its type, length, the truth's
+    verdicts, whether it carries a suspect flag, and its scalar properties (support, coverage,
+    trips that drove alongside, uncertainty, scatter, ...) as the map serves them."""
+    rows = []
+    for f, wrong, wrong_local in judged:
+        pts = np.asarray(f.points_xy_world, float)
+        flags = sorted(set(f.properties.get("flags", ())))
+        rows.append({"feature_id": f.feature_id, "type": f.type.value,
+                     "length_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0,
+                     "wrong": bool(wrong), "wrong_beyond_local_offset": bool(wrong_local),
+                     "suspect": bool(set(flags) & SUSPECT), "flags": flags,
+                     **{k: v for k, v in f.properties.items()
+                        if isinstance(v, (bool, int, float, str)) and k not in ("flags", "feature_id")}})
+    return rows
+
+
 def _recall_precision(wrong: np.ndarray, flagged: np.ndarray) -> dict:
     return {"wrong": int(wrong.sum()), "flagged": int(flagged.sum()),
             "recall": float((wrong & flagged).sum() / max(wrong.sum(), 1)),
@@ -213,12 +230,14 @@ def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | Non
 def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None,
                       lane_graph_figure: str | Path | None = None,
                       figure_bbox_xy: tuple[float, float, float, float] | None = None,
-                      validator_figure: str | Path | None = None, params: TopologyParams = DEFAULT) -> dict:
+                      validator_figure: str | Path | None = None, params: TopologyParams = DEFAULT,
+                      instances_jsonl: str | Path | None = None) -> dict:
     """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
     graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
     ``figure_bbox_xy`` in the scenario's local frame if given); ``validator_figure``: a picture
     of the judged instances, caught / missed / false alarm (``validator_figure.plot_validator``);
-    ``params``: the topology's (``--param NAME=VALUE``)."""
+    ``params``: the topology's (``--param NAME=VALUE``); ``instances_jsonl``: also every judged
+    instance as a line of JSON (``judged_rows``), for studies of what tells the wrong ones apart."""
     scenario_dir = Path(scenario_dir)
     data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
@@ -246,6 +265,8 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
     if lane_graph_figure is not None:
         plot_comparison(lane_graph, lane_graph_figure, figure_bbox_xy)
     judged = judge_instances(result, truth_map, true_xy)
+    if instances_jsonl is not None:
+        Path(instances_jsonl).write_text("".join(json.dumps(row) + "\n" for row in judged_rows(judged)))
     if validator_figure is not None:
         from csr_core.topology.validator_figure import plot_validator
 
@@ -271,6 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figures to this box (metres, local frame)")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="a TopologyParams field changed, e.g. DERIVE_CENTERLINES=false (repeatable)")
+    ap.add_argument("--instances-jsonl", metavar="FILE",
+                    help="also write every judged instance (verdicts, flags, support, ...) as JSON lines")
     args = ap.parse_args(argv)
     try:
         params = replace_fields(DEFAULT, args.param)
@@ -284,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--bbox must be four numbers X0,X1,Y0,Y1, got {args.bbox!r}")
         bbox = (x0, x1, y0, y1)
     r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox, args.validator_figure,
-                          params)
+                          params, args.instances_jsonl)
     print(json.dumps(r, indent=1))  # noqa: T201
     return 0
 

@@ -106,3 +106,18 @@ def test_a_high_residual_pair_is_judged_against_the_noise_of_its_two_trips() -> 
     assert flagged({"t0": 0.1, "t1": 0.1})
     assert not flagged({"t0": 0.3, "t1": 0.3})
     assert flagged({"t0": 0.1})  # a side without noise estimates (the pre-built map) counts as the other
+
+
+def test_judged_rows_flatten_the_verdicts_flags_and_scalar_properties() -> None:
+    from csr_core.topology.evaluate import judged_rows
+
+    line = np.column_stack([np.arange(0.0, 30.5, 0.5), np.zeros(61)])
+    f = MapFeature(ElementType.ROAD_BOUNDARY, line, feature_id="rb-1",
+                   properties={"flags": ["low_support", "gap"], "support_trips": 1, "passed_trips": 2,
+                               "uncertainty_m": 0.2, "trips": ["a"], "first_seen": "2026-11-01T00:00:00Z"})
+    (row,) = judged_rows([(f, True, False)])
+    assert row["feature_id"] == "rb-1" and row["type"] == "road_boundary"
+    assert row["length_m"] == pytest.approx(30.0)
+    assert row["wrong"] and not row["wrong_beyond_local_offset"]
+    assert row["suspect"] and row["flags"] == ["gap", "low_support"]
+    assert row["passed_trips"] == 2 and row["uncertainty_m"] == 0.2 and "trips" not in row  # scalars only
