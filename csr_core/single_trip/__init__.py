@@ -40,6 +40,7 @@ from csr_core.single_trip.splicing import (
     splice_line,
     splice_polygon,
     unique_ids,
+    within_of_any,
 )
 from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_observations, track_elements
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance, TripReconstruction
@@ -81,21 +82,6 @@ def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin
             & (points_v[..., 1] >= y0 + margin) & (points_v[..., 1] <= y1 - margin))
 
 
-def _within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float, brute_force_pairs: int = 40_000
-                   ) -> np.ndarray:
-    """``(P,)`` whether each of ``points (P, 2)`` lies within ``radius_m`` of one of ``others (Q, 2)``:
-    all pairs at once while there are few (a KD-tree built for one query costs several times
-    more), else a KD-tree."""
-    if len(points) * len(others) > brute_force_pairs:
-        return cKDTree(others).query(points, distance_upper_bound=radius_m + 1e-9)[0] <= radius_m
-    dx = points[:, 0, None] - others[None, :, 0]
-    dy = points[:, 1, None] - others[None, :, 1]
-    dx *= dx
-    dy *= dy
-    dx += dy
-    return dx.min(1) <= radius_m * radius_m
-
-
 def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
                       box: tuple[float, float, float, float], margin: float,
                       same_type_tree: cKDTree | None, same_type_frame: np.ndarray, corroborate_m: float,
@@ -119,7 +105,7 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
         return 1.0
     # frames farther than the box's corner from every sample cannot have it in range
     corner = float(np.hypot(max(abs(box[0]), abs(box[1])), max(abs(box[2]), abs(box[3]))))
-    cand = cand[_within_of_any(pos[cand], samples, corner)]
+    cand = cand[within_of_any(pos[cand], samples, corner)]
     if len(cand) == 0:
         return 1.0
     seen_mask = np.zeros(len(frames), dtype=bool)

@@ -28,6 +28,8 @@ import numpy as np
 import shapely
 from scipy.spatial import cKDTree
 
+from csr_core.single_trip.splicing import within_of_any
+
 
 def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
                      reach_m: float) -> shapely.Geometry | None:
@@ -85,11 +87,7 @@ class ObservedPoints:
         seen = self.tree.query(points_xy, distance_upper_bound=gate_m + 1e-9)[0] <= gate_m
         if self.step_m is not None and not seen.all():
             rest = np.flatnonzero(~seen)
-            dense = self._densified_near(points_xy[rest], gate_m)
-            if len(dense):
-                dx = points_xy[rest, 0, None] - dense[None, :, 0]
-                dy = points_xy[rest, 1, None] - dense[None, :, 1]
-                seen[rest] = np.sqrt(dx * dx + dy * dy).min(1) <= gate_m
+            seen[rest] = within_of_any(points_xy[rest], self._densified_near(points_xy[rest], gate_m), gate_m)
         return seen
 
 

@@ -123,6 +123,16 @@ def _nearest(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, tree: cKD
     return tree.query(points)[1]
 
 
+def within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:
+    """``(P,)`` whether each of ``points (P, 2)`` lies within ``radius_m`` of one of ``others (Q, 2)``
+    (at most; all pairs or a KD-tree, as ``_nearest``)."""
+    if not len(others):
+        return np.zeros(len(points), dtype=bool)
+    if len(points) * len(others) <= BRUTE_FORCE_MAX_PAIRS:
+        return _nearest_pairwise(points, others[:, 0], others[:, 1])[1] <= radius_m * radius_m
+    return cKDTree(others).query(points, distance_upper_bound=radius_m + 1e-9)[0] <= radius_m
+
+
 def _nearest_within(points: np.ndarray, ref: np.ndarray, bound_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Index ``(P,)`` of the nearest of ``ref (R, 2)`` to each of ``points (P, 2)`` and whether it
     lies closer than ``bound_m`` (strictly, as a KD-tree's ``distance_upper_bound``); the index
