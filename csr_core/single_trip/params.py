@@ -102,6 +102,11 @@ class SingleTripParams:
     TRACK_MAX_ANGLE_RAD: float = math.radians(20.0)  # pieces of one element are nearly parallel
     TRACK_MAX_SKIP_FRAMES: int = 2  # links reach this many tracked frames ahead (missed detections)
     TRACK_MERGE_GATE_M: float = 0.6  # an unassigned piece collinear with a matched track joins it
+    # kerbs and centrelines: within a frame, a piece joins another only end to end, one per end (a
+    # lane ends where its connectors start: tracking.one_continuation_per_end). Left off: on, the
+    # trip-level completeness rises and duplicates go, but so many correct duplicate samples go with
+    # them that Karlsruhe s3's rigid correctness share falls under 0.97 (docs/single-trip.md, session 39)
+    TRACK_MERGE_ONE_PER_END: bool = False
     # dashed-divider tracks re-cut into the lines their dashes form: a track across the path that no
     # line or circle carries split into its dashes, and dashes and tracks chained end to end where
     # one circle carries them (a junction's guide line tracked dash by dash: dash_chaining.py)

@@ -34,6 +34,9 @@ from csr_core.types import ElementType
 TYPE_CODES = {t: i for i, t in enumerate(ElementType)}
 _BOUND_SLACK_M = 1e-6  # _chamfer_lower_bound: rounding allowance (the bound holds exactly in reals)
 _POLYGON_CODES = np.array([t.is_polygon for t in ElementType])
+#: lines perceived whole where seen: one piece continues another only end to end, one piece per end
+#: (a dashed divider's dashes are chained by dash_chaining)
+_CONTINUOUS_CODES = np.array([t in (ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE) for t in ElementType])
 _LATERAL_CODES = np.array([t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
                            for t in ElementType])
 
@@ -330,6 +333,11 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         rest = rest[_chamfer_lower_bound(pc.points_w[a[rest]], shapes, b[rest], cap) <= gate + _BOUND_SLACK_M]
         d_ba = pair_distance(pc.points_w[a[rest]], pc.points_w[b[rest]], ext, cap).mean(1)
         m[rest] = d_ba <= gate
+        if params.TRACK_MERGE_ONE_PER_END:
+            cost = np.full(len(a), np.inf)
+            cost[i_ab] = d_ab
+            cost[rest] = np.minimum(cost[rest], d_ba)
+            m &= one_continuation_per_end(pc.points_w, a, b, cost, ~_CONTINUOUS_CODES[pc.type_code[a]] | ~m)
         rows.append(a[m])
         cols.append(b[m])
 
@@ -409,6 +417,43 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         tracks.append(Track(type=types[track_types[i]], pieces=by_label[bounds[i]:bounds[i + 1]],
                             frames=distinct_frames[frame_bounds[i]:frame_bounds[i + 1]]))
     return pc, tracks
+
+
+def one_continuation_per_end(points_w: np.ndarray, a: np.ndarray, b: np.ndarray, cost: np.ndarray,
+                              exempt: np.ndarray) -> np.ndarray:
+    """Which of the within-frame merges of pieces ``a`` and ``b`` (indices into ``points_w (Q, k,
+    2)``, with their Chamfer ``cost``) to keep: the pieces must continue each other, lying on
+    opposite sides of the joint of their nearest ends, and each must be the other's cheapest
+    continuation at that end (cost plus the gap between the ends). Merges marked ``exempt`` are
+    kept as they are and take no part.
+
+    Where a lane ends, its connectors (left, straight, right) start: all of them lie on its
+    extension, and a test of each pair alone makes one detection of all of them, whose track
+    then takes in every connector of the junction (Karlsruhe s1: one centreline track of 67
+    tracked frames held 608 detections and came out as 89 instances). One continuation per end
+    keeps the lane with its straightest connector; the others start tracks of their own, as the
+    links between frames already do (mutual best)."""
+    keep = exempt.copy()
+    sel = np.flatnonzero(~exempt)
+    if len(sel) == 0:
+        return keep
+    ia, ib = a[sel], b[sel]
+    ends_a = points_w[ia][:, [0, -1]]  # (n, end, xy)
+    ends_b = points_w[ib][:, [0, -1]]
+    gap = ends_a[:, :, None, :] - ends_b[:, None, :, :]
+    gap = np.sqrt((gap * gap).sum(-1)).reshape(len(sel), 4)  # (first, first), (first, last), ...
+    joint = gap.argmin(1)
+    end_a, end_b = joint // 2, joint % 2
+    r = np.arange(len(sel))
+    into_a = ends_a[r, 1 - end_a] - ends_a[r, end_a]  # from the joint into each piece
+    into_b = ends_b[r, 1 - end_b] - ends_b[r, end_b]
+    total = np.where((into_a * into_b).sum(1) < 0, cost[sel] + gap[r, joint], np.inf)
+    node_a, node_b = 2 * ia + end_a, 2 * ib + end_b  # (piece, end)
+    best = np.full(2 * len(points_w), np.inf)
+    np.minimum.at(best, node_a, total)
+    np.minimum.at(best, node_b, total)
+    keep[sel] = np.isfinite(total) & (total <= best[node_a]) & (total <= best[node_b])
+    return keep
 
 
 def component_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -659,3 +659,55 @@ def test_component_labels_number_components_as_scipy_does():
         expected = connected_components(coo_matrix((np.ones(e), (a, b)), shape=(m, m)), directed=False)[1]
         assert component_labels(m, a, b).tolist() == expected.tolist()
     assert component_labels(4, np.array([3]), np.array([1])).tolist() == [0, 1, 2, 1]
+
+
+def _piece(start, end, k=6):
+    return np.linspace(start, end, k)
+
+
+def test_one_continuation_per_end_keeps_a_lane_with_its_straightest_connector():
+    # a lane's centreline ends where two connectors start (straight on, and bearing off 8.5
+    # degrees): all three pairs pass a pairwise test, but the lane continues into one of them
+    # only, and the two connectors start side by side: they do not continue each other
+    from csr_core.single_trip.tracking import one_continuation_per_end
+
+    pieces = np.stack([_piece((-20.0, 0.0), (0.0, 0.0)), _piece((0.0, 0.0), (20.0, 0.0)),
+                       _piece((0.0, 0.0), (10.0, 1.5))])
+    a, b = np.array([0, 0, 1]), np.array([1, 2, 2])
+    keep = one_continuation_per_end(pieces, a, b, np.array([0.05, 0.30, 0.20]), np.zeros(3, dtype=bool))
+    assert keep.tolist() == [True, False, False]
+
+
+def test_one_continuation_per_end_keeps_a_line_split_in_pieces_whole():
+    # one line seen as three pieces end to end: each joint joins its two neighbours, the pair of
+    # the outer pieces (20 m apart) is left out and the three stay one component
+    from csr_core.single_trip.tracking import component_labels, one_continuation_per_end
+
+    pieces = np.stack([_piece((-30.0, 0.0), (-10.5, 0.0)), _piece((-10.0, 0.0), (10.0, 0.0)),
+                       _piece((10.5, 0.0), (30.0, 0.0))])
+    a, b = np.array([0, 0, 1]), np.array([1, 2, 2])
+    exempt = np.array([False, False, True])  # kept as it is, whatever the others say
+    keep = one_continuation_per_end(pieces, a, b, np.zeros(3), exempt)
+    assert keep.tolist() == [True, False, True]
+    assert len(set(component_labels(3, a[keep], b[keep]).tolist())) == 1
+
+
+def test_a_lane_and_its_connectors_are_one_track_without_the_rule_and_two_with_it():
+    # a lane's centreline ends at the origin, where two connectors start (straight on, and bearing
+    # off 6 degrees); ten frames see all three, short enough that each pair passes the
+    # within-frame test. Without the rule they make one track; with it the lane continues into
+    # the straight connector and the other one is a track of its own
+    from csr_core.single_trip.tracking import track_elements
+    from csr_core.types import PerceivedElement
+
+    world = [_piece((-12.0, 0.0), (0.0, 0.0)), _piece((0.0, 0.0), (10.0, 0.0)), _piece((0.0, 0.0), (10.0, 1.0))]
+    poses = np.column_stack([-30.0 + 2.0 * np.arange(10), np.zeros(10), np.zeros(10)])
+    elements = tuple(tuple(PerceivedElement(ElementType.CENTERLINE, w - pose[:2]) for w in world) for pose in poses)
+    frames, travel = np.arange(10), 2.0 * np.arange(10)
+
+    def tracks_of(params):
+        pieces, tracks = track_elements(frames, poses, travel, elements, params)
+        return sorted(sorted(set(pieces.element[t.pieces].tolist())) for t in tracks)
+
+    assert tracks_of(DEFAULT) == [[0, 1, 2]]
+    assert tracks_of(replace(DEFAULT, TRACK_MERGE_ONE_PER_END=True)) == [[0, 1], [2]]
