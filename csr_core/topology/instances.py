@@ -27,6 +27,7 @@ from csr_core.topology.fusion import (
 )
 from csr_core.topology.lane_graph import LaneGraph, build_lane_graph
 from csr_core.topology.params import TopologyParams
+from csr_core.topology.unseen_tails import trim_unseen_tails
 from csr_core.topology.validation import (
     TileQuality,
     ValidationFlag,
@@ -241,6 +242,8 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     published ones. ``features``: the fused map (no derived centrelines); ``trip_paths``: see
     :func:`path_probes`."""
     t0 = time.perf_counter()
+    if params.TRIM_UNSEEN_TAILS:
+        features, _ = trim_unseen_tails(features, members, trip_paths or {}, params, params.END_WINDOW_M)
     passed = passing_counts(features, trip_paths or {}, params)
     held = [_ghost(int(f.properties["support_trips"]), n, params) for f, n in zip(features, passed, strict=True)]
     published = [f for f, h in zip(features, held, strict=True) if not h]

@@ -101,6 +101,8 @@ class TopologyParams:
     # LOW_SUPPORT_SHARE of all the trips that had it in view saw, is held back from the map
     # (``TopologyResult.suppressed``) until more trips confirm it (0: never held back)
     SUPPRESS_MIN_PASSING: int = 3
+    # ... and the end stretch of a line that at most one trip covered, by the same test (unseen_tails)
+    TRIM_UNSEEN_TAILS: bool = True
 
     def trip_sigma_m(self, noise: ElementNoise | None) -> float:
         """Lateral 1-sigma of one trip's instance in the world: its perception noise plus the
