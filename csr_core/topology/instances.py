@@ -33,6 +33,7 @@ from csr_core.topology.validation import (
     ValidationFlag,
     coverage_counts,
     passing_counts,
+    seen_too_rarely,
     validate,
 )
 from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
@@ -245,7 +246,7 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     if params.TRIM_UNSEEN_TAILS:
         features, _ = trim_unseen_tails(features, members, trip_paths or {}, params, params.END_WINDOW_M)
     passed = passing_counts(features, trip_paths or {}, params)
-    held = [_ghost(int(f.properties["support_trips"]), n, params) for f, n in zip(features, passed, strict=True)]
+    held = [seen_too_rarely(int(f.properties["support_trips"]), n, params) for f, n in zip(features, passed, strict=True)]
     published = [f for f, h in zip(features, held, strict=True) if not h]
     derived = derive_centerlines(published, trip_paths or {}, params, trip_times,
                                  [f for f in previous if is_derived(f)])
@@ -287,15 +288,6 @@ def trip_sigmas(member_groups: Iterable[Sequence[Member]]) -> dict[str, float]:
         for m in group:
             per_trip.setdefault(m.trip_key, {})[m.instance.type] = m.sigma_m
     return {k: math.sqrt(sum(v * v for v in s.values()) / len(s)) for k, s in per_trip.items()}
-
-
-def _ghost(support_trips: int, passed_trips: int, params: TopologyParams) -> bool:
-    """Held back: enough trips drove alongside without seeing it (``SUPPRESS_MIN_PASSING``) and
-    fewer than ``LOW_SUPPORT_SHARE`` of all the trips that had it in view saw it. A real line is
-    seen on nearly every pass (tens of frames in view), so this is what ghosts and one trip's
-    mis-spliced lines look like."""
-    return (params.SUPPRESS_MIN_PASSING > 0 and passed_trips >= params.SUPPRESS_MIN_PASSING
-            and support_trips < params.LOW_SUPPORT_SHARE * (support_trips + passed_trips))
 
 
 def reposition_instances(instances: Sequence[TripInstance], from_xyyaw: np.ndarray, to_xyyaw: np.ndarray

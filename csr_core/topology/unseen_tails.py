@@ -7,7 +7,7 @@ others drove past the same stretch and saw nothing there (a dashed divider splic
 into the dashes of a line crossing a junction, 10 m past where its paint starts: Karlsruhe
 standard s1).
 
-The test is the one ``instances.finish`` applies to whole lines (``_ghost``), applied to the
+The test is the one ``instances.finish`` applies to whole lines (``validation.seen_too_rarely``), applied to the
 stretch at each end that at most one trip covers (with any instance of the type, fused into this
 line or another: a trip may have seen the stretch in a piece of its own): it is cut when at least
 ``SUPPRESS_MIN_PASSING`` trips that did not see it drove alongside it and fewer than
@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member
 from csr_core.topology.params import TopologyParams
-from csr_core.topology.validation import passing_counts
+from csr_core.topology.validation import passing_counts, seen_too_rarely
 from csr_core.types import ElementType, MapFeature
 
 #: a member covers a vertex of the fused line within this many of its sigmas (perception and
@@ -129,8 +129,7 @@ def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequ
     passed = passing_counts(probes, trip_paths, params)
     cut: dict[int, list[tuple[bool, int]]] = {}
     for (k, at_head, n), probe, n_passed in zip(stretches, probes, passed, strict=True):
-        seen = int(probe.properties["support_trips"])
-        if n_passed >= params.SUPPRESS_MIN_PASSING and seen < params.LOW_SUPPORT_SHARE * (seen + n_passed):
+        if seen_too_rarely(int(probe.properties["support_trips"]), n_passed, params):
             cut.setdefault(k, []).append((at_head, n))
     out = list(features)
     for k, ends in cut.items():

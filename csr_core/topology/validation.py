@@ -393,3 +393,12 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
         out[k] = sum(1 for i, key in enumerate(keys)
                      if per_line_trip[j, i] >= params.PASS_MIN_SHARE * len(probes[j]) and key not in seen_by)
     return out
+
+
+def seen_too_rarely(support_trips: int, passed_trips: int, params: TopologyParams) -> bool:
+    """Held back: enough trips drove alongside without seeing it (``SUPPRESS_MIN_PASSING``) and
+    fewer than ``LOW_SUPPORT_SHARE`` of all the trips that had it in view saw it. A real line is
+    seen on nearly every pass (tens of frames in view), so this is what ghosts and one trip's
+    mis-spliced lines look like."""
+    return (params.SUPPRESS_MIN_PASSING > 0 and passed_trips >= params.SUPPRESS_MIN_PASSING
+            and support_trips < params.LOW_SUPPORT_SHARE * (support_trips + passed_trips))
