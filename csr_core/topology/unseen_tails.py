@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.association import Member
+from csr_core.topology.fusion import arclength
 from csr_core.topology.params import TopologyParams
 from csr_core.topology.validation import passing_counts, seen_too_rarely
 from csr_core.types import ElementType, MapFeature
@@ -86,11 +87,6 @@ def _end_run(points: TypePoints, line_xy: np.ndarray, from_head: bool, chunk: in
     return None
 
 
-def _arclength_m(points: np.ndarray) -> float:
-    step = np.diff(points, axis=0)
-    return float(np.sqrt((step * step).sum(1)).sum())
-
-
 def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequence[Member]],
                       trip_paths: Mapping[str, np.ndarray], params: TopologyParams,
                       min_length_m: float) -> tuple[list[MapFeature], int]:
@@ -119,7 +115,7 @@ def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequ
                 break  # no vertex that two trips cover: the whole line is the ghost test's
             n, seen_by = run
             part = p[:n + 1] if at_head else p[len(p) - n - 1:]
-            if n < 1 or _arclength_m(part) < min_length_m:
+            if n < 1 or arclength(part)[-1] < min_length_m:
                 continue
             stretches.append((k, at_head, n))
             probes.append(MapFeature(f.type, part, f.style, f"{f.feature_id}-tail",
@@ -132,16 +128,12 @@ def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequ
         if seen_too_rarely(int(probe.properties["support_trips"]), n_passed, params):
             cut.setdefault(k, []).append((at_head, n))
     out = list(features)
+    n_cut = 0
     for k, ends in cut.items():
         p = np.asarray(out[k].points_xy_world, float)
-        lo, hi = 0, len(p)
-        for at_head, n in ends:
-            if at_head:
-                lo = n
-            else:
-                hi = len(p) - n
-        if hi - lo >= 2:
+        lo = max((n for at_head, n in ends if at_head), default=0)
+        hi = len(p) - max((n for at_head, n in ends if not at_head), default=0)
+        if hi - lo >= 2:  # (both ends cut to the one vertex two trips cover: left whole)
             out[k] = replace(out[k], points_xy_world=p[lo:hi].copy())
-        else:
-            del ends[:]
-    return out, sum(len(v) for v in cut.values())
+            n_cut += len(ends)
+    return out, n_cut
