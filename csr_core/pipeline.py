@@ -23,14 +23,14 @@ from enum import Enum, StrEnum
 import numpy as np
 
 from csr_core.alignment import DEFAULT as ALIGNMENT_DEFAULT
-from csr_core.alignment import align_trips
+from csr_core.alignment import AlignmentResult, align_trips
 from csr_core.baselines.gnss_only import reconstruct_gnss_only
 from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M
 from csr_core.baselines.roadmap_icp import CHUNK_LENGTH_M, reconstruct_roadmap_icp
 from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame
 from csr_core.single_trip import reconstruct_trip
-from csr_core.topology import generate_topology, reposition_instances
+from csr_core.topology import TopologyResult, generate_topology, reposition_instances
 from csr_core.types import Reconstruction, Trip, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -109,26 +109,13 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     unaligned: dict[str, str] = {}
     if params.coarse or params.fine:
         alignment = align_trips(recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine))
-        poses_by_key = dict(alignment.poses_xyyaw_world)
-        for key, reason in alignment.failed.items():
-            if reason.startswith(NO_OVERLAP):  # nothing to align with: its own smoothed poses stand
-                poses_by_key[key] = next(r.poses_xyyaw_world for r in recons if r.trip.key == key)
-                unaligned[key] = reason
-            else:
-                failed[key] = reason
+        poses_by_key, failed_alignment, unaligned = poses_after_alignment(recons, alignment)
+        failed.update(failed_alignment)
         stages += [s for s, on in (("coarse", params.coarse), ("fine", params.fine)) if on]
         lap("align")
-    aligned = [r for r in recons if r.trip.key in poses_by_key]
 
     # 6. fuse: instances of all trips moved with their alignment, matched and fused (III-E)
-    instances = {r.trip.key: reposition_instances(r.instances, r.poses_xyyaw_world, poses_by_key[r.trip.key])
-                 for r in aligned}
-    topology = generate_topology(
-        instances, {r.trip.key: r.noise for r in aligned},
-        trip_times={r.trip.key: r.trip.started_at for r in aligned},
-        match_pairs=alignment.match_pairs if alignment is not None else (),
-        paths_xy_per_trip={k: p[:, :2] for k, p in poses_by_key.items()},
-    )
+    topology = fuse_trips(recons, poses_by_key, alignment.match_pairs if alignment is not None else ())
     stages.append("topology")
     lap("fuse")
 
@@ -153,6 +140,39 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
             "held_back_features": len(topology.suppressed),
         },
+    )
+
+
+def poses_after_alignment(recons: Sequence[TripReconstruction], alignment: AlignmentResult
+                          ) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+    """Each trip's world_T_vehicle poses once ``alignment`` ran over ``recons``: the aligned ones;
+    a trip that shares no road with any other (``NO_OVERLAP``) keeps its single-trip poses.
+    Returns (poses by trip key, failed trips with the reason, trips left unaligned with the reason)."""
+    poses_by_key = dict(alignment.poses_xyyaw_world)
+    failed: dict[str, str] = {}
+    unaligned: dict[str, str] = {}
+    for key, reason in alignment.failed.items():
+        if reason.startswith(NO_OVERLAP):  # nothing to align with: its own smoothed poses stand
+            poses_by_key[key] = next(r.poses_xyyaw_world for r in recons if r.trip.key == key)
+            unaligned[key] = reason
+        else:
+            failed[key] = reason
+    return poses_by_key, failed, unaligned
+
+
+def fuse_trips(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],
+               match_pairs: Sequence = ()) -> TopologyResult:
+    """Paper III-E: the instances of every trip in ``poses_by_key``, moved from their single-trip
+    poses to these, matched and fused into the road structure (``generate_topology``) with the
+    alignment's ``match_pairs`` for the validator."""
+    placed = [r for r in recons if r.trip.key in poses_by_key]
+    instances = {r.trip.key: reposition_instances(r.instances, r.poses_xyyaw_world, poses_by_key[r.trip.key])
+                 for r in placed}
+    return generate_topology(
+        instances, {r.trip.key: r.noise for r in placed},
+        trip_times={r.trip.key: r.trip.started_at for r in placed},
+        match_pairs=match_pairs,
+        paths_xy_per_trip={k: p[:, :2] for k, p in poses_by_key.items()},
     )
 
 

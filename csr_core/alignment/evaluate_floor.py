@@ -66,7 +66,7 @@ def _true_relative(m, submaps, truth: Mapping[str, np.ndarray]) -> np.ndarray:
     return se2.between(truth[si.trip_key][si.anchor_frame], truth[sj.trip_key][sj.anchor_frame])
 
 
-def _with_true_registration(m, submaps, truth: Mapping[str, np.ndarray]):
+def with_true_registration(m, submaps, truth: Mapping[str, np.ndarray]):
     """``m`` with ``delta_local_xyyaw`` such that ``m.relative_pose`` gives the truth."""
     si, sj = submaps[m.i], submaps[m.j]
     c = np.array([m.centre_xy_world[0], m.centre_xy_world[1], 0.0])
@@ -75,7 +75,7 @@ def _with_true_registration(m, submaps, truth: Mapping[str, np.ndarray]):
     return replace(m, delta_local_xyyaw=delta)
 
 
-def _aligned(recons, change: Callable | None, seen: dict,
+def align_with_matches(recons, change: Callable | None, seen: dict,
              params: AlignmentParams = DEFAULT) -> alignment.AlignmentResult:
     """``align_trips`` with the matches handed to the pose graph passed through ``change``
     (and recorded in ``seen``)."""
@@ -204,8 +204,8 @@ def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams 
     frame, recons = single_trip_results(scenario, cache)
     truth = true_poses(scenario, frame, [r.trip.key for r in recons])
     as_is: dict = {}
-    real = _aligned(recons, None, as_is, params)
-    floor = _aligned(recons, lambda m, submaps: _with_true_registration(m, submaps, truth), {}, params)
+    real = align_with_matches(recons, None, as_is, params)
+    floor = align_with_matches(recons, lambda m, submaps: with_true_registration(m, submaps, truth), {}, params)
     off, along = 0, 0
     for m in as_is["matches"]:
         si, sj = as_is["submaps"][m.i], as_is["submaps"][m.j]

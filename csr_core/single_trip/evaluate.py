@@ -170,11 +170,7 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
     stage_seconds = dict.fromkeys(STAGES, 0.0)
     for loaded in scenario.trips:
         trip, true_xy = loaded.trip, loaded.true_poses_xyyaw[:, :2]
-        fixed = None
-        if true_poses:
-            n = len(true_xy)
-            fixed = SmoothedPoses(loaded.true_poses_xyyaw.copy(), np.zeros(n), np.zeros(n), np.ones(n, bool),
-                                  np.zeros(3))
+        fixed = SmoothedPoses.given(loaded.true_poses_xyyaw) if true_poses else None
         t0 = time.process_time()  # CPU seconds of this process: one core, unaffected by other load
         rec = reconstruct_trip(trip, frame, params, smoothed=fixed)
         seconds += time.process_time() - t0

@@ -47,6 +47,13 @@ class SmoothedPoses:
     # alignment's e^sm chain takes a trip's relative poses from them); None without it
     white_poses_xyyaw_world: np.ndarray | None = None
 
+    @classmethod
+    def given(cls, poses_xyyaw_world: np.ndarray) -> SmoothedPoses:
+        """``poses_xyyaw_world (N, 3)`` taken as they are, in place of the smoothing (the true
+        poses, to measure the element stages alone): no sigma, every fix an inlier."""
+        n = len(poses_xyyaw_world)
+        return cls(np.array(poses_xyyaw_world, dtype=float), np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))
+
 
 def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams,
                   floor_m: float | None = None) -> np.ndarray:

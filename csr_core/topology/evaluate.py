@@ -81,9 +81,7 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_o
         true_poses = np.column_stack([frame.to_local(pt.lonlat_deg),
                                           frame.yaw_rad(pt.heading_deg, pt.lonlat_deg)])
         if poses == "truth":
-            n = len(true_poses)
-            fixed = SmoothedPoses(true_poses, np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))
-            rec = single_trip.reconstruct_trip(trip, frame, smoothed=fixed)
+            rec = single_trip.reconstruct_trip(trip, frame, smoothed=SmoothedPoses.given(true_poses))
         else:
             rec = single_trip.reconstruct_trip(trip, frame)
         recs.append(rec)

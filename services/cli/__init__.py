@@ -24,6 +24,7 @@ _COMMAND_MODULES += ("demo",)  # csr demo: the README's first command (services/
 _COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: issue 4's targets
 _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: issue 6's validator target
 _COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
+_COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where issue 6's mCD comes from
 
 
 def build_parser() -> argparse.ArgumentParser:

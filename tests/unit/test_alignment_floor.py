@@ -17,7 +17,7 @@ def test_true_registrations_reproduce_the_true_relative_poses_and_do_not_align_w
     frame, recons = evaluate_floor.single_trip_results(scenario, None)
     truth = evaluate_floor.true_poses(scenario, frame, [r.trip.key for r in recons])
     seen: dict = {}
-    evaluate_floor._aligned(recons, lambda m, sub: evaluate_floor._with_true_registration(m, sub, truth), seen)
+    evaluate_floor.align_with_matches(recons, lambda m, sub: evaluate_floor.with_true_registration(m, sub, truth), seen)
     assert seen["matches"], "the trips share roads: there are accepted pairs"
     for m in seen["matches"]:
         si, sj = seen["submaps"][m.i], seen["submaps"][m.j]
