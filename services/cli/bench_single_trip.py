@@ -11,20 +11,25 @@ with ``--write``, rewrites the ``single-trip`` section of the markdown file (bet
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
 from pathlib import Path
 
+from services.cli.bench_common import (
+    add_output_arguments,
+    doc_dir,
+    progress_printer,
+    publish,
+    quiet_stage_logs,
+)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench-single-trip", help="issue 4's single-trip targets on the benchmark's fleets")
-    p.add_argument("--out", default="bench-out", help="work folder: scenarios cache and single-trip/results.json")
     p.add_argument("--sets", default="standard-seeds,hard",
                    help="comma-separated scenario sets (default standard-seeds,hard; hard gives the GNSS-jump rows)")
-    p.add_argument("--jobs", type=int, default=2, help="scenarios evaluated in parallel (processes; default 2)")
-    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the single-trip section of this file")
-    p.add_argument("--figures", default="docs/figures", help="where the PNG figure goes")
+    add_output_arguments(p, "work folder: scenarios cache and single-trip/results.json",
+                         "rewrite the single-trip section of this file")
     p.set_defaults(func=_run)
 
 
@@ -38,7 +43,6 @@ def _run(args: argparse.Namespace) -> int:
         render_section,
         run_single_trip_bench,
     )
-    from csr_core.bench.tables import write_section
     from csr_core.errors import CsrError
 
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
@@ -47,13 +51,13 @@ def _run(args: argparse.Namespace) -> int:
         print(f"csr bench-single-trip: unknown set(s) {unknown or sets} (known: {', '.join(SCENARIO_SETS)})",
               file=sys.stderr)
         return 2
-    logging.getLogger("csr_core.single_trip").setLevel(logging.WARNING)  # one line per trip otherwise
+    quiet_stage_logs(("csr_core.single_trip",))  # one line per trip otherwise
     t0 = time.perf_counter()
     out_root = Path(args.out)
     try:
         results = run_single_trip_bench(
             out_root / "scenarios", sets=sets, jobs=args.jobs,
-            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr),
+            progress=progress_printer(t0),
         )
     except CsrError as exc:
         print(f"csr bench-single-trip: {exc}", file=sys.stderr)
@@ -63,10 +67,6 @@ def _run(args: argparse.Namespace) -> int:
     (out_root / "single-trip" / "results.json").write_bytes(
         orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY))
     figure = plot_instances_by_world(results, Path(args.figures) / "bench_single_trip_instances.png")
-    doc = Path(args.write) if args.write else None
-    section = render_section(results, figure, doc.parent if doc else Path("."), elapsed, sets)
-    print(section)
-    if doc is not None:
-        write_section(doc, section, SECTION)
-        print(f"csr bench-single-trip: wrote the {SECTION} section of {doc}", file=sys.stderr)
+    section = render_section(results, figure, doc_dir(args.write), elapsed, sets)
+    publish(section, args.write, SECTION, "bench-single-trip")
     return 0

@@ -10,10 +10,17 @@ against the truth (``csr_core.bench.validator``); prints the section, draws one 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
 from pathlib import Path
+
+from services.cli.bench_common import (
+    add_output_arguments,
+    doc_dir,
+    progress_printer,
+    publish,
+    quiet_stage_logs,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,22 +29,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench-validator", help="issue 6's validator recall / precision on the hard profile")
     p.add_argument("--set", dest="set_name", default="validator", choices=SCENARIO_SETS,
                    help="scenario set (default validator: six hard fleets of 8 trips)")
-    p.add_argument("--out", default="bench-out", help="work folder: scenarios cache and validator/ (alignments)")
-    p.add_argument("--jobs", type=int, default=2, help="fleets evaluated in parallel (processes; default 2)")
-    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the validator section of this file")
-    p.add_argument("--figures", default="docs/figures", help="where the PNG figure goes")
+    add_output_arguments(p, "work folder: scenarios cache and validator/ (alignments)",
+                         "rewrite the validator section of this file",
+                         jobs_help="fleets evaluated in parallel (processes; default 2)")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     import orjson
 
-    from csr_core.bench.tables import write_section
     from csr_core.bench.validator import SECTION, render_section, run_validator_bench
     from csr_core.errors import CsrError
 
-    for name in ("csr_core.single_trip", "csr_core.alignment", "csr_core.topology"):
-        logging.getLogger(name).setLevel(logging.WARNING)  # lines per trip and stage otherwise
+    quiet_stage_logs()
     t0 = time.perf_counter()
     out_root = Path(args.out)
     figure_dir = Path(args.figures)
@@ -45,7 +49,7 @@ def _run(args: argparse.Namespace) -> int:
         results = run_validator_bench(
             out_root / "scenarios", out_root / "validator", args.set_name, jobs=args.jobs,
             figure_dir=figure_dir,
-            progress=lambda msg: print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr),
+            progress=progress_printer(t0),
         )
     except CsrError as exc:
         print(f"csr bench-validator: {exc}", file=sys.stderr)
@@ -53,10 +57,6 @@ def _run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     (out_root / "validator" / "results.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2))
     figure = next((Path(r["figure"]) for r in results if r["figure"]), None)
-    doc = Path(args.write) if args.write else None
-    section = render_section(results, figure, doc.parent if doc else Path("."), elapsed, args.set_name)
-    print(section)
-    if doc is not None:
-        write_section(doc, section, SECTION)
-        print(f"csr bench-validator: wrote the {SECTION} section of {doc}", file=sys.stderr)
+    section = render_section(results, figure, doc_dir(args.write), elapsed, args.set_name)
+    publish(section, args.write, SECTION, "bench-validator")
     return 0

@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from services.cli.bench_common import add_output_arguments, doc_dir, progress_printer, publish
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
@@ -23,24 +25,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", dest="set_name", default="variants", choices=SCENARIO_SETS,
                    help="the source fleets (default variants: urban and roundabout, 6 trips x 800 m)")
     p.add_argument("--variants", default="", help=f"comma-separated subset of: {', '.join(VARIANTS)} (default all)")
-    p.add_argument("--out", default="bench-out", help="work folder: scenarios cache and variants/")
-    p.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes; default 2)")
-    p.add_argument("--write", metavar="MARKDOWN", help="rewrite the variants section of this file")
-    p.add_argument("--figures", default="docs/figures", help="where the PNG figure goes")
+    add_output_arguments(p, "work folder: scenarios cache and variants/", "rewrite the variants section of this file",
+                         jobs_help="runs in parallel (processes; default 2)")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     from csr_core.bench.runner import ensure_scenario, simulator_fingerprint
     from csr_core.bench.sets import scenario_set
-    from csr_core.bench.tables import write_section
     from csr_core.bench.variants import SECTION, plot_variants, render_section, run_variants_bench
 
     t0 = time.perf_counter()
     out_root = Path(args.out)
 
-    def progress(msg: str) -> None:
-        print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", file=sys.stderr)
+    progress = progress_printer(t0)
 
     fingerprint = simulator_fingerprint()
     sources = {}
@@ -58,12 +56,8 @@ def _run(args: argparse.Namespace) -> int:
     (out_root / "variants" / "results.json").write_bytes(orjson.dumps(rows, option=orjson.OPT_INDENT_2))
     regenerate = "csr bench-variants --write BENCHMARKS.md" + ("" if args.set_name == "variants" else f" --set {args.set_name}")
     figure = plot_variants(rows, Path(args.figures) / "bench_variants.png")
-    doc_dir = Path(args.write).parent if args.write else Path(".")
-    section = render_section(rows, time.perf_counter() - t0, regenerate, figure, doc_dir)
-    print(section)
-    if args.write:
-        write_section(Path(args.write), section, SECTION)
-        print(f"csr bench-variants: wrote the {SECTION} section of {args.write}", file=sys.stderr)
+    section = render_section(rows, time.perf_counter() - t0, regenerate, figure, doc_dir(args.write))
+    publish(section, args.write, SECTION, "bench-variants")
     failed = [f"{r['base']} {r['variant']}" for r in rows if not r["ok"]]
     if failed:
         print(f"csr bench-variants: failed to run: {', '.join(failed)}", file=sys.stderr)

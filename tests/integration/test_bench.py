@@ -121,6 +121,17 @@ def test_bench_validator_toy_set_end_to_end(tmp_path):
     assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned-*.pkl"))  # the alignment cache
 
 
+def test_bench_budget_toy_set_end_to_end(tmp_path):
+    text, figs = _bench_command_on_toy(tmp_path, "bench-budget", "--set", "error-budget-toy")
+    assert "csr bench-budget --write BENCHMARKS.md --set toy" in text and "| toy | 1 |" in text
+    png = figs / "bench_error_budget_toy.png"
+    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    (r,) = orjson.loads((tmp_path / "bench" / "budget" / "results-toy.json").read_bytes())
+    # the toy world is noiseless: exact registrations and the true poses leave (almost) nothing
+    assert r["mcd"]["true_poses"] < 0.03 and r["mcd"]["exact_registrations"] < 0.05
+    assert r["mcd"]["true_poses"] <= r["mcd"]["pipeline"] + 1e-9
+
+
 def test_bench_variants_toy_set_every_foreign_fleet_holds(tmp_path):
     # contract-valid uploads our simulator never writes (no std_m, fixes held between 1 Hz epochs,
     # 2 Hz frames, odometry elsewhere, another hemisphere, ...): each must run and stay accurate
