@@ -129,20 +129,14 @@ def evaluate_in_process(
 ) -> tuple[list[TripScore], object]:
     """Single-trip + ``align_trips`` here; failed trips scored on their unaligned poses."""
     from csr_core.alignment import DEFAULT, align_trips
-    from csr_core.pipeline import NO_OVERLAP
+    from csr_core.pipeline import poses_after_alignment
 
     meta, true_xy, true_yaw = _truth(scenario)
     frame, recons = single_trip_results(scenario, cache)
     res = align_trips(recons, params=replace(DEFAULT, mark_unobservable=mark_unobservable))
     to_scenario = lambda p: meta.frame.to_local(frame.to_lonlat(p[:, :2]))  # noqa: E731
-    est = {k: to_scenario(p) for k, p in res.poses_xyyaw_world.items()}
-    failed, no_overlap = {}, {}
-    for k, reason in res.failed.items():
-        if reason.startswith(NO_OVERLAP):  # the pipeline keeps its smoothed poses
-            est[k] = to_scenario(next(r.poses_xyyaw_world for r in recons if r.trip.key == k))
-            no_overlap[k] = reason
-        else:
-            failed[k] = reason
+    poses, failed, no_overlap = poses_after_alignment(recons, res)  # as the pipeline keeps them
+    est = {k: to_scenario(p) for k, p in poses.items()}
     unaligned = {k: to_scenario(p) for k, p in res.diagnostics["unaligned_poses"].items() if k in failed}
     return score_trips(true_xy, true_yaw, est, failed, unaligned, no_overlap), res
 
