@@ -26,6 +26,7 @@ def test_a_scenario_fused_on_three_poses_and_the_true_poses_leave_the_least(tmp_
     cache = tmp_path / "cache"
     r = scenario_budget(scenario, cache)
     assert r["trips"] == 3 and set(r["mcd"]) == set(POSES)
+    assert 1.0 <= r["trips_per_place"] <= 3.0
     assert all(0.0 < v < 1.0 for v in r["mcd"].values())
     # the element stages alone leave far less than the GNSS the trips align on (ATE ~0.5 m here)
     assert r["mcd"]["true_poses"] < 0.6 * r["mcd"]["pipeline"]
@@ -39,7 +40,7 @@ def test_a_scenario_fused_on_three_poses_and_the_true_poses_leave_the_least(tmp_
 
 
 def _result(spec: str, world: str, pipeline: float, exact: float, true: float) -> dict:
-    return {"spec": spec, "world": world, "seed": 1, "trips": 10, "cached": False,
+    return {"spec": spec, "world": world, "seed": 1, "trips": 10, "trips_per_place": 3.0, "cached": False,
             "mcd": {"pipeline": pipeline, "exact_registrations": exact, "true_poses": true},
             "mcd_true_poses_overlaid": true + 0.01,
             "ate_rmse_m": {"pipeline": 2 * pipeline, "exact_registrations": 2 * exact}}
@@ -57,6 +58,6 @@ def test_worlds_are_means_over_their_seeds_and_the_section_names_the_target(tmp_
     text = render_section(results, figure, tmp_path, 75.0)
     mean_pipeline = (0.06 + 0.08 + 0.12) / 3
     assert f"pipeline {mean_pipeline:.3f} m" in text and f"target {MCD_TARGET_M} m" in text
-    assert "| urban | 2 | 0.070 | 0.060 | 0.040 | 0.050 | 0.140 | 0.120 |" in text
-    assert "| highway-s1 | 0.120 | 0.110 | 0.030 |" in text
+    assert "| urban | 2 | 3 | 0.070 | 0.060 | 0.040 | 0.050 | 0.140 | 0.120 |" in text
+    assert "| highway-s1 | 3 | 0.120 | 0.110 | 0.030 |" in text
     assert "](figures/budget.png)" in text
