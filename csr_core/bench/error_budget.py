@@ -64,6 +64,11 @@ class Job:
     cache_dir: Path
 
 
+def _true_pose_cache(cache_dir: Path | None, scenario_dir: Path) -> Path | None:
+    """Where a scenario's single-trip results on the true poses are cached (none without a folder)."""
+    return cache_dir / f"{scenario_dir.resolve().name}-true-poses.pkl" if cache_dir is not None else None
+
+
 def _true_pose_recons(recons: Sequence, frame, truth: dict[str, np.ndarray], path: Path | None) -> list:
     """The single-trip stage of every trip with its smoothing replaced by the true poses (cached)."""
     from csr_core.single_trip import reconstruct_trip
@@ -109,15 +114,13 @@ def scenario_budget(scenario_dir: Path, cache_dir: Path | None = None) -> dict:
 
     out: dict = {"trips": len(recons), "trips_per_place": trips_per_place({k: v[:, :2] for k, v in truth.items()}),
                  "mcd": {}, "ate_rmse_m": {}}
-    seen: dict = {}
     for name, change in (("pipeline", None),
                          ("exact_registrations", lambda m, submaps: with_true_registration(m, submaps, truth))):
-        aligned = align_with_matches(recons, change, seen if change is None else {})
+        aligned = align_with_matches(recons, change, {})
         poses_by_key, _, _ = poses_after_alignment(recons, aligned)
         out["mcd"][name] = mcd(fuse_trips(recons, poses_by_key, aligned.match_pairs).features, poses_by_key)
         out["ate_rmse_m"][name] = ate_rmse_m(poses_by_key, truth)
-    cache = cache_dir / f"{scenario_dir.resolve().name}-true-poses.pkl" if cache_dir is not None else None
-    on_truth = _true_pose_recons(recons, frame, truth, cache)
+    on_truth = _true_pose_recons(recons, frame, truth, _true_pose_cache(cache_dir, scenario_dir))
     out["mcd"]["true_poses"] = mcd(fuse_trips(on_truth, truth).features, truth)
     out["mcd_true_poses_overlaid"] = mcd([MapFeature(i.type, i.points_xy_world, i.style)
                                           for r in on_truth for i in r.instances], truth)
@@ -126,7 +129,8 @@ def scenario_budget(scenario_dir: Path, cache_dir: Path | None = None) -> dict:
 
 def _evaluate(job: Job) -> dict:
     """One scenario (a worker process)."""
-    cached = (job.cache_dir / f"{job.scenario_dir.resolve().name}-true-poses.pkl").exists()
+    cache = _true_pose_cache(job.cache_dir, job.scenario_dir)
+    cached = cache is not None and cache.exists()
     r = scenario_budget(job.scenario_dir, job.cache_dir)
     return {"spec": job.spec.name, "world": job.spec.world, "seed": job.spec.seed, "cached": cached, **r}
 
