@@ -87,11 +87,15 @@ def _bench_command_on_toy(tmp_path, command: str, set_option: str, section: str)
     return text, figs
 
 
+def _assert_figure_linked(png: Path, text: str, root: Path) -> None:
+    """The command drew ``png`` and its section links it (relative to the markdown's folder)."""
+    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(root)})" in text
+
+
 def test_bench_single_trip_toy_set_end_to_end(tmp_path):
     text, figs = _bench_command_on_toy(tmp_path, "bench-single-trip", "--sets", "single-trip")
     assert "| toy |" in text and "csr bench-single-trip --write BENCHMARKS.md --sets toy" in text
-    png = figs / "bench_single_trip_instances.png"
-    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    _assert_figure_linked(figs / "bench_single_trip_instances.png", text, tmp_path)
     results = orjson.loads((tmp_path / "bench" / "single-trip" / "results.json").read_bytes())
     assert sorted(r["true_poses"] for r in results) == [False, True]
     smoothed, true = sorted(results, key=lambda r: r["true_poses"])
@@ -112,8 +116,7 @@ def test_bench_single_trip_toy_set_end_to_end(tmp_path):
 def test_bench_validator_toy_set_end_to_end(tmp_path):
     text, figs = _bench_command_on_toy(tmp_path, "bench-validator", "--set", "validator")
     assert "| toy-toy-3x-300m-s1 | 3 |" in text and "csr bench-validator --write BENCHMARKS.md --set toy" in text
-    png = figs / "bench_validator_map.png"
-    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    _assert_figure_linked(figs / "bench_validator_map.png", text, tmp_path)
     (fleet,) = orjson.loads((tmp_path / "bench" / "validator" / "results.json").read_bytes())
     v = fleet["validator"]
     # the toy fleet is clean: every instance judged, none wrong, so nothing to catch and no false alarm
@@ -124,8 +127,7 @@ def test_bench_validator_toy_set_end_to_end(tmp_path):
 def test_bench_budget_toy_set_end_to_end(tmp_path):
     text, figs = _bench_command_on_toy(tmp_path, "bench-budget", "--set", "error-budget-toy")
     assert "csr bench-budget --write BENCHMARKS.md --set toy" in text and "| toy | 1 |" in text
-    png = figs / "bench_error_budget_toy.png"
-    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    _assert_figure_linked(figs / "bench_error_budget_toy.png", text, tmp_path)
     (r,) = orjson.loads((tmp_path / "bench" / "budget" / "results-toy.json").read_bytes())
     # the toy world is noiseless: exact registrations and the true poses leave (almost) nothing
     assert r["mcd"]["true_poses"] < 0.03 and r["mcd"]["exact_registrations"] < 0.05
@@ -155,8 +157,7 @@ def test_bench_variants_toy_set_every_foreign_fleet_holds(tmp_path):
     mcd_no_centerline = float(rows["no_centerline"].split(" | ")[6])
     assert mcd_no_centerline < 0.2, rows["no_centerline"]
     assert f"**{len(held) - 1} of {len(VARIANTS) - 1} variants hold.** Known gaps" in text
-    png = figs / "bench_variants.png"
-    assert png.read_bytes()[:4] == b"\x89PNG" and f"({png.relative_to(tmp_path)})" in text
+    _assert_figure_linked(figs / "bench_variants.png", text, tmp_path)
     unknown = subprocess.run(CSR + ["bench-variants", "--variants", "nope", "--set", "toy", "--out",
                                     str(tmp_path / "bench")], capture_output=True, text=True)
     assert unknown.returncode == 2 and "unknown variant" in unknown.stderr
