@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.geo import LocalFrame
+from csr_core.single_trip import splice_kernels
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
@@ -40,7 +41,6 @@ from csr_core.single_trip.splicing import (
     splice_line,
     splice_polygon,
     unique_ids,
-    within_of_any,
 )
 from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_observations, track_elements
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance, TripReconstruction
@@ -98,14 +98,9 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     Returns early with a lower bound (seen / all frames near it) once that reaches ``enough``."""
     samples = resample_polyline(points_w, 2.0) if len(points_w) > 1 else points_w
     reach = max(abs(box[0]), abs(box[1]), abs(box[2]), abs(box[3]))
-    lo, hi = samples.min(0) - reach, samples.max(0) + reach
-    pos = poses[frames, :2]
-    cand = np.flatnonzero((pos[:, 0] >= lo[0]) & (pos[:, 0] <= hi[0]) & (pos[:, 1] >= lo[1]) & (pos[:, 1] <= hi[1]))
-    if len(cand) == 0:
-        return 1.0
     # frames farther than the box's corner from every sample cannot have it in range
     corner = float(np.hypot(max(abs(box[0]), abs(box[1])), max(abs(box[2]), abs(box[3]))))
-    cand = cand[within_of_any(pos[cand], samples, corner)]
+    cand = splice_kernels.frames_near(np.ascontiguousarray(samples, dtype=float), poses, frames, reach, corner)
     if len(cand) == 0:
         return 1.0
     seen_mask = np.zeros(len(frames), dtype=bool)
@@ -115,15 +110,9 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     if n_seen >= enough * len(cand):
         return n_seen / len(cand)
     rest = cand[~was_seen]  # only the frames that did not see it are tested
-    p = poses[frames[rest]]
-    c, s = np.cos(p[:, 2])[:, None], np.sin(p[:, 2])[:, None]
-    rel_x = samples[None, :, 0] - p[:, 0:1]
-    rel_y = samples[None, :, 1] - p[:, 1:2]
     x0, x1, y0, y1 = box
-    xv = c * rel_x + s * rel_y
-    yv = -s * rel_x + c * rel_y
-    visible = ((xv >= x0 + margin) & (xv <= x1 - margin) & (yv >= y0 + margin) & (yv <= y1 - margin)).any(1)
-    rest = rest[visible]
+    rest = rest[splice_kernels.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
+                                               np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]))]
     n_corroborated = 0
     if len(rest) and same_type_tree is not None:
         dense = resample_polyline(points_w, corroborate_m / 2) if len(points_w) > 1 else points_w

@@ -40,7 +40,7 @@ from scipy.cluster.hierarchy import DisjointSet
 from scipy.spatial import cKDTree
 
 from csr_core.single_trip.params import SingleTripParams
-from csr_core.single_trip.splicing import _BEND_MIN_RADIUS_M, kasa_circle
+from csr_core.single_trip.splice_kernels import BEND_MIN_RADIUS_M, kasa_circle
 from csr_core.single_trip.tracking import Pieces, Track, component_labels, pair_distance
 from csr_core.types import DividerStyle, ElementType
 
@@ -98,7 +98,7 @@ def dash_chord(track_index: int, points_w: np.ndarray, params: SingleTripParams)
         ends = centre + np.outer([along.min(), along.max()], u)
         return DashChord(track_index, ends, np.stack([-u, u]), length / 2.0, sigma)
     c, r2 = kasa_circle(pts)
-    if not np.isfinite(r2) or r2 < _BEND_MIN_RADIUS_M ** 2:
+    if not np.isfinite(r2) or r2 < BEND_MIN_RADIUS_M ** 2:
         return None
     r = float(np.sqrt(r2))
     rel = pts - c
@@ -135,7 +135,7 @@ def link_costs(ends_a: np.ndarray, out_a: np.ndarray, behind_a: np.ndarray, sigm
     w_a, w_b = 2.0 / (2.0 * behind_a + gap), 2.0 / (2.0 * behind_b + gap)
     kappa_a = w_a * np.arctan2(out_a[:, 0] * chord[:, 1] - out_a[:, 1] * chord[:, 0], (out_a * chord).sum(1))
     kappa_b = w_b * np.arctan2(chord[:, 0] * into_b[:, 1] - chord[:, 1] * into_b[:, 0], (chord * into_b).sum(1))
-    ok &= np.abs(0.5 * (kappa_a + kappa_b)) <= 1.0 / _BEND_MIN_RADIUS_M
+    ok &= np.abs(0.5 * (kappa_a + kappa_b)) <= 1.0 / BEND_MIN_RADIUS_M
     chord_sigma = np.sqrt(2.0) * params.NOISE_PRIOR_LATERAL_M / gap
     variance = (w_a * sigma_a) ** 2 + (w_b * sigma_b) ** 2 + ((w_a + w_b) * chord_sigma) ** 2
     z2 = (kappa_a - kappa_b) ** 2 / variance

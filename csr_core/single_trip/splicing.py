@@ -23,17 +23,11 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d, label
-from scipy.spatial import cKDTree
+from scipy.ndimage import gaussian_filter1d
 
+from csr_core.single_trip import splice_kernels
 from csr_core.single_trip.noise import middle_sorted
 from csr_core.single_trip.params import SingleTripParams
-
-_INT16_MAX = int(np.iinfo(np.int16).max)
-_EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)  # _cluster_sd: cells touching by a side or a corner
-_MAX_GROWTH_CURVATURE = 0.1  # grow_backbone follows bends of at least 10 m radius (as _extend_ends)
-_BEND_MIN_RADIUS_M = 6.0  # no marking turns tighter than a car's turning circle
-_BEND_SHAPE_TOL_M = 0.5  # an observation continuing a bend lies on its circle this close
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,11 +39,8 @@ class SplicedLine:
 
 
 def _arclength(points: np.ndarray) -> np.ndarray:
-    out = np.zeros(max(len(points), 1))
-    if len(points) > 1:
-        step = points[1:] - points[:-1]  # np.diff(points, axis=0) without its per-call cost
-        np.cumsum(np.hypot(step[:, 0], step[:, 1]), out=out[1:])
-    return out
+    """Cumulative length (P,) along a polyline (P, 2), from 0 (compiled)."""
+    return splice_kernels.arclength(np.ascontiguousarray(points, dtype=float))
 
 
 def _run_starts(ids: np.ndarray) -> np.ndarray:
@@ -68,80 +59,29 @@ def _median(values: np.ndarray) -> float:
     return 0.5 * float(v[(n - 1) // 2] + v[n // 2])
 
 
-def _unit_tangents(backbone: np.ndarray) -> np.ndarray:
-    """Unit tangents (B, 2) of a polyline (B >= 2): central differences, one-sided at the ends
-    (as ``np.gradient``)."""
-    tan = np.empty_like(backbone, dtype=float)
-    tan[1:-1] = 0.5 * (backbone[2:] - backbone[:-2])
-    tan[0] = backbone[1] - backbone[0]
-    tan[-1] = backbone[-1] - backbone[-2]
-    norm = np.hypot(tan[:, 0], tan[:, 1])
-    return tan / np.maximum(norm, 1e-12)[:, None]
-
-
 class _Geometry(NamedTuple):
-    """A backbone of B points with its arclength, unit tangents and KD-tree (``_geometry``)."""
+    """A backbone of B points with its arclength and unit tangents (``_geometry``)."""
 
     columns: np.ndarray  # (4, B) x, y, unit tangent x, y: contiguous rows (the cheapest to gather)
     arclength: np.ndarray  # (B,)
-    tree: cKDTree | None  # None: built by ``_nearest`` when a query needs it
 
 
-def _geometry(backbone: np.ndarray, with_tree: bool = False) -> _Geometry:
-    """A backbone (B, 2) with its arclength and unit tangents, computed once per backbone (the
-    path guide of a track is projected on twice); ``with_tree``: and its KD-tree (a backbone
-    queried by many points, the guide; most others are cheaper to query pair by pair)."""
-    return _Geometry(np.concatenate([backbone.T, _unit_tangents(backbone).T]), _arclength(backbone),
-                     cKDTree(backbone) if with_tree else None)
-
-
-#: point-backbone pairs up to which ``_nearest`` compares all pairs: a KD-tree costs two to three
-#: times more below (its build and per-query overhead), the pairs' arrays leave the cache above
-BRUTE_FORCE_MAX_PAIRS = 20_000
-
-
-def _nearest_pairwise(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index ``(P,)`` of the nearest of the reference points (``ref_x``, ``ref_y``, (R,)) to each of
-    ``points (P, 2)`` and the squared distance to it, from all pairs."""
-    dx = points[:, 0, None] - ref_x[None, :]
-    dy = points[:, 1, None] - ref_y[None, :]
-    dx *= dx
-    dy *= dy
-    dx += dy
-    i = dx.argmin(1)
-    return i, dx[np.arange(len(points)), i]
-
-
-def _nearest(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, tree: cKDTree | None) -> np.ndarray:
-    """Index ``(P,)`` of the nearest of the reference points (``ref_x``, ``ref_y``, (R,)) to each
-    of ``points (P, 2)``: all pairs while there are at most ``BRUTE_FORCE_MAX_PAIRS``, else the
-    KD-tree ``tree`` (built here when None)."""
-    if len(points) * len(ref_x) <= BRUTE_FORCE_MAX_PAIRS:
-        return _nearest_pairwise(points, ref_x, ref_y)[0]
-    if tree is None:
-        tree = cKDTree(np.column_stack([ref_x, ref_y]))
-    return tree.query(points)[1]
+def _geometry(backbone: np.ndarray) -> _Geometry:
+    """A backbone (B >= 2, 2) with its arclength and unit tangents (central differences, one-sided
+    at the ends, as ``np.gradient``), computed once per backbone (the path guide of a track is
+    projected on twice). Compiled (``splice_kernels.geometry_columns``)."""
+    return _Geometry(*splice_kernels.geometry_columns(np.ascontiguousarray(backbone, dtype=float)))
 
 
 def within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:
     """``(P,)`` whether each of ``points (P, 2)`` lies within ``radius_m`` of one of ``others (Q, 2)``
-    (at most; all pairs or a KD-tree, as ``_nearest``)."""
-    if not len(others):
+    (at most). Compiled (``splice_kernels.nearest_index``)."""
+    if not len(others) or not len(points):
         return np.zeros(len(points), dtype=bool)
-    if len(points) * len(others) <= BRUTE_FORCE_MAX_PAIRS:
-        return _nearest_pairwise(points, others[:, 0], others[:, 1])[1] <= radius_m * radius_m
-    return cKDTree(others).query(points, distance_upper_bound=radius_m + 1e-9)[0] <= radius_m
-
-
-def _nearest_within(points: np.ndarray, ref: np.ndarray, bound_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Index ``(P,)`` of the nearest of ``ref (R, 2)`` to each of ``points (P, 2)`` and whether it
-    lies closer than ``bound_m`` (strictly, as a KD-tree's ``distance_upper_bound``); the index
-    means nothing where it does not. All pairs or a KD-tree, as ``_nearest``."""
-    if len(points) * len(ref) <= BRUTE_FORCE_MAX_PAIRS:
-        i, d2 = _nearest_pairwise(points, ref[:, 0], ref[:, 1])
-        return i, d2 < bound_m * bound_m
-    dist, i = cKDTree(ref).query(points, distance_upper_bound=bound_m)
-    return i, np.isfinite(dist)
+    others = np.ascontiguousarray(others, dtype=float)
+    _, dist2 = splice_kernels.nearest_index(np.ascontiguousarray(points, dtype=float), others[:, 0].copy(),
+                                            others[:, 1].copy())
+    return dist2 <= radius_m * radius_m
 
 
 @functools.lru_cache(maxsize=16)
@@ -155,52 +95,17 @@ def _gaussian_kernel(sigma_bins: float, truncate: float = 4.0) -> np.ndarray:
     return w
 
 
-def _smooth_zero_padded(values: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """``gaussian_filter1d(values, mode="constant")`` for a kernel from ``_gaussian_kernel``
-    (one ``np.convolve``: a tenth of the call overhead on short arrays)."""
-    r = len(kernel) // 2
-    return np.convolve(values, kernel, mode="full")[r:r + len(values)]
-
-
 def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
-    s = _arclength(points)
-    if s[-1] <= 0:
-        return points[:1].copy()
-    n = max(int(math.ceil(s[-1] / spacing_m)) + 1, 2)
-    q = np.arange(n) * (float(s[-1]) / (n - 1))  # np.linspace(0, s[-1], n) without its per-call cost
-    q[-1] = s[-1]
-    return np.column_stack([np.interp(q, s, points[:, 0]), np.interp(q, s, points[:, 1])])
+    """The polyline (P >= 1, 2) resampled at equal steps of at most ``spacing_m``, ends kept (its
+    first point alone when it has no length). Compiled."""
+    return splice_kernels.resample_polyline(np.ascontiguousarray(points, dtype=float), float(spacing_m))
 
 
 def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
-    sampled backbone (``_geometry``): from its nearest point (KD-tree), along its tangent."""
-    x, y, tan_x, tan_y = geom.columns
-    i = _nearest(points, x, y, geom.tree)
-    rel_x, rel_y = points[:, 0] - x[i], points[:, 1] - y[i]
-    t_x, t_y = tan_x[i], tan_y[i]
-    s = geom.arclength[i] + rel_x * t_x + rel_y * t_y
-    d = t_x * rel_y - t_y * rel_x
-    return s, d
-
-
-def _binned_median(bins: np.ndarray, values: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-bin median (the upper middle value; NaN for an empty bin) and counts (n_bins,).
-
-    Values sorted, then stably by bin: the order of ``np.lexsort((values, bins))`` up to ties
-    of equal values, at about half its cost (numpy's stable sort of 16-bit keys is a radix
-    sort; lexsort's indirect merge sort is slow on the large tracks)."""
-    by_value = np.argsort(values)
-    bin_of = bins[by_value]
-    if n_bins <= _INT16_MAX:
-        bin_of = bin_of.astype(np.int16)
-    order = by_value[np.argsort(bin_of, kind="stable")]
-    counts = np.bincount(bins, minlength=n_bins)
-    starts = counts.cumsum() - counts
-    med = np.full(n_bins, np.nan)
-    ok = counts > 0
-    med[ok] = values[order[starts[ok] + counts[ok] // 2]]
-    return med, counts
+    sampled backbone (``_geometry``): from its nearest point, along its tangent. Compiled
+    (``splice_kernels.project``)."""
+    return splice_kernels.project(np.ascontiguousarray(points, dtype=float), geom.columns, geom.arclength)
 
 
 def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0) -> np.ndarray:
@@ -238,87 +143,6 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     return np.concatenate([head[::-1], line, tail])
 
 
-def _walk_in(bbx: list[float], bby: list[float], step: int, start: int, span_m: float) -> int:
-    """The index of the first point of a polyline (two lists of floats) at least ``span_m``
-    from point ``start``, walking inward by ``step`` (-1 from the tail, +1 from the head); an
-    end point where the line is shorter."""
-    n = len(bbx)
-    k = min(max(start + step, 0), n - 1)
-    while 0 < k < n - 1 and math.hypot(bbx[start] - bbx[k], bby[start] - bby[k]) < span_m:
-        k += step
-    return k
-
-
-def _end_tangent(bbx: list[float], bby: list[float], at_tail: bool, tangent_m: float, bends: bool = True
-                 ) -> tuple[float, float, float, float, float] | None:
-    """End point, unit tangent and curvature (x, y, tx, ty, kappa) at the tail (or head) of a
-    polyline given as two lists of floats: the tangent over its last ``tangent_m``, the
-    curvature (1/m, positive turning left in the direction of the tangent) from the heading
-    change between that chord and the ``tangent_m`` before it (0 where the line is shorter, or
-    without ``bends``: the chord's direction, no curvature); None where degenerate."""
-    end, step = (len(bbx) - 1, -1) if at_tail else (0, 1)
-    bx, by = bbx[end], bby[end]
-    j = _walk_in(bbx, bby, step, end, tangent_m)
-    tx, ty = bx - bbx[j], by - bby[j]
-    tn = math.hypot(tx, ty)
-    if tn < 1e-9:
-        return None
-    tx, ty = tx / tn, ty / tn
-    if not bends:
-        return bx, by, tx, ty, 0.0
-    kappa = 0.0
-    i = _walk_in(bbx, bby, step, j, tangent_m)
-    px, py = bbx[j] - bbx[i], bby[j] - bby[i]
-    pn = math.hypot(px, py)
-    if pn >= tangent_m / 2:
-        turn = math.atan2(px * ty - py * tx, px * tx + py * ty)  # from the chord before to the end chord
-        kappa = min(max(turn / (0.5 * (tn + pn)), -_MAX_GROWTH_CURVATURE), _MAX_GROWTH_CURVATURE)
-        # on an arc the tangent at the end is turned from the chord by half the chord's turning
-        # (the chord spans a dash gap on a dashed line: metres)
-        c, s = math.cos(0.5 * kappa * tn), math.sin(0.5 * kappa * tn)
-        tx, ty = c * tx - s * ty, s * tx + c * ty
-    return bx, by, tx, ty, kappa
-
-
-def _tail_points(bbx: list[float], bby: list[float], at_tail: bool, span_m: float) -> np.ndarray:
-    """The points of a backbone (two lists of floats) within ``span_m`` of its tail (or head)."""
-    end, step = (len(bbx) - 1, -1) if at_tail else (0, 1)
-    j = _walk_in(bbx, bby, step, end, span_m)
-    lo, hi = (j, end) if at_tail else (end, j)
-    return np.column_stack([bbx[lo:hi + 1], bby[lo:hi + 1]])
-
-
-def _bend_continuation(tail_xy: np.ndarray, obs_xy: np.ndarray, beyond: np.ndarray, end_xy: np.ndarray,
-                       max_gap_m: float) -> np.ndarray:
-    """``beyond`` (indices of an observation's points past a backbone end) if they continue the
-    backbone round a bend: one circle fits the backbone's last points ``tail_xy`` and them
-    within ``_BEND_SHAPE_TOL_M`` (the observation bends with the line: a piece of another element
-    crossing it, or of a parallel one, does not), turning no tighter than ``_BEND_MIN_RADIUS_M``,
-    with the nearest of them within ``max_gap_m`` of the end ``end_xy``. Empty if not."""
-    if len(beyond) < 2 or len(tail_xy) < 3:
-        return beyond[:0]
-    cand = obs_xy[beyond]
-    if float(np.min(np.hypot(cand[:, 0] - end_xy[0], cand[:, 1] - end_xy[1]))) > max_gap_m:
-        return beyond[:0]
-    pts = np.vstack([tail_xy, cand])
-    centre, r2 = kasa_circle(pts)
-    if not np.isfinite(r2) or r2 <= _BEND_MIN_RADIUS_M ** 2:
-        return beyond[:0]
-    residual = np.abs(np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1]) - math.sqrt(r2))
-    return beyond if float(residual.max()) <= _BEND_SHAPE_TOL_M else beyond[:0]
-
-
-def kasa_circle(pts: np.ndarray) -> tuple[np.ndarray, float]:
-    """Algebraic (Kasa) least-squares circle through ``pts (P, 2)``, fitted about their mean
-    (x^2 + y^2 + D x + E y + F = 0): its centre and squared radius (not positive, or not finite,
-    when the points are collinear)."""
-    mu = pts.mean(0)
-    q = pts - mu
-    a = np.column_stack([q, np.ones(len(q))])
-    (d, e, f), *_ = np.linalg.lstsq(a, -(q * q).sum(1), rcond=None)
-    return mu - 0.5 * np.array([d, e]), float(0.25 * (d * d + e * e) - f)
-
-
 def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
                   lateral_gate_m: float = 1.0, lateral_gate_slope: float = 0.15, max_gap_m: float = 15.0,
                   follow_bends: bool = False) -> np.ndarray:
@@ -331,51 +155,12 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     and the straight tangent misses the next dash by metres): the tangent line becomes the arc
     with the curvature of the last two ``tangent_m``, and an observation that is not near it
     still continues the backbone when one circle fits it and the backbone's last
-    ``2 tangent_m`` (``_bend_continuation``), its nearest point within ``max_gap_m``."""
-    polys = [points_w[a:b + 1] for a, b in obs_ends]
-    ref = None
-    bbx: list[float] = []  # the backbone as two lists of floats: grown at both ends, walked point by point
-    bby: list[float] = []
-    tangents: dict[bool, tuple[float, float, float, float, float] | None] = {}  # per end, until the backbone grows
-    for p in polys:
-        d = p[-1] - p[0]
-        if ref is not None and float(d @ ref) < 0:
-            p = p[::-1]
-            d = -d
-        if float(np.hypot(d[0], d[1])) > 0.5:
-            ref = d
-        if len(bbx) < 2:
-            bbx, bby = p[:, 0].tolist(), p[:, 1].tolist()
-            tangents.clear()
-            continue
-        px, py = p[:, 0], p[:, 1]
-        (x_first, y_first), (x_last, y_last) = p[0].tolist(), p[-1].tolist()
-        for at_tail in (True, False):
-            if at_tail not in tangents:
-                tangents[at_tail] = _end_tangent(bbx, bby, at_tail, tangent_m, follow_bends)
-            tangent = tangents[at_tail]
-            if tangent is None:
-                continue
-            bx, by, tx, ty, kappa = tangent
-            # its end points first: most observations do not reach beyond this end
-            if max((x_first - bx) * tx + (y_first - by) * ty, (x_last - bx) * tx + (y_last - by) * ty) <= min_step_m:
-                continue
-            proj = (px - bx) * tx + (py - by) * ty
-            lat = np.abs((py - by) * tx - (px - bx) * ty - 0.5 * kappa * proj * proj)  # off the arc (parabola)
-            beyond = np.flatnonzero((proj > min_step_m) & (lat <= lateral_gate_m + lateral_gate_slope * proj))
-            if not len(beyond) and follow_bends:
-                beyond = _bend_continuation(_tail_points(bbx, bby, at_tail, 2 * tangent_m), p,
-                                            np.flatnonzero(proj > min_step_m), np.array([bx, by]), max_gap_m)
-            if len(beyond):
-                ext = beyond[np.argsort(proj[beyond])]
-                if at_tail:
-                    bbx.extend(px[ext].tolist())
-                    bby.extend(py[ext].tolist())
-                else:
-                    bbx[:0] = px[ext[::-1]].tolist()
-                    bby[:0] = py[ext[::-1]].tolist()
-                tangents.clear()
-    return np.column_stack([bbx, bby]) if bbx else points_w[:1]
+    ``2 tangent_m`` (``splice_kernels.kasa_circle``) within ``splice_kernels.BEND_SHAPE_TOL_M``, no
+    tighter than ``BEND_MIN_RADIUS_M``, its nearest point within ``max_gap_m``. Compiled
+    (``splice_kernels.grow_backbone``)."""
+    return splice_kernels.grow_backbone(np.ascontiguousarray(points_w, dtype=float), obs_ends.astype(np.int64, copy=False),
+                                        float(min_step_m), float(tangent_m), float(lateral_gate_m),
+                                        float(lateral_gate_slope), float(max_gap_m), bool(follow_bends))
 
 
 def smooth_polyline(points: np.ndarray, spacing_m: float, sigma_m: float) -> np.ndarray:
@@ -402,29 +187,17 @@ def _cluster_sd(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     """Labels (P,) of the elements in a track's points in backbone coordinates (arclength s,
     lateral d): occupied cells (``SPLICE_BIN_M`` x ``SPLICE_CLUSTER_D_M``) joined across up to
     ``SPLICE_MAX_GAP_M`` along s (dash gaps, missed frames) and one cell across d. Two lines side
-    by side (a track that took in a neighbour through a ramp or a ghost) come out apart."""
-    sb = np.floor((s - s.min()) / params.SPLICE_BIN_M).astype(np.int64)
-    db = np.floor((d - d.min()) / params.SPLICE_CLUSTER_D_M).astype(np.int64)
-    grid = np.zeros((int(sb.max()) + 1, int(db.max()) + 1), dtype=bool)
-    grid[sb, db] = True
+    by side (a track that took in a neighbour through a ramp or a ghost) come out apart.
+    Compiled (``splice_kernels.cluster_sd``)."""
     reach = max(int(params.SPLICE_MAX_GAP_M / params.SPLICE_BIN_M / 2), 1)
-    # dilation by 2 reach + 1 cells along s (a running count: binary_dilation's cost is per call)
-    n_s = grid.shape[0]
-    csum = np.zeros((n_s + 1, grid.shape[1]), dtype=np.int32)
-    np.cumsum(grid, axis=0, out=csum[1:])
-    i = np.arange(n_s)
-    grown = (csum[np.minimum(i + reach + 1, n_s)] - csum[np.maximum(i - reach, 0)]) > 0
-    labels, _ = label(grown, structure=_EIGHT_CONNECTED)
-    return labels[sb, db] - 1
+    return splice_kernels.cluster_sd(s, d, float(params.SPLICE_BIN_M), float(params.SPLICE_CLUSTER_D_M), reach)
 
 
 def _binned_profile(s: np.ndarray, d: np.ndarray, bin_m: float) -> tuple[np.ndarray, int, np.ndarray]:
     """Arclength bins (P,) of width ``bin_m`` from the smallest s, their number and the per-bin
-    median of d (the first step of ``_fit_profile``, shared with ``_mixture_sigma``)."""
-    bins = np.floor((s - s.min()) / bin_m).astype(np.int64)
-    n_bins = int(bins.max()) + 1
-    med, _ = _binned_median(bins, d, n_bins)
-    return bins, n_bins, med
+    median of d (the upper middle value; NaN for an empty bin): the first step of
+    ``_fit_profile``, shared with ``_mixture_sigma``. Compiled."""
+    return splice_kernels.binned_profile(s, d, float(bin_m))
 
 
 def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geometry, params: SingleTripParams,
@@ -433,36 +206,14 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geomet
     """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
     Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
     s_lo, s_hi, fitted d at each point) or None. ``binned``: ``_binned_profile(s, d)`` when
-    already computed."""
+    already computed. Compiled (``splice_kernels.fit_profile``)."""
     bin_m = params.SPLICE_BIN_M
-    s0 = s.min()
     bins, n_bins, med = binned if binned is not None else _binned_profile(s, d, bin_m)
-    dev = np.abs(d - med[bins])
-    sigma = max(1.4826 * _median(dev), 0.02)
-    inl = dev <= params.SPLICE_OUTLIER_SIGMAS * sigma
-    bins_inl = bins[inl]
-    w = np.bincount(bins_inl, minlength=n_bins).astype(float)
-    sum_d = np.bincount(bins_inl, weights=d[inl], minlength=n_bins)
-    kernel = _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m)
-    num = _smooth_zero_padded(sum_d, kernel)
-    den = _smooth_zero_padded(w, kernel)
-    good = den > 1e-6
-    if not good.any():
-        return None
-    centers = s0 + (np.arange(n_bins) + 0.5) * bin_m
-    d_s = np.interp(centers, centers[good], num[good] / den[good])
-    s_lo, s_hi = _robust_ends(s[inl], obs_id[inl])
-    if s_hi - s_lo < bin_m / 2:
-        return None
-    q = np.arange(s_lo, s_hi, params.SPLICE_OUTPUT_SPACING_M)
-    q = np.append(q, s_hi) if len(q) == 0 or s_hi - q[-1] > 1e-3 else q
-    s_b, (x, y, tan_x, tan_y) = geom.arclength, geom.columns
-    dq = np.interp(q, centers, d_s)
-    bx, by = np.interp(q, s_b, x), np.interp(q, s_b, y)
-    tx, ty = np.interp(q, s_b, tan_x), np.interp(q, s_b, tan_y)
-    nn = np.maximum(np.hypot(tx, ty), 1e-12)
-    line = np.column_stack([bx - dq * ty / nn, by + dq * tx / nn])
-    return line, inl, s_lo, s_hi, np.interp(s, centers, d_s)
+    ok, line, inl, s_lo, s_hi, d_fit = splice_kernels.fit_profile(
+        s, d, obs_id, bins, n_bins, med, float(params.SPLICE_OUTLIER_SIGMAS), float(bin_m),
+        _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m), float(params.SPLICE_OUTPUT_SPACING_M),
+        geom.columns, geom.arclength)
+    return (line, inl, s_lo, s_hi, d_fit) if ok else None
 
 
 @functools.lru_cache(maxsize=8)
@@ -474,7 +225,7 @@ def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extensi
     guide = _extend_ends(resample_polyline(path, bin_m), extension_m, bin_m)
     if len(guide) < 3:
         return None
-    geom = _geometry(guide, with_tree=True)
+    geom = _geometry(guide)
     for shared in (geom.columns, geom.arclength):  # cached: shared by every caller
         shared.setflags(write=False)
     return geom
@@ -544,7 +295,7 @@ def _mixture_sigma(d: np.ndarray, binned: tuple[np.ndarray, int, np.ndarray]) ->
     ``_binned_profile``): large for a cluster that mixes elements (a Y where a connector leaves
     a lane)."""
     bins, _, med = binned
-    return 1.4826 * _median(np.abs(d - med[bins]))
+    return splice_kernels.mixture_sigma(d, bins, med)
 
 
 def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.ndarray:
@@ -595,19 +346,9 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
 
 
 def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
-    """Median over observations of |arclength span on the path| / chord: 1 along, 0 across."""
-    order = (np.arange(len(obs_id)) if len(obs_id) < 2 or not bool((obs_id[1:] < obs_id[:-1]).any())
-             else np.argsort(obs_id, kind="stable"))
-    sorted_ids = obs_id[order]
-    start = _run_starts(sorted_ids)
-    end = np.append(start[1:], len(order)) - 1
-    first, last = order[start], order[end]
-    step = points[last] - points[first]
-    chord = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])  # np.linalg.norm(step, axis=1)
-    ok = chord > 2.0
-    if not ok.any():
-        return 1.0
-    return _median(np.abs(s[last] - s[first])[ok] / chord[ok])
+    """Median over observations of |arclength span on the path| / chord: 1 along, 0 across
+    (compiled, ``splice_kernels.runs_along``)."""
+    return splice_kernels.runs_along(s, np.ascontiguousarray(points, dtype=float), obs_id)
 
 
 def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
@@ -663,20 +404,9 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     line, inl, s_lo, s_hi, d_fit = fit
     # lateral residuals against the fitted profile; along-track: observation ends that are
     # element ends against the instance ends (both in backbone arclength)
-    lat = (d_sel - d_fit)[inl & original[sel]]
-    s_all = np.full(len(points_w), np.nan)
-    s_all[sel[inl]] = s_sel[inl]
-    s_first, s_last = s_all[obs_ends[:, 0]], s_all[obs_ends[:, 1]]
-    lo_first = s_first <= s_last
-    s_lo_obs = np.where(lo_first, s_first, s_last)
-    s_hi_obs = np.where(lo_first, s_last, s_first)
-    free_lo = np.where(lo_first, end_free[:, 0], end_free[:, 1])
-    free_hi = np.where(lo_first, end_free[:, 1], end_free[:, 0])
-    win = params.NOISE_END_WINDOW_M
-    ok_lo = np.isfinite(s_lo_obs) & free_lo & (np.abs(s_lo_obs - s_lo) <= win)
-    ok_hi = np.isfinite(s_hi_obs) & free_hi & (np.abs(s_hi_obs - s_hi) <= win)
-    along_res = np.concatenate([s_lo_obs[ok_lo] - s_lo, s_hi_obs[ok_hi] - s_hi])
-    obs = unique_ids(obs_id[sel[inl]])
+    lat, along_res, obs = splice_kernels.splice_residuals(
+        len(points_w), sel, inl, s_sel, d_sel, d_fit, original, obs_id, obs_ends, end_free, s_lo, s_hi,
+        float(params.NOISE_END_WINDOW_M))
     return [SplicedLine(line, lat, along_res, obs)]
 
 
@@ -707,43 +437,24 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
     if len(start) == 0:
         return [line_xy]
     seg = points_w[start + 1] - points_w[start]
-    seg_len = np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1])
-    nearest, near = _nearest_within(points_w[start] + 0.5 * seg, line_xy, near_m)
+    nearest, near = splice_kernels.nearest_within(points_w[start] + 0.5 * seg, np.ascontiguousarray(line_xy, dtype=float),
+                                                  float(near_m))
     if not near.any():
         return [line_xy]
-    seg, seg_len, nearest = seg[near], seg_len[near], nearest[near]
-    at = np.minimum(nearest, len(line_xy) - 2)
-    tangent = line_xy[at + 1] - line_xy[at]
-    cos = np.abs((seg * tangent).sum(1)) / np.maximum(seg_len * np.hypot(tangent[:, 0], tangent[:, 1]), 1e-12)
-    across = cos < np.cos(max_angle_rad)
-    if not across.any():
+    whole, runs = splice_kernels.across_cut(np.ascontiguousarray(line_xy, dtype=float), seg[near], nearest[near],
+                                            math.cos(max_angle_rad), float(window_m))
+    if whole:
         return [line_xy]
-    # along and across length per vertex, summed over +-window_m of arclength
-    arc = _arclength(line_xy)
-    lo = np.searchsorted(arc, arc - window_m, side="left")
-    hi = np.searchsorted(arc, arc + window_m, side="right")
-    n = len(line_xy)
-    cum_across = np.r_[0.0, np.cumsum(np.bincount(nearest, seg_len * across, n))]
-    cum_along = np.r_[0.0, np.cumsum(np.bincount(nearest, seg_len * ~across, n))]
-    bad = (cum_across[hi] - cum_across[lo]) > (cum_along[hi] - cum_along[lo])
-    # the runs left; one with (almost) nothing observed along it joined two cut places
-    edges = np.flatnonzero(np.diff(np.r_[0, (~bad).astype(np.int8), 0]))
-    return [line_xy[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True)
-            if b - a >= 2 and cum_along[b] - cum_along[a] >= window_m]
+    return [line_xy[a:b] for a, b in runs.tolist()]
 
 
-def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = 1.5) -> tuple[float, float]:
-    if len(s) == 0:
-        return 0.0, 0.0
-    if len(obs_id) > 1 and bool((obs_id[1:] < obs_id[:-1]).any()):
-        order = np.argsort(obs_id, kind="stable")
-        s, obs_id = s[order], obs_id[order]
-    starts = _run_starts(obs_id)
-    lo = np.minimum.reduceat(s, starts)  # per observation (runs of equal ids)
-    hi = np.maximum.reduceat(s, starts)
-    s_lo = _median(lo[lo <= lo.min() + window_m])
-    s_hi = _median(hi[hi >= hi.max() - window_m])
-    return s_lo, max(s_hi, s_lo)
+def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = splice_kernels.ROBUST_END_WINDOW_M
+                 ) -> tuple[float, float]:
+    """The ends (s_lo, s_hi) of an element from its observations' arclengths: the median of the
+    observations' lowest s within ``window_m`` of the lowest, the same for the highest (compiled,
+    ``splice_kernels.robust_ends``)."""
+    return splice_kernels.robust_ends(np.ascontiguousarray(s, dtype=float),
+                                      np.ascontiguousarray(obs_id, dtype=np.int64), float(window_m))
 
 
 def unique_ids(ids: np.ndarray) -> np.ndarray:
