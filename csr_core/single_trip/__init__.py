@@ -42,7 +42,7 @@ from csr_core.single_trip.splicing import (
     splice_polygon,
     unique_ids,
 )
-from csr_core.single_trip.tracking import TYPE_CODES, densify_flat, regroup_observations, track_elements
+from csr_core.single_trip.tracking import TYPE_CODES, regroup_observations, track_elements
 from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance, TripReconstruction
 
 log = logging.getLogger(__name__)
@@ -351,21 +351,11 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         track_params = replace(params, TRACK_MIN_FRAMES=len(track.frames)) if cut_short else params
         min_visibility = 1.0 if cut_short else params.TRACK_MIN_VISIBILITY_RATIO
         upload_frames = frames[track_frames]
-        detections = [trip.elements[f][j]  # (plain ints index the tuples faster)
-                      for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)]
-        raw_v = [e.points_xy_vehicle for e in detections]
-        counts = np.fromiter(map(len, raw_v), dtype=np.int64, count=len(raw_v))
-        offsets = np.concatenate(([0], np.cumsum(counts)))  # (np.r_ costs 30 us a call)
-        pts_v = np.concatenate(raw_v)
-        original = np.ones(len(pts_v), dtype=bool)
-        if not track.type.is_polygon:  # vertices as sent can be far apart (a stop line: two)
-            pts_v, offsets, original = densify_flat(pts_v, offsets, params.SPLICE_BIN_M)
-            counts = np.diff(offsets)
-        obs_id = np.repeat(np.arange(len(raw_v)), counts)
-        pose = poses[upload_frames][obs_id]
-        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-        pts_w = np.column_stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[:, 0],
-                                 s * pts_v[:, 0] + c * pts_v[:, 1] + pose[:, 1]])
+        yaw = poses[upload_frames, 2]
+        # the detections as sent, densified (not polygons: their vertices are corners), in the world
+        pts_v, offsets, original, pts_w, obs_id = splice_kernels.track_observations(
+            pieces.raw_points_v, pieces.raw_offsets, track.pieces, np.cos(yaw), np.sin(yaw), poses[upload_frames, 0],
+            poses[upload_frames, 1], 0.0 if track.type.is_polygon else float(params.SPLICE_BIN_M))
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         observed = None if track.type.is_polygon else (pts_w, offsets)  # for _cut_where_unseen
         if track.type.is_polygon:
@@ -443,7 +433,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                 n_dropped += 1
                 continue
             if style is None:
-                style = [_style([e.style for e in detections])]
+                style = [_style([trip.elements[f][j].style  # (plain ints index the tuples faster)
+                                 for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)])]
             candidates.append((TripInstance(
                 type=track.type, points_xy_world=points_w, style=style[0],
                 n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),

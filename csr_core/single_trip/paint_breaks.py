@@ -48,7 +48,7 @@ class ObservedPoints:
     """The observed points of one track (world; its detections' polylines concatenated, ``offsets``
     where each starts and the end), asked which vertices of an instance have one within a gate.
 
-    ``step_m``: the polylines count as densified to that spacing (``densify_flat``, which keeps
+    ``step_m``: the polylines count as densified to that spacing (``splice_kernels.track_observations``, which keeps
     every point as given). A vertex within the gate of a point as given is seen either way, and
     almost every vertex is (Karlsruhe, urban: 99.5 %); for the rest only the steps that can come
     within the gate are densified (a densified point within it lies within half a step of one
@@ -67,7 +67,7 @@ class ObservedPoints:
         self._step_len = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
 
     def _densified_near(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
-        """The densified observed points (as ``densify_flat`` places them) of every step with an end
+        """The densified observed points (as ``splice_kernels.track_observations`` places them) of every step with an end
         within ``gate_m`` plus half the longest step of ``points_xy``."""
         assert self.step_m is not None
         reach = gate_m + 0.5 * float(self._step_len.max(initial=0.0))

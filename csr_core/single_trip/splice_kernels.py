@@ -234,9 +234,17 @@ def robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float) -> tuple[flo
 
 @njit(cache=True)
 def _smooth_zero_padded(values: np.ndarray, kernel: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """A zero-padded convolution with a centred ``kernel``, cut to ``values``' length."""
-    r = len(kernel) // 2
-    return np.convolve(values, kernel)[r:r + len(values)]
+    """A zero-padded convolution with a centred ``kernel`` (odd length), cut to ``values``' length:
+    ``np.convolve(values, kernel)[r:r + len(values)]`` (numba's ``np.convolve`` costs ten times this
+    loop on a few dozen bins)."""
+    n, n_k = len(values), len(kernel)
+    r = n_k // 2
+    out = np.zeros(n)
+    for i in range(n):
+        m = i + r  # the index in the full convolution
+        for j in range(max(0, m - n + 1), min(n_k, m + 1)):
+            out[i] += values[m - j] * kernel[j]
+    return out
 
 
 @njit(cache=True)
@@ -718,3 +726,58 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float,
     out[:, 0] = xs[head:tail]
     out[:, 1] = ys[head:tail]
     return out
+
+
+@njit(cache=True)
+def track_observations(raw_points_v: np.ndarray, raw_offsets: np.ndarray, pieces: np.ndarray, cos_yaw: np.ndarray,
+                       sin_yaw: np.ndarray, pose_x: np.ndarray, pose_y: np.ndarray, max_step_m: float):  # pragma: no cover
+    """A track's observations as its splice takes them: the detections ``pieces`` (m,) (rows of
+    ``raw_offsets`` into ``raw_points_v``, vehicle frame, as sent) with points inserted so that no
+    step exceeds ``max_step_m`` (none when it is 0: polygons; as ``tracking.densify_flat``), and
+    moved into the world by each one's pose (``cos_yaw``, ``sin_yaw``, ``pose_x``, ``pose_y``, (m,)).
+    Returns (points_v (N, 2), offsets (m+1,), original (N,): as sent, points_w (N, 2), obs_id (N,))."""
+    m = len(pieces)
+    counts = np.zeros(m, dtype=np.int64)
+    for o in range(m):
+        a, b = raw_offsets[pieces[o]], raw_offsets[pieces[o] + 1]
+        total = 1 if b > a else 0
+        for i in range(a, b - 1):
+            k = 1
+            if max_step_m > 0:
+                seg = math.sqrt((raw_points_v[i + 1, 0] - raw_points_v[i, 0]) ** 2
+                                + (raw_points_v[i + 1, 1] - raw_points_v[i, 1]) ** 2)
+                k = max(int(math.ceil(seg / max_step_m)), 1)
+            total += k
+        counts[o] = total
+    offsets = np.zeros(m + 1, dtype=np.int64)
+    for o in range(m):
+        offsets[o + 1] = offsets[o] + counts[o]
+    n = offsets[m]
+    points_v = np.empty((n, 2))
+    points_w = np.empty((n, 2))
+    original = np.zeros(n, dtype=np.bool_)
+    obs_id = np.empty(n, dtype=np.int64)
+    for o in range(m):
+        a, b = raw_offsets[pieces[o]], raw_offsets[pieces[o] + 1]
+        w = offsets[o]
+        for i in range(a, b):
+            x0, y0 = raw_points_v[i, 0], raw_points_v[i, 1]
+            k = 1
+            step_x = step_y = 0.0
+            if i < b - 1:
+                step_x, step_y = raw_points_v[i + 1, 0] - x0, raw_points_v[i + 1, 1] - y0
+                if max_step_m > 0:
+                    k = max(int(math.ceil(math.sqrt(step_x * step_x + step_y * step_y) / max_step_m)), 1)
+            for j in range(k):
+                frac = j / k
+                points_v[w, 0] = x0 + frac * step_x
+                points_v[w, 1] = y0 + frac * step_y
+                original[w] = j == 0
+                obs_id[w] = o
+                w += 1
+        c, s, px, py = cos_yaw[o], sin_yaw[o], pose_x[o], pose_y[o]
+        for w in range(offsets[o], offsets[o + 1]):
+            x, y = points_v[w, 0], points_v[w, 1]
+            points_w[w, 0] = c * x - s * y + px
+            points_w[w, 1] = s * x + c * y + py
+    return points_v, offsets, original, points_w, obs_id

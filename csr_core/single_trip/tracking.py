@@ -21,7 +21,7 @@ pairs (bounding boxes within reach), so a 1 km trip costs tens of milliseconds.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -50,6 +50,9 @@ class Pieces:
     type_code: np.ndarray  # (Q,) TYPE_CODES
     points_v: np.ndarray  # (Q, k, 2) resampled, vehicle frame
     points_w: np.ndarray  # (Q, k, 2) resampled, world frame
+    # the detections as sent (vehicle frame), concatenated: piece q is raw_points_v[raw_offsets[q]:raw_offsets[q + 1]]
+    raw_points_v: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    raw_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,27 +85,6 @@ def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray
     span = np.maximum(s_local[right] - s_local[left], 1e-12)
     w = np.clip((target - s_local[left]) / span, 0.0, 1.0)[..., None]
     return points[left] * (1.0 - w) + points[right] * w
-
-
-def densify_flat(points: np.ndarray, offsets: np.ndarray, max_step_m: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Polylines (concatenated ``points`` with ``offsets``) with points inserted so that no step
-    exceeds ``max_step_m``; returns the new points, offsets and which points are original."""
-    n = len(points)
-    step = points[1:] - points[:-1]
-    seg = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])  # np.linalg.norm(step, axis=1)
-    # each point i < n-1 emits k_i points (itself and k_i - 1 interpolated); the last emits one
-    counts = np.ones(n, dtype=np.int64)
-    counts[:-1] = np.maximum(np.ceil(seg / max_step_m).astype(np.int64), 1)
-    counts[offsets[1:-1] - 1] = 1  # no segment across polylines
-    ends = np.cumsum(counts)
-    start = np.repeat(np.arange(n), counts)
-    frac = np.arange(int(ends[-1])) - (ends - counts)[start]
-    frac = frac / counts[start]
-    step_from = np.concatenate([step, np.zeros((1, 2))])  # step to the next point (none after the last)
-    out = points[start] + frac[:, None] * step_from[start]
-    new_off = np.concatenate(([0], ends))[offsets]
-    return out, new_off, frac == 0
 
 
 def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
@@ -233,7 +215,8 @@ def collect_pieces(frames: np.ndarray, poses_xyyaw: np.ndarray, elements, k: int
         return Pieces(z, z, z, np.zeros((0, k, 2)), np.zeros((0, k, 2)))
     counts = np.fromiter(map(len, pts), dtype=np.int64, count=len(pts))
     offsets = np.r_[0, np.cumsum(counts)]
-    pv = resample_flat(np.concatenate(pts).astype(float, copy=False), offsets, k)
+    raw = np.ascontiguousarray(np.concatenate(pts), dtype=float)
+    pv = resample_flat(raw, offsets, k)
     n_per_frame = np.fromiter(map(len, per_frame), dtype=np.int64, count=len(per_frame))
     f_arr = np.repeat(np.arange(len(per_frame), dtype=np.int64), n_per_frame)
     e_idx = np.arange(len(flat), dtype=np.int64) - np.repeat(np.cumsum(n_per_frame) - n_per_frame, n_per_frame)
@@ -242,7 +225,7 @@ def collect_pieces(frames: np.ndarray, poses_xyyaw: np.ndarray, elements, k: int
     c, s = np.cos(pose[:, 2])[:, None], np.sin(pose[:, 2])[:, None]
     pw = np.stack([c * pv[..., 0] - s * pv[..., 1] + pose[:, None, 0],
                    s * pv[..., 0] + c * pv[..., 1] + pose[:, None, 1]], axis=-1)
-    return Pieces(f_arr, e_idx, codes, pv, pw)
+    return Pieces(f_arr, e_idx, codes, pv, pw, raw, offsets.astype(np.int64))
 
 
 def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray, elements,

@@ -185,3 +185,26 @@ def test_pair_distance_agrees_with_densely_sampled_segments(seed):
         dense = np.concatenate([a + t * (b - a) for a, b in zip(polys[m, :-1], polys[m, 1:], strict=True)])
         expected = np.minimum(cKDTree(dense).query(points[m])[0], 5.0)
         np.testing.assert_allclose(got[m], expected, atol=2e-3)
+
+
+def test_track_observations_densify_detections_and_move_them_into_the_world():
+    raw = np.array([[0.0, 0.0], [2.5, 0.0], [3.0, 0.0],  # piece 0: a 2.5 m step, then 0.5 m
+                    [5.0, 1.0], [5.0, 4.0],  # piece 1: one 3 m step
+                    [9.0, 9.0]])  # piece 2 (not in the track)
+    offsets = np.array([0, 3, 5, 6])
+    yaw = np.array([0.0, np.pi / 2])
+    pose_x, pose_y = np.array([10.0, 0.0]), np.array([0.0, 20.0])
+    points_v, obs_offsets, original, points_w, obs_id = K.track_observations(
+        raw, offsets, np.array([0, 1]), np.cos(yaw), np.sin(yaw), pose_x, pose_y, 1.0)
+    np.testing.assert_array_equal(obs_offsets, [0, 5, 9])  # 3 + 1 + 1 points, then 3 + 1
+    np.testing.assert_allclose(points_v[:5, 0], [0.0, 2.5 / 3, 5.0 / 3, 2.5, 3.0])
+    np.testing.assert_array_equal(original, [True, False, False, True, True, True, False, False, True])
+    np.testing.assert_array_equal(obs_id, [0] * 5 + [1] * 4)
+    np.testing.assert_allclose(points_w[:5], points_v[:5] + [10.0, 0.0])
+    np.testing.assert_allclose(points_w[5:], np.column_stack([-points_v[5:, 1], points_v[5:, 0]]) + [0.0, 20.0],
+                               atol=1e-12)
+    # polygons (no step limit): the vertices as sent
+    points_v, obs_offsets, original, _, _ = K.track_observations(
+        raw, offsets, np.array([1, 2]), np.ones(2), np.zeros(2), np.zeros(2), np.zeros(2), 0.0)
+    np.testing.assert_array_equal(points_v, raw[3:])
+    assert original.all() and list(obs_offsets) == [0, 2, 3]
