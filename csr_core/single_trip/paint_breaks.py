@@ -22,13 +22,10 @@ every simulated world it lies off the truth (docs/single-trip.md, "Session 36").
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import shapely
-from scipy.spatial import cKDTree
 
-from csr_core.single_trip.splicing import within_of_any
+from csr_core.single_trip import splice_kernels
 
 
 def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
@@ -48,47 +45,33 @@ class ObservedPoints:
     """The observed points of one track (world; its detections' polylines concatenated, ``offsets``
     where each starts and the end), asked which vertices of an instance have one within a gate.
 
-    ``step_m``: the polylines count as densified to that spacing (``splice_kernels.track_observations``, which keeps
-    every point as given). A vertex within the gate of a point as given is seen either way, and
-    almost every vertex is (Karlsruhe, urban: 99.5 %); for the rest only the steps that can come
-    within the gate are densified (a densified point within it lies within half a step of one
-    end of its step)."""
+    ``step_m``: the polylines count as densified to that spacing (as
+    ``splice_kernels.track_observations`` densifies them, keeping every point as given). A vertex
+    within the gate of a point as given is seen either way, and almost every vertex is
+    (Karlsruhe, urban: 99.5 %); only for the rest are the steps densified, and only those with
+    an end within the gate plus the step's length. Compiled (``splice_kernels.seen_within``)."""
 
     def __init__(self, points_w: np.ndarray, offsets: np.ndarray | None = None, step_m: float | None = None) -> None:
-        self.points_w = points_w
+        self.points_w = np.ascontiguousarray(points_w, dtype=float)
         self.offsets = np.array([0, len(points_w)]) if offsets is None else offsets
         self.step_m = step_m
-        self.tree = cKDTree(points_w, balanced_tree=False)
         # each point's step to the next point of its polyline (zero after a polyline's last point)
-        step = np.zeros_like(points_w)
-        step[:-1] = points_w[1:] - points_w[:-1]
+        step = np.zeros_like(self.points_w)
+        step[:-1] = self.points_w[1:] - self.points_w[:-1]
         step[self.offsets[1:] - 1] = 0.0
         self._step = step
         self._step_len = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
+        self._sorted: tuple[bool, np.ndarray, np.ndarray] | None = None  # sort_along_wider_axis, once asked
 
-    def _densified_near(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
-        """The densified observed points (as ``splice_kernels.track_observations`` places them) of every step with an end
-        within ``gate_m`` plus half the longest step of ``points_xy``."""
-        assert self.step_m is not None
-        reach = gate_m + 0.5 * float(self._step_len.max(initial=0.0))
-        near = self.tree.query_ball_point(points_xy, reach, return_sorted=False)
-        ends = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64)
-        if len(ends) == 0:
-            return self.points_w[:0]
-        starts = np.unique(np.concatenate([ends, ends - 1]))  # the steps from and to each end
-        starts = starts[starts >= 0]
-        counts = np.maximum(np.ceil(self._step_len[starts] / self.step_m).astype(np.int64), 1)
-        which = np.repeat(np.arange(len(starts)), counts)
-        frac = (np.arange(int(counts.sum())) - (np.cumsum(counts) - counts)[which]) / counts[which]
-        return self.points_w[starts[which]] + frac[:, None] * self._step[starts[which]]
 
     def seen(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
         """``(M,)`` whether each of ``points_xy (M, 2)`` has an observed point within ``gate_m``."""
-        seen = self.tree.query(points_xy, distance_upper_bound=gate_m + 1e-9)[0] <= gate_m
-        if self.step_m is not None and not seen.all():
-            rest = np.flatnonzero(~seen)
-            seen[rest] = within_of_any(points_xy[rest], self._densified_near(points_xy[rest], gate_m), gate_m)
-        return seen
+        if not len(self.points_w) or not len(points_xy):
+            return np.zeros(len(points_xy), dtype=bool)
+        if self._sorted is None:
+            self._sorted = splice_kernels.sort_along_wider_axis(self.points_w[:, 0].copy(), self.points_w[:, 1].copy())
+        return splice_kernels.seen_within(np.ascontiguousarray(points_xy, dtype=float), self.points_w, self._step,
+                                          self._step_len, float(self.step_m or 0.0), float(gate_m), *self._sorted)
 
 
 def unseen_runs(points_xy: np.ndarray, observed: ObservedPoints, gate_m: float) -> list[tuple[int, int]]:
