@@ -355,41 +355,40 @@ def geometry_columns(backbone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # 
 
 
 @njit(cache=True)
-def nearest_within(points: np.ndarray, ref: np.ndarray, bound_m: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
-    """Index (P,) of the nearest of ``ref (R >= 1, 2)`` to each of ``points (P, 2)`` (the first of
-    equals) and whether it lies closer than ``bound_m`` (strictly)."""
-    nearest, dist2 = nearest_index(points, np.ascontiguousarray(ref[:, 0]), np.ascontiguousarray(ref[:, 1]))
-    return nearest, dist2 < bound_m * bound_m
-
-
-@njit(cache=True)
-def within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:  # pragma: no cover
-    """(P,) whether each of ``points (P, 2)`` lies within ``radius_m`` (at most) of one of
-    ``others (Q, 2)``; all pairs compared, each point's search stopped at the first one within."""
-    n = points.shape[0]
-    out = np.zeros(n, dtype=np.bool_)
-    r2 = radius_m * radius_m
-    for k in range(n):
-        for i in range(others.shape[0]):
-            dx, dy = points[k, 0] - others[i, 0], points[k, 1] - others[i, 1]
-            if dx * dx + dy * dy <= r2:
-                out[k] = True
-                break
-    return out
-
-
-@njit(cache=True)
-def across_cut(line_xy: np.ndarray, seg: np.ndarray, nearest: np.ndarray, cos_max: float, window_m: float
-               ) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
-    """The cut of ``splicing.runs_along_observations`` from the observation segments ``seg (S, 2)``
-    near the line and the nearest line vertex of each: (whole, runs (K, 2) of vertex indices
-    [a, b) kept). ``whole``: no segment runs across (more than the angle of ``cos_max``), the line
-    is kept as it is."""
+def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: np.ndarray, obs: np.ndarray,
+                            cos_max: float, near_m: float, window_m: float
+                            ) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
+    """The cut of ``splicing.runs_along_observations`` (see there): the segments between
+    consecutive points of one observation of ``obs`` (values of ``obs_id``), those whose midpoint
+    lies within ``near_m`` of the line (nearer than: strictly) counted at the nearest line
+    vertex as along or across it (more than the angle of ``cos_max``). Returns (whole, runs
+    (K, 2) of vertex indices [a, b) kept); ``whole``: no segment runs across, the line is kept as
+    it is."""
     n = line_xy.shape[0]
+    of_part = np.zeros(obs_id.max() + 1, dtype=np.bool_)
+    for o in obs:
+        of_part[o] = True
+    n_pts = points_w.shape[0]
+    mid = np.empty((n_pts, 2))
+    seg = np.empty((n_pts, 2))
+    n_seg = 0
+    for i in range(n_pts - 1):
+        if of_part[obs_id[i]] and obs_id[i] == obs_id[i + 1]:
+            seg[n_seg, 0] = points_w[i + 1, 0] - points_w[i, 0]
+            seg[n_seg, 1] = points_w[i + 1, 1] - points_w[i, 1]
+            mid[n_seg, 0] = points_w[i, 0] + 0.5 * seg[n_seg, 0]
+            mid[n_seg, 1] = points_w[i, 1] + 0.5 * seg[n_seg, 1]
+            n_seg += 1
+    if n_seg == 0:
+        return True, np.empty((0, 2), dtype=np.int64)
+    nearest, dist2 = nearest_index(mid[:n_seg], np.ascontiguousarray(line_xy[:, 0]), np.ascontiguousarray(line_xy[:, 1]))
     along_len = np.zeros(n)
     across_len = np.zeros(n)
-    any_across = False
-    for k in range(seg.shape[0]):
+    any_near = any_across = False
+    for k in range(n_seg):
+        if not dist2[k] < near_m * near_m:
+            continue
+        any_near = True
         at = min(nearest[k], n - 2)
         tx, ty = line_xy[at + 1, 0] - line_xy[at, 0], line_xy[at + 1, 1] - line_xy[at, 1]
         seg_len = math.sqrt(seg[k, 0] * seg[k, 0] + seg[k, 1] * seg[k, 1])
@@ -399,7 +398,7 @@ def across_cut(line_xy: np.ndarray, seg: np.ndarray, nearest: np.ndarray, cos_ma
             any_across = True
         else:
             along_len[nearest[k]] += seg_len
-    if not any_across:
+    if not any_near or not any_across:
         return True, np.empty((0, 2), dtype=np.int64)
     cum_across = np.zeros(n + 1)
     cum_along = np.zeros(n + 1)

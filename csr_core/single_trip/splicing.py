@@ -73,17 +73,6 @@ def _geometry(backbone: np.ndarray) -> _Geometry:
     return _Geometry(*splice_kernels.geometry_columns(np.ascontiguousarray(backbone, dtype=float)))
 
 
-def within_of_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:
-    """``(P,)`` whether each of ``points (P, 2)`` lies within ``radius_m`` of one of ``others (Q, 2)``
-    (at most). Compiled (``splice_kernels.nearest_index``)."""
-    if not len(others) or not len(points):
-        return np.zeros(len(points), dtype=bool)
-    others = np.ascontiguousarray(others, dtype=float)
-    _, dist2 = splice_kernels.nearest_index(np.ascontiguousarray(points, dtype=float), others[:, 0].copy(),
-                                            others[:, 1].copy())
-    return dist2 <= radius_m * radius_m
-
-
 @functools.lru_cache(maxsize=16)
 def _gaussian_kernel(sigma_bins: float, truncate: float = 4.0) -> np.ndarray:
     """The kernel of ``scipy.ndimage.gaussian_filter1d`` (same radius and normalisation)."""
@@ -430,22 +419,10 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
     joined two cut places."""
     if len(line_xy) < 2 or len(points_w) < 2:
         return [line_xy]
-    # the segments between consecutive points of one observation of ``obs``
-    of_part = np.zeros(int(obs_id.max()) + 1, dtype=bool)
-    of_part[obs] = True
-    start = np.flatnonzero(of_part[obs_id[:-1]] & (obs_id[:-1] == obs_id[1:]))
-    if len(start) == 0:
-        return [line_xy]
-    seg = points_w[start + 1] - points_w[start]
-    nearest, near = splice_kernels.nearest_within(points_w[start] + 0.5 * seg, np.ascontiguousarray(line_xy, dtype=float),
-                                                  float(near_m))
-    if not near.any():
-        return [line_xy]
-    whole, runs = splice_kernels.across_cut(np.ascontiguousarray(line_xy, dtype=float), seg[near], nearest[near],
-                                            math.cos(max_angle_rad), float(window_m))
-    if whole:
-        return [line_xy]
-    return [line_xy[a:b] for a, b in runs.tolist()]
+    whole, runs = splice_kernels.runs_along_observations(
+        np.ascontiguousarray(line_xy, dtype=float), points_w, obs_id, obs, math.cos(max_angle_rad), float(near_m),
+        float(window_m))
+    return [line_xy] if whole else [line_xy[a:b] for a, b in runs.tolist()]
 
 
 def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = splice_kernels.ROBUST_END_WINDOW_M

@@ -129,14 +129,17 @@ def test_fit_profile_recovers_an_offset_line_and_rejects_outliers():
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_nearest_searches_agree_with_a_kd_tree(seed):
+def test_nearest_index_agrees_with_a_kd_tree(seed):
     rng = np.random.default_rng(seed)
-    points, ref = rng.uniform(0, 20, (150, 2)), rng.uniform(0, 20, (60, 2))
-    dist, idx = cKDTree(ref).query(points)
-    nearest, near = K.nearest_within(points, ref, 1.0)
-    np.testing.assert_array_equal(nearest, idx)
-    np.testing.assert_array_equal(near, dist < 1.0)
-    np.testing.assert_array_equal(K.within_of_any(points, ref, 1.0), dist <= 1.0)
+    points = rng.uniform(0, 20, (150, 2))
+    for ref in (rng.uniform(0, 20, (60, 2)), _wiggly_line(rng) + 5.0, _wiggly_line(rng)[:, ::-1] + 5.0):
+        dist, idx = cKDTree(ref).query(points)
+        nearest, dist2 = K.nearest_index(points, ref[:, 0].copy(), ref[:, 1].copy())
+        np.testing.assert_array_equal(nearest, idx)
+        np.testing.assert_allclose(np.sqrt(dist2), dist, atol=1e-12)
+    # the first of equals, as argmin over all pairs
+    nearest, _ = K.nearest_index(np.zeros((1, 2)), np.array([1.0, -1.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0, 0.0]))
+    assert nearest[0] == 0
 
 
 @pytest.mark.parametrize("seed", SEEDS)
