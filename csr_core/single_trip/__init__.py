@@ -125,15 +125,16 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
-def _within_reach(points_w: np.ndarray, path_tree: cKDTree, reach_m: float, is_polygon: bool) -> list[np.ndarray]:
+def _within_reach(points_w: np.ndarray, path: splice_kernels.SortedPoints, reach_m: float, is_polygon: bool
+                  ) -> list[np.ndarray]:
     """The parts of an instance within ``reach_m`` of the vehicle path: a trip covers the lateral
     reach of its BEV range around its path. Beyond it an element was only seen far ahead
     (at the far end of the range, where the detector is noisiest) in the few frames before the
     vehicle turned away; the trips that drive past it see it better. Lines are cut into their
     runs inside the reach; a polygon is kept whole when its centroid is inside."""
     if is_polygon:
-        return [points_w] if path_tree.query(points_w.mean(0))[0] <= reach_m else []
-    inside = path_tree.query(points_w, distance_upper_bound=reach_m + 1e-9)[0] <= reach_m
+        return [points_w] if path.within(points_w.mean(0)[None], reach_m)[0] else []
+    inside = path.within(points_w, reach_m)
     if inside.all():
         return [points_w]
     edges = np.flatnonzero(np.diff(np.concatenate(([0], inside.astype(np.int8), [0]))))
@@ -332,7 +333,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     lateral_reach = min(max(abs(box[2]), abs(box[3])), params.INSTANCE_MAX_LATERAL_M)
-    path_tree = cKDTree(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2])
+    path = splice_kernels.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1
+                                       else poses[:, :2])
     k_pts = pieces.points_w.shape[1]
     type_points = {}  # per type: KD-tree of all its detections' resampled points, their tracked frame
     for t, code in TYPE_CODES.items():
@@ -412,7 +414,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
                                         unique_ids(track_frames[part.observations])))
         spliced = [(part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
                    for points_w, lat, alo, seen in spliced
-                   for k, part in enumerate(sorted(_within_reach(points_w, path_tree, lateral_reach, track.type.is_polygon),
+                   for k, part in enumerate(sorted(_within_reach(points_w, path, lateral_reach, track.type.is_polygon),
                                                    key=len, reverse=True))]
         style: list[DividerStyle | None] | None = None  # the track's, voted once
         for points_w, lat, alo, seen in spliced:

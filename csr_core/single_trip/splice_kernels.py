@@ -840,3 +840,37 @@ def seen_within(points: np.ndarray, observed: np.ndarray, step: np.ndarray, step
             if seen[k]:
                 break
     return seen
+
+
+class SortedPoints:
+    """Reference points (R >= 1, 2) sorted once along their wider axis, asked again and again which
+    query points lie within a radius of one of them (``within_radius``): a trip's path, asked for
+    each instance."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.x = np.ascontiguousarray(points[:, 0], dtype=float)
+        self.y = np.ascontiguousarray(points[:, 1], dtype=float)
+        self.wide_x, self.order, self.sorted_key = sort_along_wider_axis(self.x, self.y)
+
+    def within(self, points: np.ndarray, radius_m: float) -> np.ndarray:
+        """(P,) whether each of ``points (P, 2)`` lies within ``radius_m`` (at most) of one of them."""
+        return within_radius(np.ascontiguousarray(points, dtype=float), self.x, self.y, self.wide_x, self.order,
+                             self.sorted_key, float(radius_m))
+
+
+@njit(cache=True)
+def within_radius(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, wide_x: bool, order: np.ndarray,
+                  sorted_key: np.ndarray, radius_m: float) -> np.ndarray:  # pragma: no cover - compiled
+    """(P,) whether each of ``points (P, 2)`` lies within ``radius_m`` (at most) of one of the
+    reference points, sorted by ``sort_along_wider_axis``: those within the radius along the axis
+    are tested until one is within it."""
+    out = np.zeros(points.shape[0], dtype=np.bool_)
+    for k in range(points.shape[0]):
+        px, py = points[k, 0], points[k, 1]
+        q = px if wide_x else py
+        for j in range(np.searchsorted(sorted_key, q - radius_m), np.searchsorted(sorted_key, q + radius_m, side="right")):
+            i = order[j]
+            if math.sqrt((ref_x[i] - px) ** 2 + (ref_y[i] - py) ** 2) <= radius_m:
+                out[k] = True
+                break
+    return out
