@@ -211,3 +211,13 @@ def test_track_observations_densify_detections_and_move_them_into_the_world():
         raw, offsets, np.array([1, 2]), np.ones(2), np.zeros(2), np.zeros(2), np.zeros(2), 0.0)
     np.testing.assert_array_equal(points_v, raw[3:])
     assert original.all() and list(obs_offsets) == [0, 2, 3]
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_sorted_points_within_agree_with_a_kd_tree(seed):
+    rng = np.random.default_rng(seed)
+    path = K.SortedPoints(_wiggly_line(rng, 200, 1.0))
+    points = rng.uniform(-20, 120, (300, 2))
+    dist, _ = cKDTree(np.column_stack([path.x, path.y])).query(points)
+    np.testing.assert_array_equal(path.within(points, 12.0), dist <= 12.0)
+    assert 0 < (dist <= 12.0).sum() < len(points)
