@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from csr_core.geo import LocalFrame
-from csr_core.single_trip import splice_kernels
+from csr_core.single_trip.compiled import checks, observations, search
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
@@ -100,7 +100,7 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     reach = max(abs(box[0]), abs(box[1]), abs(box[2]), abs(box[3]))
     # frames farther than the box's corner from every sample cannot have it in range
     corner = float(np.hypot(max(abs(box[0]), abs(box[1])), max(abs(box[2]), abs(box[3]))))
-    cand = splice_kernels.frames_near(np.ascontiguousarray(samples, dtype=float), poses, frames, reach, corner)
+    cand = checks.frames_near(np.ascontiguousarray(samples, dtype=float), poses, frames, reach, corner)
     if len(cand) == 0:
         return 1.0
     seen_mask = np.zeros(len(frames), dtype=bool)
@@ -111,7 +111,7 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
         return n_seen / len(cand)
     rest = cand[~was_seen]  # only the frames that did not see it are tested
     x0, x1, y0, y1 = box
-    rest = rest[splice_kernels.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
+    rest = rest[checks.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
                                                np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]))]
     n_corroborated = 0
     if len(rest) and same_type_tree is not None:
@@ -125,7 +125,7 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
-def _within_reach(points_w: np.ndarray, path: splice_kernels.SortedPoints, reach_m: float, is_polygon: bool
+def _within_reach(points_w: np.ndarray, path: search.SortedPoints, reach_m: float, is_polygon: bool
                   ) -> list[np.ndarray]:
     """The parts of an instance within ``reach_m`` of the vehicle path: a trip covers the lateral
     reach of its BEV range around its path. Beyond it an element was only seen far ahead
@@ -333,7 +333,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     lateral_reach = min(max(abs(box[2]), abs(box[3])), params.INSTANCE_MAX_LATERAL_M)
-    path = splice_kernels.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1
+    path = search.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1
                                        else poses[:, :2])
     k_pts = pieces.points_w.shape[1]
     type_points = {}  # per type: KD-tree of all its detections' resampled points, their tracked frame
@@ -355,7 +355,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         upload_frames = frames[track_frames]
         yaw = poses[upload_frames, 2]
         # the detections as sent, densified (not polygons: their vertices are corners), in the world
-        pts_v, offsets, original, pts_w, obs_id = splice_kernels.track_observations(
+        pts_v, offsets, original, pts_w, obs_id = observations.track_observations(
             pieces.raw_points_v, pieces.raw_offsets, track.pieces, np.cos(yaw), np.sin(yaw), poses[upload_frames, 0],
             poses[upload_frames, 1], 0.0 if track.type.is_polygon else float(params.SPLICE_BIN_M))
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []

@@ -39,8 +39,8 @@ import numpy as np
 from scipy.cluster.hierarchy import DisjointSet
 from scipy.spatial import cKDTree
 
+from csr_core.single_trip.compiled.growth import BEND_MIN_RADIUS_M, kasa_circle
 from csr_core.single_trip.params import SingleTripParams
-from csr_core.single_trip.splice_kernels import BEND_MIN_RADIUS_M, kasa_circle
 from csr_core.single_trip.tracking import Pieces, Track, component_labels, pair_distance
 from csr_core.types import DividerStyle, ElementType
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from csr_core.single_trip import splice_kernels
+from csr_core.single_trip.compiled import search
 
 
 def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
@@ -46,10 +46,10 @@ class ObservedPoints:
     where each starts and the end), asked which vertices of an instance have one within a gate.
 
     ``step_m``: the polylines count as densified to that spacing (as
-    ``splice_kernels.track_observations`` densifies them, keeping every point as given). A vertex
+    ``observations.track_observations`` densifies them, keeping every point as given). A vertex
     within the gate of a point as given is seen either way, and almost every vertex is
     (Karlsruhe, urban: 99.5 %); only for the rest are the steps densified, and only those with
-    an end within the gate plus the step's length. Compiled (``splice_kernels.seen_within``)."""
+    an end within the gate plus the step's length. Compiled (``search.seen_within``)."""
 
     def __init__(self, points_w: np.ndarray, offsets: np.ndarray | None = None, step_m: float | None = None) -> None:
         self.points_w = np.ascontiguousarray(points_w, dtype=float)
@@ -69,8 +69,8 @@ class ObservedPoints:
         if not len(self.points_w) or not len(points_xy):
             return np.zeros(len(points_xy), dtype=bool)
         if self._sorted is None:
-            self._sorted = splice_kernels.sort_along_wider_axis(self.points_w[:, 0].copy(), self.points_w[:, 1].copy())
-        return splice_kernels.seen_within(np.ascontiguousarray(points_xy, dtype=float), self.points_w, self._step,
+            self._sorted = search.sort_along_wider_axis(self.points_w[:, 0].copy(), self.points_w[:, 1].copy())
+        return search.seen_within(np.ascontiguousarray(points_xy, dtype=float), self.points_w, self._step,
                                           self._step_len, float(self.step_m or 0.0), float(gate_m), *self._sorted)
 
 

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from csr_core.single_trip import splice_kernels
+from csr_core.single_trip.compiled import checks, growth, polyline, profile
 from csr_core.single_trip.noise import middle_sorted
 from csr_core.single_trip.params import SingleTripParams
 
@@ -40,7 +40,7 @@ class SplicedLine:
 
 def _arclength(points: np.ndarray) -> np.ndarray:
     """Cumulative length (P,) along a polyline (P, 2), from 0 (compiled)."""
-    return splice_kernels.arclength(np.ascontiguousarray(points, dtype=float))
+    return polyline.arclength(np.ascontiguousarray(points, dtype=float))
 
 
 def _run_starts(ids: np.ndarray) -> np.ndarray:
@@ -69,8 +69,8 @@ class _Geometry(NamedTuple):
 def _geometry(backbone: np.ndarray) -> _Geometry:
     """A backbone (B >= 2, 2) with its arclength and unit tangents (central differences, one-sided
     at the ends, as ``np.gradient``), computed once per backbone (the path guide of a track is
-    projected on twice). Compiled (``splice_kernels.geometry_columns``)."""
-    return _Geometry(*splice_kernels.geometry_columns(np.ascontiguousarray(backbone, dtype=float)))
+    projected on twice). Compiled (``polyline.geometry_columns``)."""
+    return _Geometry(*polyline.geometry_columns(np.ascontiguousarray(backbone, dtype=float)))
 
 
 @functools.lru_cache(maxsize=16)
@@ -87,14 +87,14 @@ def _gaussian_kernel(sigma_bins: float, truncate: float = 4.0) -> np.ndarray:
 def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
     """The polyline (P >= 1, 2) resampled at equal steps of at most ``spacing_m``, ends kept (its
     first point alone when it has no length). Compiled."""
-    return splice_kernels.resample_polyline(np.ascontiguousarray(points, dtype=float), float(spacing_m))
+    return polyline.resample_polyline(np.ascontiguousarray(points, dtype=float), float(spacing_m))
 
 
 def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
     sampled backbone (``_geometry``): from its nearest point, along its tangent. Compiled
-    (``splice_kernels.project``)."""
-    return splice_kernels.project(np.ascontiguousarray(points, dtype=float), geom.columns, geom.arclength)
+    (``polyline.project``)."""
+    return polyline.project(np.ascontiguousarray(points, dtype=float), geom.columns, geom.arclength)
 
 
 def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0) -> np.ndarray:
@@ -144,10 +144,10 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     and the straight tangent misses the next dash by metres): the tangent line becomes the arc
     with the curvature of the last two ``tangent_m``, and an observation that is not near it
     still continues the backbone when one circle fits it and the backbone's last
-    ``2 tangent_m`` (``splice_kernels.kasa_circle``) within ``splice_kernels.BEND_SHAPE_TOL_M``, no
+    ``2 tangent_m`` (``growth.kasa_circle``) within ``growth.BEND_SHAPE_TOL_M``, no
     tighter than ``BEND_MIN_RADIUS_M``, its nearest point within ``max_gap_m``. Compiled
-    (``splice_kernels.grow_backbone``)."""
-    return splice_kernels.grow_backbone(np.ascontiguousarray(points_w, dtype=float), obs_ends.astype(np.int64, copy=False),
+    (``growth.grow_backbone``)."""
+    return growth.grow_backbone(np.ascontiguousarray(points_w, dtype=float), obs_ends.astype(np.int64, copy=False),
                                         float(min_step_m), float(tangent_m), float(lateral_gate_m),
                                         float(lateral_gate_slope), float(max_gap_m), bool(follow_bends))
 
@@ -177,16 +177,16 @@ def _cluster_sd(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     lateral d): occupied cells (``SPLICE_BIN_M`` x ``SPLICE_CLUSTER_D_M``) joined across up to
     ``SPLICE_MAX_GAP_M`` along s (dash gaps, missed frames) and one cell across d. Two lines side
     by side (a track that took in a neighbour through a ramp or a ghost) come out apart.
-    Compiled (``splice_kernels.cluster_sd``)."""
+    Compiled (``profile.cluster_sd``)."""
     reach = max(int(params.SPLICE_MAX_GAP_M / params.SPLICE_BIN_M / 2), 1)
-    return splice_kernels.cluster_sd(s, d, float(params.SPLICE_BIN_M), float(params.SPLICE_CLUSTER_D_M), reach)
+    return profile.cluster_sd(s, d, float(params.SPLICE_BIN_M), float(params.SPLICE_CLUSTER_D_M), reach)
 
 
 def _binned_profile(s: np.ndarray, d: np.ndarray, bin_m: float) -> tuple[np.ndarray, int, np.ndarray]:
     """Arclength bins (P,) of width ``bin_m`` from the smallest s, their number and the per-bin
     median of d (the upper middle value; NaN for an empty bin): the first step of
     ``_fit_profile``, shared with ``_mixture_sigma``. Compiled."""
-    return splice_kernels.binned_profile(s, d, float(bin_m))
+    return profile.binned_profile(s, d, float(bin_m))
 
 
 def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geometry, params: SingleTripParams,
@@ -195,10 +195,10 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geomet
     """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
     Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
     s_lo, s_hi, fitted d at each point) or None. ``binned``: ``_binned_profile(s, d)`` when
-    already computed. Compiled (``splice_kernels.fit_profile``)."""
+    already computed. Compiled (``profile.fit_profile``)."""
     bin_m = params.SPLICE_BIN_M
     bins, n_bins, med = binned if binned is not None else _binned_profile(s, d, bin_m)
-    ok, line, inl, s_lo, s_hi, d_fit = splice_kernels.fit_profile(
+    ok, line, inl, s_lo, s_hi, d_fit = profile.fit_profile(
         s, d, obs_id, bins, n_bins, med, float(params.SPLICE_OUTLIER_SIGMAS), float(bin_m),
         _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m), float(params.SPLICE_OUTPUT_SPACING_M),
         geom.columns, geom.arclength)
@@ -284,7 +284,7 @@ def _mixture_sigma(d: np.ndarray, binned: tuple[np.ndarray, int, np.ndarray]) ->
     ``_binned_profile``): large for a cluster that mixes elements (a Y where a connector leaves
     a lane)."""
     bins, _, med = binned
-    return splice_kernels.mixture_sigma(d, bins, med)
+    return profile.mixture_sigma(d, bins, med)
 
 
 def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.ndarray:
@@ -336,8 +336,8 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
 
 def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
     """Median over observations of |arclength span on the path| / chord: 1 along, 0 across
-    (compiled, ``splice_kernels.runs_along``)."""
-    return splice_kernels.runs_along(s, np.ascontiguousarray(points, dtype=float), obs_id)
+    (compiled, ``profile.runs_along``)."""
+    return profile.runs_along(s, np.ascontiguousarray(points, dtype=float), obs_id)
 
 
 def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
@@ -393,7 +393,7 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     line, inl, s_lo, s_hi, d_fit = fit
     # lateral residuals against the fitted profile; along-track: observation ends that are
     # element ends against the instance ends (both in backbone arclength)
-    lat, along_res, obs = splice_kernels.splice_residuals(
+    lat, along_res, obs = profile.splice_residuals(
         len(points_w), sel, inl, s_sel, d_sel, d_fit, original, obs_id, obs_ends, end_free, s_lo, s_hi,
         float(params.NOISE_END_WINDOW_M))
     return [SplicedLine(line, lat, along_res, obs)]
@@ -419,18 +419,18 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
     joined two cut places."""
     if len(line_xy) < 2 or len(points_w) < 2:
         return [line_xy]
-    whole, runs = splice_kernels.runs_along_observations(
+    whole, runs = checks.runs_along_observations(
         np.ascontiguousarray(line_xy, dtype=float), points_w, obs_id, obs, math.cos(max_angle_rad), float(near_m),
         float(window_m))
     return [line_xy] if whole else [line_xy[a:b] for a, b in runs.tolist()]
 
 
-def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = splice_kernels.ROBUST_END_WINDOW_M
+def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = profile.ROBUST_END_WINDOW_M
                  ) -> tuple[float, float]:
     """The ends (s_lo, s_hi) of an element from its observations' arclengths: the median of the
     observations' lowest s within ``window_m`` of the lowest, the same for the highest (compiled,
-    ``splice_kernels.robust_ends``)."""
-    return splice_kernels.robust_ends(np.ascontiguousarray(s, dtype=float),
+    ``profile.robust_ends``)."""
+    return profile.robust_ends(np.ascontiguousarray(s, dtype=float),
                                       np.ascontiguousarray(obs_id, dtype=np.int64), float(window_m))
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from csr_core.single_trip import splice_kernels
+from csr_core.single_trip.compiled import observations
 from csr_core.single_trip.params import SingleTripParams
 from csr_core.types import ElementType
 
@@ -91,8 +91,8 @@ def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: fl
     """Truncated distance of each point of ``points (M, P, 2)`` to the matching polyline of
     ``polys (M, K, 2)``, the polyline extended at both ends along its chord (first to last
     point: a noisy end segment of a short dash would swing) by up to ``max_extrapolation_m``;
-    farther: ``cap_m``. Returns (M, P). Compiled (``splice_kernels.pair_distance``)."""
-    return splice_kernels.pair_distance(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(polys, dtype=float),
+    farther: ``cap_m``. Returns (M, P). Compiled (``observations.pair_distance``)."""
+    return observations.pair_distance(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(polys, dtype=float),
                                         float(max_extrapolation_m), float(cap_m))
 
 

@@ -336,7 +336,7 @@ def test_instances_are_cut_to_the_lateral_reach_of_the_path():
     # a line leaving the road at a right angle is kept up to the BEV range's lateral reach;
     # a polygon whose centre lies beyond it is left out
     from csr_core.single_trip import _within_reach
-    from csr_core.single_trip.splice_kernels import SortedPoints
+    from csr_core.single_trip.compiled.search import SortedPoints
 
     path = SortedPoints(np.column_stack([np.arange(-50.0, 50.5, 0.5), np.zeros(201)]))
     line = np.column_stack([np.zeros(41), np.linspace(5.0, 45.0, 41)])
