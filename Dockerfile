@@ -19,6 +19,8 @@ RUN pip install -e '.[ops]' \
     && mkdir -p /data && chown csr /data
 
 USER csr
+# the splicing stage's numba kernels, compiled into the user's numba cache at build time (30-40 s)
+RUN python -m csr_core.single_trip.compiled
 EXPOSE 8000
 HEALTHCHECK --interval=10s --timeout=5s --start-period=30s --retries=5 \
     CMD python -c "import sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4).status != 200)"

@@ -214,10 +214,7 @@ def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extensi
     guide = _extend_ends(resample_polyline(path, bin_m), extension_m, bin_m)
     if len(guide) < 3:
         return None
-    geom = _geometry(guide)
-    for shared in (geom.columns, geom.arclength):  # cached: shared by every caller
-        shared.setflags(write=False)
-    return geom
+    return _geometry(guide)  # cached: shared by every caller, which only reads it
 
 
 def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,

@@ -243,3 +243,17 @@ def test_grow_backbone_extends_the_first_observation_along_and_round_a_bend():
     centre, r2 = growth.kasa_circle(points)
     np.testing.assert_allclose(centre, [0.0, 20.0], atol=1e-9)
     assert np.sqrt(r2) == pytest.approx(20.0)
+
+
+def test_the_warm_up_compiles_the_kernels_the_pipeline_calls():
+    from csr_core.single_trip.compiled.__main__ import kernels, main
+
+    assert main() == 0
+    called_from_python = ("checks.frames_in_range", "checks.frames_near", "checks.runs_along_observations",
+                          "growth.grow_backbone", "observations.pair_distance", "observations.track_observations",
+                          "polyline.geometry_columns", "polyline.project", "polyline.resample_polyline",
+                          "profile.binned_profile", "profile.cluster_sd", "profile.fit_profile", "profile.robust_ends",
+                          "profile.splice_residuals", "search.seen_within", "search.within_radius")
+    compiled = kernels()
+    assert set(called_from_python) <= set(compiled)
+    assert [name for name in called_from_python if not compiled[name].signatures] == []
