@@ -36,28 +36,18 @@ def nearest_in_sorted(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, 
         q = px if wide_x else py
         start = np.searchsorted(sorted_key, q)
         best, best_d2 = n_ref, np.inf
-        j = start
-        while j < n_ref:
-            gap = sorted_key[j] - q
-            if gap * gap > best_d2:
-                break
-            i = order[j]
-            dx, dy = px - ref_x[i], py - ref_y[i]
-            d2 = dx * dx + dy * dy
-            if d2 < best_d2 or (d2 == best_d2 and i < best):
-                best, best_d2 = i, d2
-            j += 1
-        j = start - 1
-        while j >= 0:
-            gap = q - sorted_key[j]
-            if gap * gap > best_d2:
-                break
-            i = order[j]
-            dx, dy = px - ref_x[i], py - ref_y[i]
-            d2 = dx * dx + dy * dy
-            if d2 < best_d2 or (d2 == best_d2 and i < best):
-                best, best_d2 = i, d2
-            j -= 1
+        for step in (1, -1):  # up the sorted order from the query's place, then down
+            j = start if step == 1 else start - 1
+            while 0 <= j < n_ref:
+                gap = sorted_key[j] - q
+                if gap * gap > best_d2:
+                    break
+                i = order[j]
+                dx, dy = px - ref_x[i], py - ref_y[i]
+                d2 = dx * dx + dy * dy
+                if d2 < best_d2 or (d2 == best_d2 and i < best):
+                    best, best_d2 = i, d2
+                j += step
         nearest[k] = best
         dist2[k] = best_d2
     return nearest, dist2
