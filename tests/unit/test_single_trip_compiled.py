@@ -246,7 +246,7 @@ def test_grow_backbone_extends_the_first_observation_along_and_round_a_bend():
 
 
 def test_the_warm_up_compiles_the_kernels_the_pipeline_calls():
-    from csr_core.single_trip.compiled.__main__ import kernels, main
+    from csr_core.single_trip.compiled.warm_up import kernels, main
 
     assert main() == 0
     called_from_python = ("checks.frames_in_range", "checks.frames_near", "checks.runs_along_observations",
