@@ -17,8 +17,8 @@ def track_observations(raw_points_v: np.ndarray, raw_offsets: np.ndarray, pieces
                        sin_yaw: np.ndarray, pose_x: np.ndarray, pose_y: np.ndarray, max_step_m: float):  # pragma: no cover
     """A track's observations as its splice takes them: the detections ``pieces`` (m,) (rows of
     ``raw_offsets`` into ``raw_points_v``, vehicle frame, as sent) with points inserted so that no
-    step exceeds ``max_step_m`` (none when it is 0: polygons; as ``tracking.densify_flat``), and
-    moved into the world by each one's pose (``cos_yaw``, ``sin_yaw``, ``pose_x``, ``pose_y``, (m,)).
+    step exceeds ``max_step_m`` (each step cut into ceil(length / ``max_step_m``) equal parts; none
+    when it is 0: polygons, whose vertices are corners), and moved into the world by each one's pose (``cos_yaw``, ``sin_yaw``, ``pose_x``, ``pose_y``, (m,)).
     Returns (points_v (N, 2), offsets (m+1,), original (N,): as sent, points_w (N, 2), obs_id (N,))."""
     m = len(pieces)
     counts = np.zeros(m, dtype=np.int64)
