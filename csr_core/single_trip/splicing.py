@@ -26,7 +26,6 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from csr_core.single_trip.compiled import checks, growth, polyline, profile
-from csr_core.single_trip.noise import middle_sorted
 from csr_core.single_trip.params import SingleTripParams
 
 
@@ -49,14 +48,6 @@ def _run_starts(ids: np.ndarray) -> np.ndarray:
     change[0] = True
     np.not_equal(ids[1:], ids[:-1], out=change[1:len(ids)])
     return np.flatnonzero(change)
-
-
-def _median(values: np.ndarray) -> float:
-    """``np.median`` of a 1-D array, without its per-call overhead (called thousands of times
-    per trip on small arrays)."""
-    n = len(values)
-    v = middle_sorted(values)
-    return 0.5 * float(v[(n - 1) // 2] + v[n // 2])
 
 
 class _Geometry(NamedTuple):

@@ -112,13 +112,6 @@ def lateral_at_vehicle(polys_vehicle: np.ndarray) -> np.ndarray:
                     0.5 * (y0 + y1))
 
 
-def _ranges(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For sorted ``keys``: start and end (exclusive) of each element's run of equal keys."""
-    starts = np.searchsorted(keys, keys, side="left")
-    ends = np.searchsorted(keys, keys, side="right")
-    return starts, ends
-
-
 def _pairs_between(keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """All (a, b) with b's key equal to ``a_keys[a]`` (b indexes the sorted array)."""
