@@ -106,16 +106,8 @@ def seen_within(points: np.ndarray, observed: np.ndarray, step: np.ndarray, step
     ``step (N, 2)`` (to the next point of its polyline, of length ``step_len``; zero after a
     polyline's last point) to at most ``step_m`` (``paint_breaks.ObservedPoints``). ``wide_x``,
     ``order``, ``sorted_key``: ``observed`` sorted by ``sort_along_wider_axis``."""
-    obs_x, obs_y = observed[:, 0], observed[:, 1]
-    seen = np.zeros(points.shape[0], dtype=np.bool_)
-    for k in range(points.shape[0]):  # the points as given: those within the gate along the axis
-        vx, vy = points[k, 0], points[k, 1]
-        q = vx if wide_x else vy
-        for j in range(np.searchsorted(sorted_key, q - gate_m), np.searchsorted(sorted_key, q + gate_m, side="right")):
-            i = order[j]
-            if math.sqrt((obs_x[i] - vx) ** 2 + (obs_y[i] - vy) ** 2) <= gate_m:
-                seen[k] = True
-                break
+    seen = within_radius(points, np.ascontiguousarray(observed[:, 0]), np.ascontiguousarray(observed[:, 1]), wide_x,
+                         order, sorted_key, gate_m)  # the points as given
     if step_m <= 0:
         return seen
     gate2 = gate_m * gate_m
