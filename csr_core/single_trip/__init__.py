@@ -111,8 +111,9 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
         return n_seen / len(cand)
     rest = cand[~was_seen]  # only the frames that did not see it are tested
     x0, x1, y0, y1 = box
-    rest = rest[checks.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
-                                               np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]))]
+    in_range = checks.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
+                                      np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]))
+    rest = rest[in_range]
     n_corroborated = 0
     if len(rest) and same_type_tree is not None:
         dense = resample_polyline(points_w, corroborate_m / 2) if len(points_w) > 1 else points_w
@@ -333,8 +334,7 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     lateral_reach = min(max(abs(box[2]), abs(box[3])), params.INSTANCE_MAX_LATERAL_M)
-    path = search.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1
-                                       else poses[:, :2])
+    path = search.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2])
     k_pts = pieces.points_w.shape[1]
     type_points = {}  # per type: KD-tree of all its detections' resampled points, their tracked frame
     for t, code in TYPE_CODES.items():

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from csr_core.single_trip.compiled import checks, growth, polyline, profile
+from csr_core.single_trip.compiled import checks, growth, polyline, profile, search
 from csr_core.single_trip.params import SingleTripParams
 
 
@@ -51,17 +51,21 @@ def _run_starts(ids: np.ndarray) -> np.ndarray:
 
 
 class _Geometry(NamedTuple):
-    """A backbone of B points with its arclength and unit tangents (``_geometry``)."""
+    """A backbone of B points with its arclength, unit tangents and points sorted for the nearest
+    search (``_geometry``)."""
 
     columns: np.ndarray  # (4, B) x, y, unit tangent x, y: contiguous rows (the cheapest to gather)
     arclength: np.ndarray  # (B,)
+    sorted_points: tuple[bool, np.ndarray, np.ndarray]  # search.sort_along_wider_axis of its points
 
 
 def _geometry(backbone: np.ndarray) -> _Geometry:
     """A backbone (B >= 2, 2) with its arclength and unit tangents (central differences, one-sided
     at the ends, as ``np.gradient``), computed once per backbone (the path guide of a track is
-    projected on twice). Compiled (``polyline.geometry_columns``)."""
-    return _Geometry(*polyline.geometry_columns(np.ascontiguousarray(backbone, dtype=float)))
+    projected on twice, and kept for the tracks that share it). Compiled
+    (``polyline.geometry_columns``, ``search.sort_along_wider_axis``)."""
+    columns, arclength = polyline.geometry_columns(np.ascontiguousarray(backbone, dtype=float))
+    return _Geometry(columns, arclength, search.sort_along_wider_axis(columns[0], columns[1]))
 
 
 @functools.lru_cache(maxsize=16)
@@ -84,8 +88,10 @@ def resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
 def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Arclength s and signed lateral offset d (left positive) of points (P, 2) on a densely
     sampled backbone (``_geometry``): from its nearest point, along its tangent. Compiled
-    (``polyline.project``)."""
-    return polyline.project(np.ascontiguousarray(points, dtype=float), geom.columns, geom.arclength)
+    (``search.nearest_in_sorted``, ``polyline.project_at``)."""
+    points = np.ascontiguousarray(points, dtype=float)
+    nearest, _ = search.nearest_in_sorted(points, geom.columns[0], geom.columns[1], *geom.sorted_points)
+    return polyline.project_at(points, nearest, geom.columns, geom.arclength)
 
 
 def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0) -> np.ndarray:
