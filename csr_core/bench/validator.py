@@ -26,6 +26,12 @@ from csr_core.bench.runner import (
 from csr_core.bench.sets import ScenarioSpec, scenario_set
 from csr_core.bench.tables import duration_text, markdown_table
 from csr_core.topology.validation import SEVERITY, SUSPECT
+from csr_core.topology.validator_reach import (
+    TRIPS_AGREE,
+    evidence_table,
+    learned_reach,
+    trip_comparison_recall_ceiling,
+)
 
 SECTION = "validator"
 RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
@@ -53,9 +59,9 @@ def _evaluate(job: Job) -> dict:
 
     cached = job.cache.exists()
     r = evaluate_scenario(job.scenario_dir, poses="aligned", cache=str(job.cache), validator_figure=job.figure,
-                          figure_bbox_xy=None)
+                          figure_bbox_xy=None, keep_instances=True)
     return {"spec": job.spec.name, "world": job.spec.world, "seed": job.spec.seed, "trips": r["trips"],
-            "mcd": r["fused"]["mcd"], "validator": r["validator"],
+            "mcd": r["fused"]["mcd"], "validator": r["validator"], "instances": r["instances"],
             "figure": str(job.figure) if job.figure else None, "cached": cached}
 
 
@@ -100,6 +106,42 @@ def pooled(results: Sequence[dict], key: str | None = None) -> dict:
 def _share(v: float) -> str:
     return f"{v:.3f}" if v == v else "n/a"
 
+
+
+def reach_lines(results: Sequence[dict]) -> list[str]:
+    """The section's part on what a validator can reach (``topology.validator_reach``), from the
+    fleets' judged instances; nothing when the results carry none."""
+    rows = [row for r in results for row in r.get("instances", ())]
+    if not rows:
+        return []
+    fleets = [r["spec"] for r in results for _ in r.get("instances", ())]
+    table = evidence_table(rows)
+    wrong = sum(t["wrong"] for t in table.values())
+    class_rows = [[name, str(t["instances"]), str(t["wrong"]),
+                   f"{t['wrong'] / t['instances']:.3f}" if t["instances"] else "n/a", str(t["flagged"]), str(t["caught"])]
+                  for name, t in table.items()]
+    agree = table[TRIPS_AGREE]
+    lines = ["### What a validator can reach here", "",
+             "Where the wrong instances are, by what their trips say of them (`topology.validator_reach`: *one trip* "
+             "saw it; two or more *disagree* by the `high_variance` or `trips_disagree` rule; two or more *agree* "
+             "within their own noise):", "",
+             markdown_table(["evidence", "instances", "wrong", "share wrong", "flagged", "flagged and wrong"],
+                            class_rows), "",
+             f"- {agree['wrong']} of the {wrong} wrong instances are instances that two or more trips agree on within "
+             f"their noise: an error all their trips share, which no comparison of trips shows. A validator that "
+             f"caught every other wrong instance and flagged none of the {agree['instances']} agreeing ones "
+             f"({agree['wrong'] / max(agree['instances'], 1):.1%} of them wrong) would reach recall "
+             f"{_share(trip_comparison_recall_ceiling(table))}."]
+    if len(set(fleets)) >= 2:
+        reach = learned_reach(rows, fleets, RECALL_MIN, PRECISION_MIN)
+        said = "; ".join(f"{model}: precision {_share(v['precision_at_recall'])} at recall >= {RECALL_MIN}, "
+                         f"recall {_share(v['recall_at_precision'])} at precision >= {PRECISION_MIN}"
+                         for model, v in reach.items())
+        lines += [f"- A classifier trained on the truth's verdicts and every property the map serves per instance "
+                  f"(support, coverage, trips that drove alongside, uncertainty, scatter, length, type, the flags), "
+                  f"on all fleets but one and scored on the one left out, pooled over the fleets, at its best "
+                  f"threshold: {said}."]
+    return lines + [""]
 
 
 def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
@@ -156,6 +198,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
               f"{informative} are informative, not suspect):", "",
               markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
               if flag_rows else "(no instance flagged)", ""]
+    lines += reach_lines(results)
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
         lines += [f"![The validator on one fleet: caught, missed, false alarms]({rel.as_posix()})", ""]

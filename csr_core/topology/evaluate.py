@@ -229,13 +229,14 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
                       lane_graph_figure: str | Path | None = None,
                       figure_bbox_xy: tuple[float, float, float, float] | None = None,
                       validator_figure: str | Path | None = None, params: TopologyParams = DEFAULT,
-                      instances_jsonl: str | Path | None = None) -> dict:
+                      instances_jsonl: str | Path | None = None, keep_instances: bool = False) -> dict:
     """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
     graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
     ``figure_bbox_xy`` in the scenario's local frame if given); ``validator_figure``: a picture
     of the judged instances, caught / missed / false alarm (``validator_figure.plot_validator``);
     ``params``: the topology's (``--param NAME=VALUE``); ``instances_jsonl``: also every judged
-    instance as a line of JSON (``judged_rows``), for studies of what tells the wrong ones apart."""
+    instance as a line of JSON (``judged_rows``), for studies of what tells the wrong ones apart;
+    ``keep_instances``: the same records under ``"instances"`` in the result."""
     scenario_dir = Path(scenario_dir)
     data, match_pairs = cached_trip_instances(scenario_dir, poses, cache)
     meta = read_scenario_meta(scenario_dir)
@@ -263,8 +264,9 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
     if lane_graph_figure is not None:
         plot_comparison(lane_graph, lane_graph_figure, figure_bbox_xy)
     judged = judge_instances(result, truth_map, true_xy)
+    rows = judged_rows(judged) if instances_jsonl is not None or keep_instances else []
     if instances_jsonl is not None:
-        Path(instances_jsonl).write_text("".join(json.dumps(row) + "\n" for row in judged_rows(judged)))
+        Path(instances_jsonl).write_text("".join(json.dumps(row) + "\n" for row in rows))
     if validator_figure is not None:
         from csr_core.topology.validator_figure import plot_validator
 
@@ -276,7 +278,8 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
             "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
                            "splits": len(result.lane_graph.split_points_xy),
                            "merges": len(result.lane_graph.merge_points_xy),
-                           "against_truth": lane_graph.scores()}}
+                           "against_truth": lane_graph.scores()},
+            **({"instances": rows} if keep_instances else {})}
 
 
 def main(argv: list[str] | None = None) -> int:

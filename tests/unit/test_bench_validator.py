@@ -32,3 +32,25 @@ def test_the_bound_is_reported_met_only_when_both_hold_and_nothing_wrong_is_not_
     assert ": not met.**" in low_precision
     clean = render_section([_fleet("toy-toy-3x-300m-s1", 11, 0, 0, 0)], None, None, 60.0)
     assert "recall n/a (0 of 0" in clean and ": not met.**" in clean and "(no instance flagged)" in clean
+
+
+def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances():
+    def inst(wrong: bool, suspect: bool, support: int) -> dict:
+        return {"type": "lane_divider", "length_m": 20.0, "wrong": wrong, "suspect": suspect, "flags": [],
+                "support_trips": support, "scatter_ratio": 0.5, "rejected_weight_share": 0.0}
+
+    fleets = []
+    for k, spec in enumerate(("urban-hard-8x-1500m-s5", "rural-hard-8x-1500m-s11")):
+        f = _fleet(spec, 40, 4, 8, 3)
+        f["instances"] = ([inst(True, True, 1)] * 3 + [inst(False, True, 1)] * 5 + [inst(True, False, 3)]
+                          + [inst(False, False, 3)] * (31 - k))
+        fleets.append(f)
+    text = render_section(fleets, None, None, 60.0)
+    assert "### What a validator can reach here" in text
+    assert "| one trip | 16 | 6 | 0.375 | 16 | 6 |" in text
+    assert "| trips agree | 63 | 2 | 0.032 | 0 | 0 |" in text
+    assert "2 of the 8 wrong instances are instances that two or more trips agree on" in text
+    assert "would reach recall 0.750" in text
+    assert "logistic regression: precision" in text and "boosted trees: precision" in text
+    assert "### What a validator can reach" not in render_section([_fleet("urban-hard-8x-1500m-s5", 40, 4, 8, 3)],
+                                                                  None, None, 60.0)
