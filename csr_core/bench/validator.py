@@ -108,14 +108,28 @@ def _share(v: float) -> str:
 
 
 
-def reach_lines(results: Sequence[dict]) -> list[str]:
-    """The section's part on what a validator can reach (``topology.validator_reach``), from the
-    fleets' judged instances; nothing when the results carry none."""
+def reach_of(results: Sequence[dict]) -> dict | None:
+    """What a validator can reach on the fleets' judged instances (``topology.validator_reach``):
+    the evidence table, the recall without the instances agreeing trips saw, the classifiers
+    trained on the other fleets (None with fewer than two fleets) and the flags as served;
+    None when the results carry no instances."""
     rows = [row for r in results for row in r.get("instances", ())]
     if not rows:
-        return []
+        return None
     fleets = [r["spec"] for r in results for _ in r.get("instances", ())]
     table = evidence_table(rows)
+    learned = learned_reach(rows, fleets, RECALL_MIN, PRECISION_MIN) if len(set(fleets)) >= 2 else None
+    return {"table": table, "ceiling": trip_comparison_recall_ceiling(table), "learned": learned,
+            "served": pooled(results)}
+
+
+def reach_lines(reach: dict | None, figure: Path | None = None, doc_dir: Path | None = None) -> list[str]:
+    """The section's part on what a validator can reach (``reach_of``); nothing for None."""
+    if reach is None:
+        return []
+    import os
+
+    table = reach["table"]
     wrong = sum(t["wrong"] for t in table.values())
     class_rows = [[name, str(t["instances"]), str(t["wrong"]),
                    f"{t['wrong'] / t['instances']:.3f}" if t["instances"] else "n/a", str(t["flagged"]), str(t["caught"])]
@@ -131,22 +145,57 @@ def reach_lines(results: Sequence[dict]) -> list[str]:
              f"their noise: an error all their trips share, which no comparison of trips shows. A validator that "
              f"caught every other wrong instance and flagged none of the {agree['instances']} agreeing ones "
              f"({agree['wrong'] / max(agree['instances'], 1):.1%} of them wrong) would reach recall "
-             f"{_share(trip_comparison_recall_ceiling(table))}."]
-    if len(set(fleets)) >= 2:
-        reach = learned_reach(rows, fleets, RECALL_MIN, PRECISION_MIN)
+             f"{_share(reach['ceiling'])}."]
+    if reach["learned"] is not None:
         said = "; ".join(f"{model}: precision {_share(v['precision_at_recall'])} at recall >= {RECALL_MIN}, "
                          f"recall {_share(v['recall_at_precision'])} at precision >= {PRECISION_MIN}"
-                         for model, v in reach.items())
+                         for model, v in reach["learned"].items())
         lines += [f"- A classifier trained on the truth's verdicts and every property the map serves per instance "
                   f"(support, coverage, trips that drove alongside, uncertainty, scatter, length, type, the flags), "
                   f"on all fleets but one and scored on the one left out, pooled over the fleets, at its best "
                   f"threshold: {said}."]
-    return lines + [""]
+    lines.append("")
+    if figure is not None and doc_dir is not None:
+        rel = Path(os.path.relpath(Path(figure).resolve(), Path(doc_dir).resolve()))
+        lines += [f"![What a validator can reach: the flags, the classifiers, the bound]({rel.as_posix()})", ""]
+    return lines
+
+
+def plot_reach(reach: dict, out_png: Path) -> None:
+    """Precision against recall: the flags as served, the classifiers' held-out curves, the
+    recall without the instances agreeing trips saw, and issue 6's bound (shaded)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5.5))
+    ax.fill_between([RECALL_MIN, 1.0], PRECISION_MIN, 1.0, color="tab:green", alpha=0.12,
+                    label=f"issue 6's bound (recall >= {RECALL_MIN}, precision >= {PRECISION_MIN})")
+    for (model, v), color in zip((reach["learned"] or {}).items(), ("tab:blue", "tab:purple"), strict=False):
+        rec, prec = v["curve"]
+        ax.step(rec, prec, where="post", color=color, lw=1.3, label=f"{model}, trained on the other fleets")
+    if reach["ceiling"] == reach["ceiling"]:
+        ax.axvline(reach["ceiling"], color="0.4", ls="--", lw=1.0,
+                   label="recall without the instances agreeing trips saw")
+    served = reach["served"]
+    ax.plot([served["recall"]], [served["precision"]], "o", color="tab:red", ms=8, label="the flags as served")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("recall (wrong instances flagged)")
+    ax.set_ylabel("precision (flagged instances wrong)")
+    ax.set_title("What a validator can reach on these fleets")
+    ax.legend(loc="lower left", fontsize=8)
+    ax.grid(alpha=0.3)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=90, bbox_inches="tight")
+    plt.close(fig)
 
 
 def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
-                   set_name: str = "validator") -> str:
-    """The markdown of BENCHMARKS.md's validator section."""
+                   set_name: str = "validator", reach_figure: Path | None = None) -> str:
+    """The markdown of BENCHMARKS.md's validator section; ``reach_figure``: also draw what a
+    validator can reach there (``plot_reach``) and show it."""
     n_cached = sum(bool(r.get("cached")) for r in results)
     cached = f", {n_cached} of {len(results)} fleets' alignments from the cache" if n_cached else ""
     import os
@@ -198,7 +247,10 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
               f"{informative} are informative, not suspect):", "",
               markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
               if flag_rows else "(no instance flagged)", ""]
-    lines += reach_lines(results)
+    reach = reach_of(results)
+    if reach is not None and reach_figure is not None:
+        plot_reach(reach, reach_figure)
+    lines += reach_lines(reach, reach_figure if reach is not None else None, doc_dir)
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
         lines += [f"![The validator on one fleet: caught, missed, false alarms]({rel.as_posix()})", ""]

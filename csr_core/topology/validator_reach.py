@@ -90,37 +90,40 @@ def feature_matrix(rows: Sequence[dict]) -> np.ndarray:
     return out
 
 
+def precision_recall_points(score: np.ndarray, wrong: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Recall and precision of ``score >= threshold`` at every distinct threshold, highest
+    first: ``(recall (T,), precision (T,))``; ties flagged together. Empty without wrong
+    instances."""
+    wrong = np.asarray(wrong, bool)
+    if not wrong.any():
+        return np.zeros(0), np.zeros(0)
+    score = np.asarray(score, float)
+    order = np.argsort(-score, kind="stable")
+    caught = np.cumsum(wrong[order])
+    flagged = np.arange(1, len(score) + 1)
+    last_of_tie = np.r_[score[order][1:] != score[order][:-1], True]
+    return caught[last_of_tie] / wrong.sum(), caught[last_of_tie] / flagged[last_of_tie]
+
+
 def best_precision_at_recall(score: np.ndarray, wrong: np.ndarray, recall: float) -> float:
     """Highest precision of ``score >= threshold`` over thresholds whose recall of ``wrong`` is
     at least ``recall`` (0 when none reaches it, NaN without wrong instances). Ties in ``score``
     are flagged together."""
-    wrong = np.asarray(wrong, bool)
-    if not wrong.any():
+    rec, prec = precision_recall_points(score, wrong)
+    if not len(rec):
         return float("nan")
-    score = np.asarray(score, float)
-    best = 0.0
-    for threshold in np.unique(score):
-        flagged = score >= threshold
-        caught = int((flagged & wrong).sum())
-        if caught >= recall * wrong.sum():
-            best = max(best, caught / int(flagged.sum()))
-    return best
+    ok = rec >= recall - 1e-12
+    return float(prec[ok].max()) if ok.any() else 0.0
 
 
 def best_recall_at_precision(score: np.ndarray, wrong: np.ndarray, precision: float) -> float:
     """Highest recall of ``wrong`` by ``score >= threshold`` over thresholds whose precision is
     at least ``precision`` (0 when none reaches it, NaN without wrong instances)."""
-    wrong = np.asarray(wrong, bool)
-    if not wrong.any():
+    rec, prec = precision_recall_points(score, wrong)
+    if not len(rec):
         return float("nan")
-    score = np.asarray(score, float)
-    best = 0.0
-    for threshold in np.unique(score):
-        flagged = score >= threshold
-        caught = int((flagged & wrong).sum())
-        if caught >= precision * int(flagged.sum()):
-            best = max(best, caught / int(wrong.sum()))
-    return best
+    ok = prec >= precision - 1e-12
+    return float(rec[ok].max()) if ok.any() else 0.0
 
 
 def _model(name: str, seed: int):
@@ -155,16 +158,21 @@ def held_out_scores(rows: Sequence[dict], fleets: Sequence[str], model: str, see
 
 
 def learned_reach(rows: Sequence[dict], fleets: Sequence[str], recall: float, precision: float,
-                  seed: int = 0) -> dict[str, dict[str, float]]:
+                  seed: int = 0) -> dict[str, dict]:
     """Per model of ``MODELS``, from the pooled held-out scores (``held_out_scores``): the best
-    precision at ``recall`` (``precision_at_recall``) and the best recall at ``precision``
-    (``recall_at_precision``); NaN where no fleet could be scored."""
-    out = {}
+    precision at ``recall`` (``precision_at_recall``), the best recall at ``precision``
+    (``recall_at_precision``; both NaN where no fleet could be scored) and the whole curve
+    (``curve``: ``precision_recall_points``)."""
+    out: dict[str, dict] = {}
     wrong = np.array([bool(r["wrong"]) for r in rows])
     for model in MODELS:
         scores = held_out_scores(rows, fleets, model, seed)
         ok = np.isfinite(scores)
-        out[model] = ({"precision_at_recall": best_precision_at_recall(scores[ok], wrong[ok], recall),
-                       "recall_at_precision": best_recall_at_precision(scores[ok], wrong[ok], precision)}
-                      if ok.any() else {"precision_at_recall": float("nan"), "recall_at_precision": float("nan")})
+        if not ok.any():
+            out[model] = {"precision_at_recall": float("nan"), "recall_at_precision": float("nan"),
+                          "curve": (np.zeros(0), np.zeros(0))}
+            continue
+        out[model] = {"precision_at_recall": best_precision_at_recall(scores[ok], wrong[ok], recall),
+                      "recall_at_precision": best_recall_at_precision(scores[ok], wrong[ok], precision),
+                      "curve": precision_recall_points(scores[ok], wrong[ok])}
     return out

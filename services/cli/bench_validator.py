@@ -3,8 +3,8 @@ issue 6's validator target (recall >= 0.8 at precision >= 0.5 on the hard profil
 
 Simulates (or reuses from ``--out``/scenarios) the set's fleets, aligns them (cached in
 ``--out``/validator), generates the topology as the pipeline does and judges every instance
-against the truth (``csr_core.bench.validator``); prints the section, draws one fleet's map into
-``--figures`` and, with ``--write``, rewrites the ``validator`` section of the markdown file.
+against the truth (``csr_core.bench.validator``); prints the section, draws one fleet's map and
+what a validator can reach there into ``--figures`` and, with ``--write``, rewrites the ``validator`` section of the markdown file.
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ def _run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     (out_root / "validator" / "results.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2))
     figure = next((Path(r["figure"]) for r in results if r["figure"]), None)
-    section = render_section(results, figure, doc_dir(args.write), elapsed, args.set_name)
+    section = render_section(results, figure, doc_dir(args.write), elapsed, args.set_name,
+                             reach_figure=figure_dir / "bench_validator_reach.png")
     publish(section, args.write, SECTION, "bench-validator")
     return 0

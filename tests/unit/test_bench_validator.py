@@ -34,7 +34,7 @@ def test_the_bound_is_reported_met_only_when_both_hold_and_nothing_wrong_is_not_
     assert "recall n/a (0 of 0" in clean and ": not met.**" in clean and "(no instance flagged)" in clean
 
 
-def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances():
+def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances(tmp_path):
     def inst(wrong: bool, suspect: bool, support: int) -> dict:
         return {"type": "lane_divider", "length_m": 20.0, "wrong": wrong, "suspect": suspect, "flags": [],
                 "support_trips": support, "scatter_ratio": 0.5, "rejected_weight_share": 0.0}
@@ -52,5 +52,8 @@ def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances()
     assert "2 of the 8 wrong instances are instances that two or more trips agree on" in text
     assert "would reach recall 0.750" in text
     assert "logistic regression: precision" in text and "boosted trees: precision" in text
+    drawn = render_section(fleets, None, tmp_path, 60.0, reach_figure=tmp_path / "figures" / "reach.png")
+    assert (tmp_path / "figures" / "reach.png").stat().st_size > 10_000
+    assert "(figures/reach.png)" in drawn
     assert "### What a validator can reach" not in render_section([_fleet("urban-hard-8x-1500m-s5", 40, 4, 8, 3)],
                                                                   None, None, 60.0)

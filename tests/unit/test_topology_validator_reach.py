@@ -18,6 +18,7 @@ from csr_core.topology.validator_reach import (
     feature_matrix,
     held_out_scores,
     learned_reach,
+    precision_recall_points,
     trip_comparison_recall_ceiling,
 )
 
@@ -60,6 +61,9 @@ def test_precision_at_recall_and_recall_at_precision_on_a_known_ranking():
     # tied scores are flagged together: nothing separates the two, so precision 1 is out of reach
     assert best_recall_at_precision(np.array([1.0, 1.0]), np.array([True, False]), 0.9) == 0.0
     assert np.isnan(best_precision_at_recall(score, np.zeros(6, bool), 0.8))
+    rec, prec = precision_recall_points(np.array([0.9, 0.9, 0.5, 0.1]), np.array([True, False, True, False]))
+    np.testing.assert_allclose(rec, [0.5, 1.0, 1.0])  # the tied top two flagged together
+    np.testing.assert_allclose(prec, [0.5, 2 / 3, 0.5])
 
 
 def _fleets(separating: bool, seed: int) -> tuple[list[dict], list[str]]:
