@@ -10,6 +10,7 @@ This module holds the target, the run and the tables; the command writes them.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -108,11 +109,11 @@ def _share(v: float) -> str:
 
 
 
-def reach_of(results: Sequence[dict]) -> dict | None:
+def reach_of(results: Sequence[dict], served: dict | None = None) -> dict | None:
     """What a validator can reach on the fleets' judged instances (``topology.validator_reach``):
     the evidence table, the recall without the instances agreeing trips saw, the classifiers
-    trained on the other fleets (None with fewer than two fleets) and the flags as served;
-    None when the results carry no instances."""
+    trained on the other fleets (None with fewer than two fleets) and the flags as served
+    (``served``: ``pooled(results)``, if already at hand); None when the results carry no instances."""
     rows = [row for r in results for row in r.get("instances", ())]
     if not rows:
         return None
@@ -120,15 +121,13 @@ def reach_of(results: Sequence[dict]) -> dict | None:
     table = evidence_table(rows)
     learned = learned_reach(rows, fleets, RECALL_MIN, PRECISION_MIN) if len(set(fleets)) >= 2 else None
     return {"table": table, "ceiling": trip_comparison_recall_ceiling(table), "learned": learned,
-            "served": pooled(results)}
+            "served": served if served is not None else pooled(results)}
 
 
 def reach_lines(reach: dict | None, figure: Path | None = None, doc_dir: Path | None = None) -> list[str]:
     """The section's part on what a validator can reach (``reach_of``); nothing for None."""
     if reach is None:
         return []
-    import os
-
     table = reach["table"]
     wrong = sum(t["wrong"] for t in table.values())
     class_rows = [[name, str(t["instances"]), str(t["wrong"]),
@@ -198,7 +197,6 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     validator can reach there (``plot_reach``) and show it."""
     n_cached = sum(bool(r.get("cached")) for r in results)
     cached = f", {n_cached} of {len(results)} fleets' alignments from the cache" if n_cached else ""
-    import os
 
     total = pooled(results)
     local = pooled(results, "beyond_local_offset")
@@ -247,7 +245,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
               f"{informative} are informative, not suspect):", "",
               markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
               if flag_rows else "(no instance flagged)", ""]
-    reach = reach_of(results)
+    reach = reach_of(results, total)
     if reach is not None and reach_figure is not None:
         plot_reach(reach, reach_figure)
     lines += reach_lines(reach, reach_figure if reach is not None else None, doc_dir)
