@@ -29,15 +29,20 @@ from csr_core.baselines.naive_fusion import KEYFRAME_SPACING_M
 from csr_core.baselines.roadmap_icp import CHUNK_LENGTH_M, reconstruct_roadmap_icp
 from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame
+from csr_core.single_trip import DEFAULT as SINGLE_TRIP_DEFAULT
 from csr_core.single_trip import reconstruct_trip
+from csr_core.single_trip.integrity import gnss_consistency
+from csr_core.single_trip.pose_graph import gnss_sigmas_m
 from csr_core.topology import TopologyResult, generate_topology, reposition_instances
-from csr_core.types import Reconstruction, Trip, TripReconstruction
+from csr_core.types import MapFeature, Reconstruction, Trip, TripReconstruction
 
 log = logging.getLogger(__name__)
 
 # A trip that shares no road with any other trip or the map has nothing to be aligned with: it
 # is not a failed alignment (the first trip of an area), so it keeps its single-trip poses.
 NO_OVERLAP = "no_overlap"
+# the flag of a map feature that a degraded trip supports (``hold_back_degraded``)
+DEGRADED_SUPPORT = "degraded_support"
 
 
 class Method(StrEnum):
@@ -103,19 +108,26 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     if not recons:
         raise ReconstructionError("no trip could be reconstructed: " + "; ".join(failed.values()))
     poses_by_key = {r.trip.key: r.poses_xyyaw_world for r in recons}
+    degraded = {r.trip.key: r.diagnostics["quality"]["reason"] for r in recons
+                if r.diagnostics.get("quality", {}).get("verdict") == "degraded"}
 
     # 2.-5. split, associate, optimize (coarse, Eq. 3-12) and refine (fine): multi-trip alignment
     alignment = None
     unaligned: dict[str, str] = {}
+    reverted: dict[str, str] = {}
     if params.coarse or params.fine:
         alignment = align_trips(recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine))
         poses_by_key, failed_alignment, unaligned = poses_after_alignment(recons, alignment)
         failed.update(failed_alignment)
+        # a trip the alignment moved farther from its own GNSS than its error model allows
+        # keeps its single-trip poses (the registration is not trusted), and says so
+        poses_by_key, reverted = check_aligned_poses(recons, poses_by_key, frame)
         stages += [s for s, on in (("coarse", params.coarse), ("fine", params.fine)) if on]
         lap("align")
 
     # 6. fuse: instances of all trips moved with their alignment, matched and fused (III-E)
     topology = fuse_trips(recons, poses_by_key, alignment.match_pairs if alignment is not None else ())
+    features, held_back = hold_back_degraded(topology.features, topology.suppressed, set(degraded))
     stages.append("topology")
     lap("fuse")
 
@@ -125,9 +137,10 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
         origin_lat=frame.origin_lat,
         origin_lon=frame.origin_lon,
         poses_xyyaw_world=poses_by_key,
-        map_features=tuple(topology.features),
-        held_back_features=tuple(topology.suppressed),
+        map_features=features,
+        held_back_features=held_back,
         failed=failed,
+        degraded=degraded,
         diagnostics={
             "method": Method.PIPELINE.value,
             "stages": stages,
@@ -136,6 +149,7 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "fine": params.fine,
             "match_pairs": len(alignment.match_pairs) if alignment is not None else 0,
             "unaligned": unaligned,
+            "alignment_reverted": reverted if alignment is not None else {},
             "tile_quality": _jsonable(topology.tile_quality),
             "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
             "held_back_features": len(topology.suppressed),
@@ -158,6 +172,59 @@ def poses_after_alignment(recons: Sequence[TripReconstruction], alignment: Align
         else:
             failed[key] = reason
     return poses_by_key, failed, unaligned
+
+
+def check_aligned_poses(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],
+                        frame: LocalFrame) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The integrity test of the single-trip stage (``single_trip.integrity``) on the aligned
+    poses: a trip whose aligned poses fail it while its single-trip poses passed gets those back
+    (the alignment moved it by more than its GNSS error model allows). Returns the poses and
+    the reverted trips with the reason."""
+    params = SINGLE_TRIP_DEFAULT
+    out = dict(poses_by_key)
+    reverted: dict[str, str] = {}
+    for r in recons:
+        key = r.trip.key
+        if key not in out or out[key] is r.poses_xyyaw_world or not params.INTEGRITY_CHECK:
+            continue
+        trip = r.trip
+        sigma = gnss_sigmas_m(trip.fix_status, trip.gnss_std_m, params)
+        has_fix = np.isfinite(sigma) & trip.has_fix
+        gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
+        latency = float(r.diagnostics.get("gnss_latency_s", 0.0))
+        aligned = gnss_consistency(trip.timestamps_s, out[key], gnss_xy, sigma, has_fix, params.INTEGRITY_WINDOW_S,
+                                   params.INTEGRITY_FALSE_ALARM, latency)
+        if aligned.passed:
+            continue
+        single = gnss_consistency(trip.timestamps_s, r.poses_xyyaw_world, gnss_xy, sigma, has_fix,
+                                  params.INTEGRITY_WINDOW_S, params.INTEGRITY_FALSE_ALARM, latency)
+        if single.worst_z < aligned.worst_z:
+            out[key] = r.poses_xyyaw_world
+            reverted[key] = (f"aligned poses {aligned.worst_z:.1f} sigma off the trip's GNSS (limit "
+                             f"{aligned.z_limit:.1f}); single-trip poses kept")
+            log.warning("trip %s: %s", key, reverted[key])
+    return out, reverted
+
+
+def hold_back_degraded(features: Sequence[MapFeature], held_back: Sequence[MapFeature], degraded: set[str]
+                       ) -> tuple[tuple[MapFeature, ...], tuple[MapFeature, ...]]:
+    """Map features supported by a degraded trip (``Reconstruction.degraded``) carry the flag
+    ``degraded_support`` and the number of such trips; those supported by degraded trips only
+    are held back, like ghosts, for a person to look at."""
+    if not degraded:
+        return tuple(features), tuple(held_back)
+    kept: list[MapFeature] = []
+    back = list(held_back)
+    for f in features:
+        trips = set(f.properties.get("trips", ()))
+        bad = trips & degraded
+        if not bad:
+            kept.append(f)
+            continue
+        props = {**f.properties, "flags": sorted({*f.properties.get("flags", ()), DEGRADED_SUPPORT}),
+                 "degraded_trips": len(bad)}
+        (back if bad == trips else kept).append(replace(f, properties=props))
+    return tuple(kept), tuple(back)
 
 
 def fuse_trips(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],

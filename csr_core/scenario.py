@@ -308,6 +308,7 @@ def write_reconstruction(
         "trips": len(trips),
         "trips_with_poses": len(written),
         "failed": failed,
+        "degraded": dict(recon.degraded),
         "map_features": len(recon.map_features),
         "diagnostics": recon.diagnostics,
     }

@@ -231,3 +231,6 @@ class Reconstruction:
     failed: dict[str, str] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
     held_back_features: tuple[MapFeature, ...] = ()
+    # trips whose poses are present but not to be trusted: trip key -> reason (the integrity
+    # test against the trip's own GNSS failed even after the repair; ``single_trip.integrity``)
+    degraded: dict[str, str] = field(default_factory=dict)

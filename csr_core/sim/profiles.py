@@ -127,6 +127,12 @@ class TrafficParams:
     driver_speed_factor: tuple[float, float] = (0.85, 1.05)  # per trip, times the legal speed
     lane_wander_sigma_m: float = 0.15  # slow lateral wander of the driver inside the lane
     n_vehicles: int = 0  # 0: about one vehicle per 3 trips
+    # looping routes (``routes.looping_route``): a short approach, then laps of the shortest loop
+    # of the lane graph through it (a delivery round, a search for parking), with stops anywhere
+    loop_route_share: float = 0.0  # share of trips that loop; 0 draws nothing (other routes unchanged)
+    loop_approach_m: tuple[float, float] = (20.0, 60.0)
+    loop_stops_per_km: float = 3.0  # Poisson mean of stops (red lights, queues) per km of loop
+    start_standstill_s: tuple[float, float] = (2.0, 6.0)  # a looping trip starts at rest this long
 
 
 @dataclass(frozen=True, slots=True)
@@ -213,7 +219,13 @@ def noiseless() -> Profile:
     return Profile(name="noiseless", gnss=gnss, odometry=odometry, perception=perception)
 
 
-PROFILES = {"standard": standard, "hard": hard, "noiseless": noiseless}
+def loops() -> Profile:
+    """The standard sensors on looping routes: every trip laps a short loop after a short
+    approach, with long stops and a standstill at the start (``TrafficParams.loop_*``)."""
+    return Profile(name="loops", traffic=dataclasses.replace(TrafficParams(), loop_route_share=1.0))
+
+
+PROFILES = {"standard": standard, "hard": hard, "noiseless": noiseless, "loops": loops}
 
 
 def get_profile(name: str) -> Profile:

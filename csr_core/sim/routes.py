@@ -146,6 +146,80 @@ def _walk(world: World, rng: np.random.Generator, length_m: float, params: Traff
     return Route(path_rs, limit_rs, stops_arr[:, 0], stops_arr[:, 1], tuple(lanes))
 
 
+def _shortest_loop(world: World, lane: int) -> list[int] | None:
+    """The shortest cycle of successor edges through ``lane`` (by centreline length), or None."""
+    g = world.lane_graph
+    succ = nx.DiGraph()
+    succ.add_nodes_from(g.nodes)
+    succ.add_edges_from((u, v) for u, v, d in g.edges(data=True) if d["kind"] == SUCCESSOR)
+    best: tuple[float, list[int]] | None = None
+    for nxt in succ.successors(lane):
+        try:
+            length, path = nx.single_source_dijkstra(
+                succ, nxt, lane, weight=lambda _u, v, _d: _lane_length(world, v))
+        except nx.NetworkXNoPath:
+            continue
+        length += _lane_length(world, nxt)
+        if best is None or length < best[0]:
+            best = (length, [lane, *path[:-1]])
+    return None if best is None else best[1]
+
+
+def looping_route(world: World, rng: np.random.Generator, length_m: float, params: TrafficParams) -> Route:
+    """A trip that laps the shortest loop of the lane graph through a random start lane after an
+    approach of ``loop_approach_m`` along the lanes leading into it: a standstill of
+    ``start_standstill_s`` at the start and ``loop_stops_per_km`` stops anywhere (queues, red
+    lights). Its GNSS/odometry chords longer than a loop are all in the approach, the case a
+    trip-level odometry calibration must not be fooled by."""
+    g = world.lane_graph
+    loops = {lane: _shortest_loop(world, lane) for lane in sorted(g.nodes) if g.nodes[lane]["visible"]}
+    loops = {k: v for k, v in loops.items() if v is not None}
+    if not loops:
+        raise SimulationError(f"world {world.name!r}: no loop in the lane graph")
+    shortest = min(sum(_lane_length(world, n) for n in v) for v in loops.values())
+    # the loops within twice the shortest: the small blocks, rings and turnarounds of the map
+    small = [k for k, v in loops.items() if sum(_lane_length(world, n) for n in v) <= 2.0 * shortest]
+    entry = small[int(rng.integers(len(small)))]
+    loop = loops[entry]
+    # approach: the lanes leading into the entry lane, walked backwards, cut to its length
+    approach_m = float(rng.uniform(*params.loop_approach_m))
+    back: list[int] = []
+    lane, have = entry, 0.0
+    while have < approach_m:
+        preds = sorted(u for u, _, d in g.in_edges(lane, data=True) if d["kind"] == SUCCESSOR and u not in loop)
+        if not preds:
+            break
+        lane = preds[int(rng.integers(len(preds)))]
+        back.append(lane)
+        have += _lane_length(world, lane)
+    pieces = [g.nodes[n]["centerline_xy"] for n in reversed(back)]
+    limits = [np.full(len(p), g.nodes[n]["speed_mps"]) for p, n in zip(pieces, reversed(back), strict=True)]
+    total = sum(float(geo.arclength_m(p)[-1]) for p in pieces)
+    lap_lanes = loop
+    while total < length_m + approach_m:
+        for n in lap_lanes:
+            c = g.nodes[n]["centerline_xy"]
+            pieces.append(c)
+            limits.append(np.full(len(c), g.nodes[n]["speed_mps"]))
+            total += float(geo.arclength_m(c)[-1])
+    path = np.vstack(pieces)
+    limit = np.concatenate(limits)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(path, axis=0), axis=1) > 0.05])
+    path, limit = _smooth(path[keep], 7), limit[keep]
+    s = geo.arclength_m(path)
+    start = max(0.0, min(have, s[-1]) - approach_m)
+    s_new = np.arange(start, min(s[-1], start + length_m), PATH_STEP_M)
+    path_rs = geo.interpolate_at(path, s_new)
+    limit_rs = limit[np.clip(np.searchsorted(s, s_new), 0, len(limit) - 1)]
+    run = float(s_new[-1] - s_new[0])
+    n_stops = int(rng.poisson(params.loop_stops_per_km * run / 1000.0))
+    stop_s = np.sort(rng.uniform(10.0, max(run - 10.0, 10.0), n_stops))
+    stop_wait = rng.uniform(*params.red_light_wait_s, n_stops)
+    stop_s = np.r_[PATH_STEP_M, stop_s]
+    stop_wait = np.r_[float(rng.uniform(*params.start_standstill_s)), stop_wait]
+    return Route(path_rs, limit_rs, stop_s, stop_wait, (*reversed(back), *loop))
+
+
 def _smooth(points_xy: np.ndarray, window: int) -> np.ndarray:
     """Moving average keeping the end points (removes kinks at lane joins)."""
     if len(points_xy) <= window:

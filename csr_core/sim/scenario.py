@@ -33,7 +33,7 @@ from csr_core.sim.gnss import Receiver, draw_receiver, simulate_gnss
 from csr_core.sim.odometry import draw_scale_error, simulate_odometry
 from csr_core.sim.perception import TruthIndex, build_truth_index, perceive_trip
 from csr_core.sim.profiles import Profile, get_profile
-from csr_core.sim.routes import drive, random_route
+from csr_core.sim.routes import drive, looping_route, random_route
 from csr_core.sim.world import World
 from csr_core.sim.worlds import load_world
 from csr_core.types import GnssStatus
@@ -95,7 +95,12 @@ def simulate_trip(
 ) -> SimulatedTrip:
     """Route, drive, sense; return the upload document (not yet validated) and the truth."""
     rng_route, rng_drive, rng_gnss, rng_odom, rng_perc = (np.random.default_rng(s) for s in seed_seq.spawn(5))
-    route = random_route(world, rng_route, trip_length_m, profile.traffic)
+    traffic = profile.traffic
+    # a looping trip only draws when the profile has them: other profiles' routes stay as they were
+    if traffic.loop_route_share > 0.0 and rng_route.random() < traffic.loop_route_share:
+        route = looping_route(world, rng_route, trip_length_m, traffic)
+    else:
+        route = random_route(world, rng_route, trip_length_m, traffic)
     truth = drive(route, rng_drive, profile.traffic)
     t, poses = truth.timestamps_s, truth.poses_xyyaw_world
     gnss = simulate_gnss(

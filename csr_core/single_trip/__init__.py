@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.compiled import checks, observations, search
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
+from csr_core.single_trip.integrity import TripQuality, TripVerdict, smooth_poses_checked
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
 from csr_core.single_trip.paint_breaks import (
@@ -33,7 +34,7 @@ from csr_core.single_trip.paint_breaks import (
     cut_unseen,
 )
 from csr_core.single_trip.params import DEFAULT, SingleTripParams
-from csr_core.single_trip.pose_graph import SmoothedPoses, smooth_poses
+from csr_core.single_trip.pose_graph import SmoothedPoses
 from csr_core.single_trip.splicing import (
     SplicedLine,
     resample_polyline,
@@ -49,7 +50,7 @@ log = logging.getLogger(__name__)
 # types with no dash gaps: an unseen stretch of one is not part of it (paint_breaks.cut_unseen)
 _CONTINUOUS = frozenset({ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE})
 
-__all__ = ["DEFAULT", "SingleTripParams", "bev_range_m", "reconstruct_trip"]
+__all__ = ["DEFAULT", "SingleTripParams", "TripQuality", "TripVerdict", "bev_range_m", "reconstruct_trip"]
 
 
 #: the stages whose CPU seconds ``reconstruct_trip`` reports (``diagnostics["cpu_seconds"]``):
@@ -303,11 +304,12 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     cpu = [time.process_time()]  # CPU seconds at each stage's end (STAGES)
     # 1. GNSS into the local plane (status none rows carry no fix)
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
-    # 2. pose smoothing, Eq. 2
+    # 2. pose smoothing, Eq. 2, tested against the trip's own GNSS (repaired or marked degraded)
+    quality: TripQuality | None = None
     if smoothed is None:
-        smoothed = smooth_poses(trip.timestamps_s, gnss_xy, trip.fix_status, trip.gnss_std_m,
-                                frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
-                                trip.odom_xyyaw, params)
+        smoothed, quality = smooth_poses_checked(trip.timestamps_s, gnss_xy, trip.fix_status, trip.gnss_std_m,
+                                                 frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
+                                                 trip.odom_xyyaw, params)
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]
     t_pose = time.perf_counter()
@@ -482,6 +484,8 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         "seconds": {"poses": t_pose - t_start, "tracking": t_track - t_pose, "total": t_end - t_start},
         "cpu_seconds": dict(zip(STAGES, np.diff(cpu).tolist(), strict=True)),
     }
+    if quality is not None:
+        diagnostics["quality"] = quality.as_dict()
     return TripReconstruction(trip=trip, poses_xyyaw_world=poses, pose_sigma_xy_m=smoothed.sigma_xy_m,
                               keyframe_indices=keyframes, instances=tuple(instances), noise=noise,
                               gnss_inlier=smoothed.gnss_inlier, diagnostics=diagnostics,

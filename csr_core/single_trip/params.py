@@ -68,7 +68,7 @@ class SingleTripParams:
     ODOM_SIGMA_XY_PER_M: float = 0.005  # metres per metre travelled (0.5 %)
     ODOM_SIGMA_XY_FLOOR_M: float = 0.002  # per increment (standing still)
     ODOM_SIGMA_YAW_PER_M: float = math.radians(0.01)  # radians per metre travelled
-    ODOM_SIGMA_YAW_PER_S: float = math.radians(0.01)  # gyro drift left after the bias estimate
+    ODOM_SIGMA_YAW_PER_S: float = math.radians(0.01)  # gyro drift (random walk), beside the bias left after calibration
     ODOM_SIGMA_YAW_FLOOR_RAD: float = math.radians(0.002)  # per increment
 
     # per-trip odometry calibration against GNSS (scale error, constant yaw-rate bias)
@@ -76,7 +76,18 @@ class SingleTripParams:
     CAL_WINDOW_M: float = 100.0  # GNSS/odometry displacement pairs this far apart
     CAL_MIN_DURATION_S: float = 60.0  # yaw-rate bias only from trips at least this long
     CAL_MAX_SCALE_ERROR: float = 0.05
-    CAL_MAX_YAW_RATE_BIAS_RAD_S: float = math.radians(0.5)
+    # physical prior of an automotive gyro's yaw-rate bias after its own start-up calibration
+    # (a few hundredths of a degree per second); the chord estimate is combined with it
+    CAL_YAW_RATE_BIAS_PRIOR_RAD_S: float = math.radians(0.05)
+    CAL_MIN_INDEPENDENT_CHORDS: int = 4  # non-overlapping GNSS/odometry chords for an estimate
+
+    # --- integrity: the poses tested against the trip's own GNSS (integrity.py) -----------------
+    INTEGRITY_CHECK: bool = True
+    INTEGRITY_WINDOW_S: float = 20.0  # shorter than the GNSS bias's correlation time
+    INTEGRITY_FALSE_ALARM: float = 1e-3  # per trip, shared by its windows (Bonferroni)
+    INTEGRITY_RMSE_FACTOR: float = 1.5  # the trip's RMS distance to its fixes over the error model's
+    INTEGRITY_REPAIR_YAW_FACTOR: float = 30.0  # repair: the odometry yaw drift sigma times this
+    INTEGRITY_ANCHOR_YAW_FACTOR: float = 300.0  # fallback: odometry sigmas times this (GNSS-anchored)
 
     # graph nodes (frames in between follow the odometry): keeps the cost per km fixed
     POSE_NODE_SPACING_M: float = 5.0

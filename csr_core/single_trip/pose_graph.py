@@ -265,58 +265,106 @@ def _window_robust_sd_s(lat: float, k: int, bb_w: np.ndarray, h_w: np.ndarray, a
     return float(np.sqrt(n_w / (n_w - 1) * np.sum(np.square(score_w))) / max(abs(curvature_w.sum()), 1e-12))
 
 
+@dataclass(frozen=True, slots=True)
+class YawRateBias:
+    """The odometry yaw-rate bias of one trip (rad/s): the posterior of the chord estimate
+    (:func:`estimate_yaw_rate_bias`) under the physical prior ``N(0, CAL_YAW_RATE_BIAS_PRIOR_RAD_S)``.
+    ``independent_chords`` is the number of non-overlapping chords behind it; ``estimated`` is
+    False when there were too few, and the bias is then the prior's (0, prior sigma)."""
+
+    bias_rad_s: float
+    sigma_rad_s: float
+    independent_chords: int
+    estimated: bool
+
+
 def calibrate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                            gnss_sigma_m: np.ndarray, inlier: np.ndarray, params: SingleTripParams) -> float:
-    """The trip's odometry yaw-rate bias (rad/s, :func:`estimate_yaw_rate_bias`), 0 for a trip
-    shorter than ``CAL_MIN_DURATION_S`` or ``2 CAL_WINDOW_M``, clipped to the physical bound."""
+                            gnss_sigma_m: np.ndarray, inlier: np.ndarray, params: SingleTripParams) -> YawRateBias:
+    """The trip's odometry yaw-rate bias with its uncertainty: the chord estimate combined with
+    the physical prior (a product of Gaussians: the estimate is shrunk towards 0 by how little
+    the chords say). Not estimated (the prior alone) for a trip shorter than
+    ``CAL_MIN_DURATION_S`` or ``2 CAL_WINDOW_M``, or with fewer than ``CAL_MIN_INDEPENDENT_CHORDS``
+    non-overlapping chords: a trip that laps a loop shorter than the chord window has no
+    evidence of a slow heading drift, however many overlapping chords its first seconds give."""
+    prior = params.CAL_YAW_RATE_BIAS_PRIOR_RAD_S
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1))]
     if timestamps_s[-1] - timestamps_s[0] < params.CAL_MIN_DURATION_S or travel[-1] < 2 * params.CAL_WINDOW_M:
-        return 0.0
-    bias = estimate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, gnss_sigma_m, inlier, params.CAL_WINDOW_M)
-    return float(np.clip(bias, -params.CAL_MAX_YAW_RATE_BIAS_RAD_S, params.CAL_MAX_YAW_RATE_BIAS_RAD_S))
+        return YawRateBias(0.0, prior, 0, False)
+    bias, sigma, n_chords = estimate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, gnss_sigma_m, inlier,
+                                                   params.CAL_WINDOW_M)
+    if n_chords < params.CAL_MIN_INDEPENDENT_CHORDS or not np.isfinite(sigma):
+        return YawRateBias(0.0, prior, n_chords, False)
+    info = 1.0 / prior**2 + 1.0 / sigma**2
+    return YawRateBias(float(bias / sigma**2 / info), float(np.sqrt(1.0 / info)), n_chords, True)
+
+
+def _independent_chords(travel_m: np.ndarray, idx: np.ndarray, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (a, b) of fix indices ``window_m`` of travel apart that share no stretch: each chord
+    starts where the previous one ended, so no two measure the same piece of road."""
+    starts, ends = [], []
+    travel_idx = travel_m[idx]
+    k = 0
+    while k < len(idx):
+        j = int(np.searchsorted(travel_idx, travel_idx[k] + window_m))
+        if j >= len(idx):
+            break
+        starts.append(idx[k])
+        ends.append(idx[j])
+        k = j
+    return np.asarray(starts, int), np.asarray(ends, int)
 
 
 def estimate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                           gnss_sigma_m: np.ndarray, inlier: np.ndarray, window_m: float) -> float:
-    """Constant odometry yaw-rate bias (rad/s) from chords: over each pair of GNSS inlier fixes
-    ``window_m`` of travel apart, the odometry chord is the true chord turned by the odometry
-    heading error of the stretch, ``c + b t`` (``t`` the time at mid-travel); the angle between
-    the odometry and GNSS chords, fitted linearly in ``t`` (weighted by chord length over GNSS
-    sigma, two rounds of 3-sigma trimming), gives ``b``. Independent of the smoother, so the
-    odometry factors do not shrink it (a slope of smoothed-minus-odometry yaw does: the smoother
-    keeps part of the odometry's drift). 0 when fewer than six chords."""
+                           gnss_sigma_m: np.ndarray, inlier: np.ndarray, window_m: float
+                           ) -> tuple[float, float, int]:
+    """Constant odometry yaw-rate bias (rad/s) from chords, with its standard deviation and the
+    number of chords behind it: over pairs of GNSS inlier fixes ``window_m`` of travel apart
+    that share no stretch (:func:`_independent_chords`), the odometry chord is the true chord
+    turned by the odometry heading error of the stretch, ``c + b t`` (``t`` the time at
+    mid-travel); the angle between the odometry and GNSS chords, fitted linearly in ``t``
+    (weighted by chord length over GNSS sigma, 3-sigma trimming), gives ``b``. Its sigma is the
+    fit's, from the robust spread of the residuals, with the chords as independent pieces of
+    evidence (overlapping chords would repeat the same GNSS errors and count them many times).
+    Chords shorter than half the window (a loop, a turn back) say nothing of the heading and
+    are left out. ``(0, inf, n)`` when fewer than three chords remain."""
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1))]
     idx = np.flatnonzero(inlier)
     if len(idx) < 10:
-        return 0.0
-    j = np.searchsorted(travel[idx], travel[idx] + window_m)
-    ok = j < len(idx)
-    a, b = idx[ok], idx[j[ok]]
+        return 0.0, np.inf, 0
+    a, b = _independent_chords(travel, idx, window_m)
     d_odo = odom_xyyaw[b, :2] - odom_xyyaw[a, :2]
     d_gnss = gnss_xy_world[b] - gnss_xy_world[a]
     length = np.linalg.norm(d_odo, axis=1)
     good = length > 0.5 * window_m
-    if good.sum() < 6:
-        return 0.0
+    n = int(good.sum())
+    if n < 3:
+        return 0.0, np.inf, n
     a, b, d_odo, d_gnss, length = a[good], b[good], d_odo[good], d_gnss[good], length[good]
     angle = np.arctan2(d_odo[:, 1], d_odo[:, 0]) - np.arctan2(d_gnss[:, 1], d_gnss[:, 0])
     w = np.square(length) / (np.square(gnss_sigma_m[a]) + np.square(gnss_sigma_m[b]))
     mean = np.angle(np.sum(w * np.exp(1j * angle)))
     angle = np.asarray(se2.wrap_angle(angle - mean))
     t_mid = np.interp(0.5 * (travel[a] + travel[b]), travel, timestamps_s)
-    t_mid = t_mid - t_mid.mean()
+    t_mid = t_mid - np.average(t_mid, weights=w)
     keep = np.ones(len(angle), bool)
-    coef = np.zeros(2)
+    coef, slope_sigma = np.zeros(2), np.inf
     for _ in range(3):
-        A = np.column_stack([np.ones(keep.sum()), t_mid[keep]]) * np.sqrt(w[keep])[:, None]
-        coef, *_ = np.linalg.lstsq(A, angle[keep] * np.sqrt(w[keep]), rcond=None)
+        if keep.sum() < 3:
+            return 0.0, np.inf, int(keep.sum())
+        sw = np.sqrt(w[keep])
+        A = np.column_stack([np.ones(keep.sum()), t_mid[keep]]) * sw[:, None]
+        coef, *_ = np.linalg.lstsq(A, angle[keep] * sw, rcond=None)
         r = angle - coef[0] - coef[1] * t_mid
-        sigma = 1.4826 * np.median(np.abs(r[keep]))
-        new_keep = np.abs(r) <= 3.0 * max(sigma, 1e-6)
-        if new_keep.sum() < 6 or (new_keep == keep).all():
+        # residual scale of a unit-weight chord (robust), then the slope's sigma from the normal matrix
+        unit = max(1.4826 * float(np.median(np.abs(r[keep] * sw))), 1e-9)
+        dof_scale = np.sqrt(keep.sum() / max(keep.sum() - 2, 1))
+        cov = np.linalg.pinv(A.T @ A) * (unit * dof_scale) ** 2
+        slope_sigma = float(np.sqrt(max(cov[1, 1], 0.0)))
+        new_keep = np.abs(r * np.sqrt(w)) <= 3.0 * unit
+        if (new_keep == keep).all():
             break
         keep = new_keep
-    return float(coef[1])
+    return float(coef[1]), slope_sigma, int(keep.sum())
 
 
 def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_status: np.ndarray,
@@ -369,7 +417,7 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     nodes = every_travel_or_time(np.r_[0.0, np.cumsum(dist0)], timestamps_s, params.POSE_NODE_SPACING_M,
                                  params.POSE_NODE_PERIOD_S, keep_last=True)
     graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, course, params,
-                       factor_inflation=inflation)
+                       factor_inflation=inflation, yaw_rate_bias_sigma_rad_s=params.CAL_YAW_RATE_BIAS_PRIOR_RAD_S)
     node_poses = se2.compose(world_T_odom[None, :], odom_xyyaw[nodes])
 
     # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
@@ -377,9 +425,11 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     inlier, _ = graph.reject(node_poses, has_fix, has_fix)
     # odometry calibration against the kept fixes: yaw-rate bias from GNSS/odometry chords, then
     # GNSS latency and odometry scale jointly from windowed fits; the graph on the result
-    scale, yaw_bias, latency = 1.0, 0.0, 0.0
+    scale, latency, yaw_bias = 1.0, 0.0, 0.0
+    yaw_cal = YawRateBias(0.0, params.CAL_YAW_RATE_BIAS_PRIOR_RAD_S, 0, False)
     if params.CAL_ENABLED:
-        yaw_bias = calibrate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, sigma, inlier, params)
+        yaw_cal = calibrate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, sigma, inlier, params)
+        yaw_bias = yaw_cal.bias_rad_s
         incr = se2.between(odom_xyyaw[:-1], odom_xyyaw[1:])
         incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
         corrected = integrate_increments(odom_xyyaw[0], incr)
@@ -393,7 +443,7 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
             incr[:, :2] *= scale
             corrected = integrate_increments(odom_xyyaw[0], incr)
         graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, course, params,
-                           latency, factor_inflation=inflation)
+                           latency, factor_inflation=inflation, yaw_rate_bias_sigma_rad_s=yaw_cal.sigma_rad_s)
     # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
     # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
     node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
@@ -427,7 +477,8 @@ class _NodeGraph:
 
     def __init__(self, nodes: np.ndarray, timestamps_s: np.ndarray, odom_xyyaw: np.ndarray,
                  gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray, course: CourseNoise | None,
-                 params: SingleTripParams, gnss_latency_s: float = 0.0, factor_inflation: float = 1.0) -> None:
+                 params: SingleTripParams, gnss_latency_s: float = 0.0, factor_inflation: float = 1.0,
+                 yaw_rate_bias_sigma_rad_s: float = 0.0) -> None:
         n = len(timestamps_s)
         self.params = params
         self.odom = odom_xyyaw
@@ -439,8 +490,9 @@ class _NodeGraph:
         dist = np.linalg.norm(incr[:, :2], axis=1)
         dt = np.diff(timestamps_s)
         sig_xy = params.ODOM_SIGMA_XY_FLOOR_M + params.ODOM_SIGMA_XY_PER_M * dist
-        sig_yaw = (params.ODOM_SIGMA_YAW_FLOOR_RAD + params.ODOM_SIGMA_YAW_PER_M * dist
-                   + params.ODOM_SIGMA_YAW_PER_S * dt)
+        # the gyro's own drift and what is left of its bias after the calibration (its posterior sigma)
+        yaw_per_s = float(np.hypot(params.ODOM_SIGMA_YAW_PER_S, yaw_rate_bias_sigma_rad_s))
+        sig_yaw = params.ODOM_SIGMA_YAW_FLOOR_RAD + params.ODOM_SIGMA_YAW_PER_M * dist + yaw_per_s * dt
         # lateral drift of the yaw uncertainty adds to the translation random walk (marginals)
         self.step_var = np.square(sig_xy) + np.square(sig_yaw * dist * 10.0)
         self.travel = np.r_[0.0, np.cumsum(dist)]

@@ -10,7 +10,7 @@ import sys
 import time
 
 WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
-PROFILES = ("standard", "hard", "noiseless")
+PROFILES = ("standard", "hard", "noiseless", "loops")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

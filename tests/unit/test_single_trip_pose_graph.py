@@ -192,7 +192,7 @@ def test_yaw_rate_bias_is_recovered_in_full():
     odom = integrate_increments(np.zeros(3), biased)
     gnss = true[:, :2] + rng.normal(scale=0.3, size=(len(t), 2))
     sigma = np.full(len(t), 0.3)
-    assert estimate_yaw_rate_bias(t, odom, gnss, sigma, np.ones(len(t), bool), 100.0) == pytest.approx(
+    assert estimate_yaw_rate_bias(t, odom, gnss, sigma, np.ones(len(t), bool), 100.0)[0] == pytest.approx(
         bias_rad_s, rel=0.05)
     smoothed = smooth_poses(t, gnss, np.full(len(t), int(GnssStatus.RTK_FLOAT), np.uint8), sigma,
                             np.full(len(t), np.nan), odom, DEFAULT)
