@@ -10,11 +10,11 @@ fields changed; each result goes through :func:`csr_core.alignment.align_trips` 
 for the default (``a``) and the changed (``b``) stage:
 
 - ``trip-aligned``: each trip's smoothed poses against its truth after the trip's own SE(2), then
-  the mean over the trips: the within-trip shape, what issue 4's rigid-offset figure depends on;
+  the mean over the trips: the within-trip shape, what the single-trip rigid-offset figure depends on;
 - ``aligned``: the contract's ATE (section 6) of the aligned poses.
 
 A setting can win the first and lose the second: the alignment's models (Eq. 10-12's GNSS priors,
-the e^sm chain) were fitted to the default stage's error shape (docs/single-trip.md, "Session 27").
+the e^sm chain) were fitted to the default stage's error shape (docs/single-trip.md).
 ``--cache`` keeps each variant's single-trip results (one file per scenario and params).
 """
 

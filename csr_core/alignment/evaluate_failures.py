@@ -31,7 +31,7 @@ from csr_core.scenario import list_trip_files, load_trip, read_poses_dir, read_s
 from csr_core.single_trip.params import DEFAULT as SINGLE_TRIP_DEFAULT
 from csr_core.single_trip.params import SingleTripParams
 
-#: the hard-profile rule (issue 5): a trip with poses must be under this ATE
+#: the hard-profile rule: a trip with poses must be under this ATE
 ATE_BOUND_M = 0.5
 
 

@@ -1,4 +1,4 @@
-"""Is a trip held by the other trips, or only by its own GNSS? (failure marking, issue 5)
+"""Is a trip held by the other trips, or only by its own GNSS? (failure marking)
 
 The pose graph ties a trip to the others through its registrations; what they do not observe
 (along a straight road without dash ends, stop lines or crosswalks; a stretch where no

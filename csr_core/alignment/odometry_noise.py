@@ -24,7 +24,7 @@ second to a second apart; ``fine.refine_trip``), with ``sigma_xy0`` the step-len
 wheel odometry over one such step (0.1 % of 2 m).
 
 The smoothed trajectory's relative error measured against truth follows this on every world and
-both profiles (docs/alignment.md, "Session 24": 0.73 / 1.0 / 1.4 mrad over 1.5 / 3 / 6 s
+both profiles (docs/alignment.md: 0.73 / 1.0 / 1.4 mrad over 1.5 / 3 / 6 s
 whatever the speed), where the distance-based model before it (``0.002 (1 + d / 50)`` rad) was
 three to four times too loose on rural and highway roads and matched only slow urban traffic.
 """

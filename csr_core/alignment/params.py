@@ -43,9 +43,9 @@ class AlignmentParams:
     # inter-trip frame edges: frames of two trips closer than this ... (None: the shortest lateral
     # reach of the trips' perception, ``submaps.frame_graph_distance_m``: two frames that far
     # apart share half of their views; 15 m for the +-15 m of the contract's example sensor
-    # setup). Until session 11 a fixed 6 m: the two carriageways of a divided road (7.75 m and
+    # setup). A fixed 6 m was rejected: the two carriageways of a divided road (7.75 m and
     # more apart) never paired, and each kept the GNSS mean of its own trips (docs/alignment.md,
-    # "Session 11").
+    # "Tried and rejected").
     frame_graph_distance_m: float | None = None
     frame_graph_angle_rad: float = np.radians(30.0)  # ... and heading difference below this
     pair_opposite_directions: bool = True  # headings compared modulo pi (two-way roads)
@@ -60,7 +60,7 @@ class AlignmentParams:
     topo_road_width_k: float = 4.0  # x sqrt(2) * boundary lateral sigma
     topo_split_merge_tol: int = 3
     # tau_sm also at least z x sqrt(N_sm^i + N_sm^j): element ends are counted events, and two
-    # counts of one place differ by their Poisson noise (docs/alignment.md, "Session 19")
+    # counts of one place differ by their Poisson noise (docs/alignment.md)
     topo_split_merge_z: float = 2.0
     topo_road_centre_k: float = 3.0  # x sqrt(sigma_pose_i^2 + sigma_pose_j^2 + boundary^2)
     topo_road_centre_floor_m: float = 2.0
@@ -120,13 +120,13 @@ class AlignmentParams:
     # (``TripReconstruction.white_poses_xyyaw_world``). e^g holds each sub-map at the first (the
     # bias state's absolute positions are the better ones); the e^sm chain holds consecutive
     # sub-maps at the second's relative pose (with the bias state's, the dense fleets lost:
-    # docs/alignment.md, "Session 32", where all four combinations are measured).
+    # docs/alignment.md, where all four combinations are measured).
     gnss_prior_from_white_solve: bool = False
     submap_chain_from_white_solve: bool = True
     reg_alpha: float = 1.0  # alpha of Eq. 12
     # Eq. 12's information divided by the pair's variance factor (pose_graph.registration_variance_factors):
     # the redundancy of the accepted pairs of its circle, m_c / (n_c - 1), and its residual RMS
-    # against the batch's median, squared, when above 1 (docs/alignment.md, "Session 20")
+    # against the batch's median, squared, when above 1 (docs/alignment.md)
     reg_circle_redundancy: bool = True
     reg_residual_variance: bool = True
     reg_sigma_floor_xy_m: float = 0.03
@@ -135,14 +135,14 @@ class AlignmentParams:
     # random walk over the seconds between the anchors, the lateral error it makes over the metres
     # between them, plus ``submap_chain_sigma_xy0_m``; the random walk is read from each trip's
     # own odometry (``submap_chain_yaw_rw_default`` for a trip too short to say, never below
-    # ``submap_chain_yaw_rw_min``). docs/alignment.md, "Session 24".
+    # ``submap_chain_yaw_rw_min``). docs/alignment.md.
     submap_chain_from_odometry: bool = True
     submap_chain_sigma_xy0_m: float = 0.005
     submap_chain_yaw_rw_default: float = 0.001  # rad/sqrt(s)
     submap_chain_yaw_rw_min: float = 0.0001  # rad/sqrt(s), a good automotive gyro
     # The model before (``submap_chain_from_odometry=False``): sigma = xy + per_m * travelled. The
     # smoothed trajectory's relative error once its scale is estimated (below), measured against
-    # truth (docs/alignment.md, "Session 7"): 0.013-0.027 m per axis over 25 m, 0.025-0.059 m over
+    # truth (docs/alignment.md): 0.013-0.027 m per axis over 25 m, 0.025-0.059 m over
     # 50 m (urban the largest, standard and hard alike); this model covers the urban figures.
     # Yaw: measured 0.0008-0.0020 rad RMS over 25-50 m; the model gives 0.003-0.004 rad there
     # (times 1 + d / 50 m), still above the urban figure.
@@ -160,9 +160,9 @@ class AlignmentParams:
     # a trip whose predicted own-GNSS error (``observability``: what no registration to another
     # trip holds, times the receiver's reported std and the latency disagreement) exceeds this
     # RMS over its overlapping sub-maps is marked failed: the accuracy alignment must deliver
-    # (issue 5: every aligned trip under 0.5 m ATE), not a fitted value
+    # (the target: every aligned trip under 0.5 m ATE), not a fitted value
     max_own_gnss_error_m: float = 0.5
-    # off by default: measured (docs/alignment.md, issue 5) it marks a 0.36 m trip on standard
+    # off by default: measured (docs/alignment.md) it marks a 0.36 m trip on standard
     # rural seed 1 and misses 0.7-1.0 m trips on hard rural. The prediction
     # (``diagnostics["own_gnss_error_m"]``) is computed only when this is on: its gain is a dense
     # solve over all sub-maps

@@ -26,7 +26,7 @@ Factors (Eq. 9/10):
   residual against the batch's typical one);
 - ``e^sm`` consecutive (overlapping) sub-maps of one trip share frames: their relative pose is
   held at the smoothed one (with the single-trip GNSS bias state, the white-noise solve's before
-  it: ``submap_chain_from_white_solve``, docs/alignment.md "Session 32"; e^g stays at the bias
+  it: ``submap_chain_from_white_solve``, docs/alignment.md; e^g stays at the bias
   state's anchors) with the sigmas the trip's odometry gives over the seconds and metres between
   them (:mod:`csr_core.alignment.odometry_noise`: its heading's random walk, read from the trip's
   own yaw increments, and the lateral error that makes), its translation scaled

@@ -127,7 +127,7 @@ def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float
     """Eq. 3 on the same road: the road each of the two vehicles drove, as both sub-maps show it.
 
     Two trips on the two carriageways of a divided road (paired since the frame graph reaches
-    across them, docs/alignment.md session 11) each drove their own road; comparing one's
+    across them, docs/alignment.md) each drove their own road; comparing one's
     carriageway with the other's compared two roads and always failed (road centres a median
     apart), so a trip that only ever met a trip on the other carriageway was failed
     (``no_consistent_match``). Compared at each vehicle's position, a carriageway is compared
@@ -135,7 +135,7 @@ def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float
     vehicles on one road both comparisons are the one before. ``topology_filter`` uses it only
     for trips that no pair ties otherwise: for every pair it tied the two carriageways of the
     benchmark's highways too, with right registrations, and lost ATE on two of four fleets
-    (docs/alignment.md, session 30)."""
+    (docs/alignment.md)."""
     return all(topology_consistent(descriptor_at(a, at, pose_sigma_a_m), descriptor_at(b, at, pose_sigma_b_m),
                                    noise, params)
                for at in {a.vehicle_m, b.vehicle_m})

@@ -1,6 +1,6 @@
 """Naive fusion for the baselines: perceived elements placed with given poses, stitched per trip.
 
-The "fused naively" of issue 3, chosen to be honest and simple:
+The "fused naively" baseline, chosen to be honest and simple:
 
 1. Keyframes every ``spacing_m`` of odometry travel (5 m by default).
 2. Each keyframe contributes only the strip of its perception just ahead of the vehicle,

@@ -1,4 +1,4 @@
-"""Where the map's error comes from: issue 6's mCD split into what the poses and what the
+"""Where the map's error comes from: the map's mCD split into what the poses and what the
 element stages leave (``csr bench-budget``).
 
 Each scenario's trips are fused three times, as ``csr reconstruct`` fuses them
@@ -41,7 +41,7 @@ from csr_core.bench.sets import ScenarioSpec, scenario_set
 from csr_core.bench.tables import duration_text, markdown_table
 
 SECTION = "error-budget"  # the standard-seeds section; other sets get their own (section_name)
-MCD_TARGET_M = 0.045  # issue 6: mCD <= 0.045 m on the standard profile
+MCD_TARGET_M = 0.045  # the target: mCD <= 0.045 m on the standard profile
 #: what the cached single-trip results depend on (both the smoothed and the true-pose ones)
 CACHE_SOURCES = ("single_trip", "types.py", "se2.py", "geo.py", "upload.py", "scenario.py", "pipeline.py")
 #: the three poses the trips are fused on, in the table's order
@@ -162,7 +162,7 @@ def per_world(results: Sequence[dict]) -> dict[str, dict]:
 
 
 def plot_budget(results: Sequence[dict], path: Path, set_name: str = "standard-seeds") -> Path:
-    """Bars per world: the mCD on each of the three poses, with issue 6's target."""
+    """Bars per world: the mCD on each of the three poses, with the mCD target."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,7 +176,7 @@ def plot_budget(results: Sequence[dict], path: Path, set_name: str = "standard-s
               "true_poses": "true poses (element stages alone)"}
     for k, p in enumerate(POSES):
         ax.bar(np.arange(len(names)) + (k - 1) * width, [worlds[w]["mcd"][p] for w in names], width, label=labels[p])
-    ax.axhline(MCD_TARGET_M, color="black", lw=1, ls="--", label=f"issue 6 target {MCD_TARGET_M} m")
+    ax.axhline(MCD_TARGET_M, color="black", lw=1, ls="--", label=f"target {MCD_TARGET_M} m")
     ax.set_xticks(np.arange(len(names)), names)
     ax.set_ylabel("mCD [m] (mean over seeds)")
     ax.set_title(f"Where the map's error comes from (set {set_name})")
@@ -197,7 +197,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     n_cached = sum(bool(r.get("cached")) for r in results)
     cached = f", {n_cached} of {len(results)} scenarios' single-trip results from the cache" if n_cached else ""
     lines = [
-        "## Where the map's error comes from (issue 6's mCD, `csr bench-budget"
+        "## Where the map's error comes from (the mCD, `csr bench-budget"
         + ("`)" if set_name == "standard-seeds" else f" --set {set_name}`)"),
         "",
         f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine{cached}; scenarios cached in "
@@ -211,7 +211,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         "section 6 scores `csr reconstruct` (one rigid SE(2) onto the truth).",
         "",
         f"**Mean mCD over the set: pipeline {mean['pipeline']:.3f} m, exact registrations "
-        f"{mean['exact_registrations']:.3f} m, true poses {mean['true_poses']:.3f} m; issue 6's target "
+        f"{mean['exact_registrations']:.3f} m, true poses {mean['true_poses']:.3f} m; the target "
         f"{MCD_TARGET_M} m.**",
         "",
     ]

@@ -79,7 +79,7 @@ def trips_per_place(true_xy_by_key: dict[str, np.ndarray], radius_m: float = SAM
                     step: int = 10) -> float:
     """How many trips drive each place of the fleet: the median, over every ``step``-th true frame
     of every trip, of the number of trips (its own included) whose true path passes within
-    ``radius_m``. Issue 5's accuracy targets are stated for ">= 10 trips per road"; this is the
+    ``radius_m``. The alignment's accuracy targets are stated for ">= 10 trips per road"; this is the
     figure to read them against."""
     paths = [xy for xy in true_xy_by_key.values() if len(xy)]
     if not paths:

@@ -203,13 +203,13 @@ def make_figures(records: Sequence[Record], out_dir: Path, stem: str) -> list[tu
     ]
 
 
-#: issue 5's aligned ATE target, drawn on the density figure
+#: the aligned ATE target, drawn on the density figure
 ATE_TARGET_M = 0.10
 
 
 def plot_ate_by_density(records: Sequence[Record], path: Path) -> Path | None:
     """Aligned ATE of every scenario of the set against how many trips drive each of its places
-    (``trips_per_place``), one marker per method: the figure to read issue 5's ">= 10 trips per
+    (``trips_per_place``), one marker per method: the figure to read the targets' ">= 10 trips per
     road" target against. None when fewer than two scenarios were scored."""
     main = [r for r in records if r.ok and not r.variant]
     if len({r.scenario for r in main}) < 2:
@@ -227,7 +227,7 @@ def plot_ate_by_density(records: Sequence[Record], path: Path) -> Path | None:
             for r, xi, yi in zip(rs, x, y, strict=True):
                 ax.annotate(f"{r.world} {r.scenario.rsplit('-', 1)[-1]}", (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
     ax.axhline(ATE_TARGET_M, color="grey", lw=0.8, ls="--")
-    ax.text(ax.get_xlim()[0], ATE_TARGET_M, " issue 5 target", fontsize=7, va="bottom", color="grey")
+    ax.text(ax.get_xlim()[0], ATE_TARGET_M, " target", fontsize=7, va="bottom", color="grey")
     ax.set_yscale("log")
     ax.set_xlabel(f"trips per place (median over frames: trips whose true path passes within "
                   f"{SAME_ROAD_RADIUS_M:g} m)")

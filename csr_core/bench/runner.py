@@ -111,7 +111,7 @@ _Result = TypeVar("_Result")
 def reference_cpu_seconds(repeats: int = 3) -> float:
     """CPU seconds (best of ``repeats``) of a fixed workload of plain Python and numpy, the kind
     of work the single-trip stage does: the machines these benchmarks run on differ by more than
-    2x from one day to the next (docs/single-trip.md, sessions 31-38), so a CPU figure is read
+    2x from one day to the next (BENCHMARKS.md, machine reference), so a CPU figure is read
     against this one, measured beside it."""
     import numpy as np
 

@@ -25,17 +25,17 @@ class ScenarioSpec:
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
 SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "variants", "full", "toy")
 #: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
-#: by half in aligned ATE, docs/alignment.md "Session 11"), so the reported figures average three
+#: by half in aligned ATE), so the reported figures average three
 STANDARD_SEEDS = (1, 2, 3)
-#: ``dense``: issue 5 states its accuracy targets for ">= 10 trips per road". The standard fleets
+#: ``dense``: the alignment's accuracy targets are stated for ">= 10 trips per road". The standard fleets
 #: (10 trips of 1.5 km) put a median of 2-8 trips on a place (``trips/place`` in the bench's
 #: per-scenario table, ``bench.evaluate.trips_per_place``); these are the fewest trips, in tens,
 #: that give each world a median of at least 10 (measured on seed 1: urban 10, highway 11,
 #: rural 12, roundabout 12, Karlsruhe 11)
 DENSE_TRIPS = {"urban": 40, "highway": 70, "rural": 40, "roundabout": 20, "karlsruhe": 20}
-#: ``validator``: issue 6's validator measurement on the hard profile (``csr bench-validator``),
-#: the six fleets of 8 trips x 1.5 km it has been measured on since session 8 (docs/topology.md),
-#: so that its figures compare across sessions: (world, seed)
+#: ``validator``: the validator's measurement on the hard profile (``csr bench-validator``),
+#: the six fleets of 8 trips x 1.5 km it is always measured on (docs/topology.md),
+#: so that its figures compare across runs: (world, seed)
 VALIDATOR_FLEETS = (("urban", 5), ("urban", 9), ("karlsruhe", 3), ("highway", 7), ("rural", 11), ("roundabout", 2))
 #: ``variants``: the fleets ``csr bench-variants`` rewrites into foreign ones; small, and in the two
 #: compact worlds, where 6 trips of 800 m meet each other (the highway and rural worlds are large
@@ -53,7 +53,7 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in WORLDS]
     if name == "standard-seeds":  # the same worlds and fleet sizes, three draws of traffic and noise
         return [ScenarioSpec(w, 10, "standard", seed, 1500.0) for seed in STANDARD_SEEDS for w in WORLDS]
-    if name == "dense":  # issue 5's condition, >= 10 trips per road
+    if name == "dense":  # the targets' condition, >= 10 trips per road
         return [ScenarioSpec(w, DENSE_TRIPS[w], "standard", 1, 1500.0) for w in WORLDS]
     if name == "hard":
         return [ScenarioSpec(w, 10, "hard", 1, 1500.0) for w in WORLDS]

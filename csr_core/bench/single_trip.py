@@ -1,4 +1,4 @@
-"""Issue 4's benchmark: single-trip reconstruction (III-C) on the benchmark's fleets.
+"""The single-trip benchmark: single-trip reconstruction (III-C) on the benchmark's fleets.
 
 ``csr bench-single-trip`` runs :func:`csr_core.single_trip.evaluate.evaluate_loaded` on every
 scenario of the ``standard-seeds`` set (the five worlds, 10 trips x 1.5 km, seeds 1-3), with the
@@ -30,7 +30,7 @@ from csr_core.bench.tables import duration_text, markdown_table
 SECTION = "single-trip"
 SETS = ("standard-seeds", "hard")
 
-# issue 4's targets
+# the single-trip targets
 RPE_RATIO_MAX = 1.0 / 3.0  # smoothed RPE (10 m) / raw GNSS RPE
 JUMP_ERROR_MAX_M = 3.0  # hard: smoothed error where raw GNSS is > 5 m off
 CORRECTNESS_MIN = 0.97  # trip-level instances after the trip's rigid offset, at 0.5 m
@@ -161,7 +161,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     regenerate = "csr bench-single-trip --write BENCHMARKS.md" + (
         "" if tuple(sets) == SETS else f" --sets {','.join(sets)}")
     lines = [
-        "## Single-trip reconstruction (issue 4, `csr bench-single-trip`)",
+        "## Single-trip reconstruction (`csr bench-single-trip`)",
         "",
         f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine; scenarios cached in "
         f"`bench-out/scenarios`). Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
@@ -189,7 +189,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     ] for s in summary]
     lines += [markdown_table(header, rows), ""]
     lines += [
-        "- *rigid* is issue 4's figure: each trip's instances moved by the trip's own rigid offset (SE(2) of its "
+        "- *rigid* is the targets' figure: each trip's instances moved by the trip's own rigid offset (SE(2) of its "
         "smoothed onto its true positions). *local 100 m*: each instance moved by the offset of the poses over "
         "the 100 m of travel around it instead (about one sub-map, the unit III-D aligns). *true poses*: the "
         "pose smoothing replaced by the true poses, so the figure is the element stages' alone (tracking, "
@@ -217,7 +217,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
                   _fmt(r["ate_smoothed_m"])] for r in hard]
     lines += [markdown_table(["scenario", "trips", "frames with raw GNSS > 5 m off", "worst smoothed error there [m]",
                       "<= 3 m", "ATE raw [m]", "ATE smoothed [m]"], jump_rows) if hard else "(`hard` not run)", ""]
-    lines += ["### Noise estimates (item 5): lateral sigma per type, estimated / observed [m]", ""]
+    lines += ["### Noise estimates: lateral sigma per type, estimated / observed [m]", ""]
     noise_types = ("lane_divider", "road_boundary", "centerline")
     noise_rows = []
     for world, rs in by_world(results, true_poses=True).items():
@@ -269,7 +269,7 @@ def plot_instances_by_world(results: Sequence[dict], path: Path) -> Path:
     x = np.arange(len(worlds))
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharey=True)
     for ax, metric, target in ((axes[0], "correctness", CORRECTNESS_MIN), (axes[1], "completeness", COMPLETENESS_MIN)):
-        for k, (label, key) in enumerate((("rigid (issue 4)", f"rigid_{metric}"), ("local 100 m", f"local_{metric}"),
+        for k, (label, key) in enumerate((("rigid (target)", f"rigid_{metric}"), ("local 100 m", f"local_{metric}"),
                                            ("true poses", f"true_{metric}"))):
             ax.bar(x + (k - 1) * 0.27, [s[key] for s in summary], 0.27, label=label)
         ax.axhline(target, color="k", ls="--", lw=1)

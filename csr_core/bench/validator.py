@@ -1,4 +1,4 @@
-"""Issue 6's validator benchmark: recall and precision of the suspect flags on the hard profile.
+"""The validator benchmark: recall and precision of the suspect flags on the hard profile.
 
 ``csr bench-validator`` runs :func:`csr_core.topology.evaluate.evaluate_scenario` with the
 aligned poses (single-trip stage, ``align_trips``, then ``generate_topology`` with the
@@ -35,7 +35,7 @@ from csr_core.topology.validator_reach import (
 )
 
 SECTION = "validator"
-RECALL_MIN = 0.8  # issue 6: recall >= 0.8 at precision >= 0.5
+RECALL_MIN = 0.8  # the target: recall >= 0.8 at precision >= 0.5
 PRECISION_MIN = 0.5
 #: the suspect flags, most severe first, as the section lists them
 SUSPECT_ORDER = sorted(SUSPECT, key=lambda kind: (-SEVERITY[kind], kind))
@@ -162,7 +162,7 @@ def reach_lines(reach: dict | None, figure: Path | None = None, doc_dir: Path | 
 
 def plot_reach(reach: dict, out_png: Path) -> None:
     """Precision against recall: the flags as served, the classifiers' held-out curves, the
-    recall without the instances agreeing trips saw, and issue 6's bound (shaded)."""
+    recall without the instances agreeing trips saw, and the target bound (shaded)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,7 +170,7 @@ def plot_reach(reach: dict, out_png: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 5.5))
     ax.fill_between([RECALL_MIN, 1.0], PRECISION_MIN, 1.0, color="tab:green", alpha=0.12,
-                    label=f"issue 6's bound (recall >= {RECALL_MIN}, precision >= {PRECISION_MIN})")
+                    label=f"target bound (recall >= {RECALL_MIN}, precision >= {PRECISION_MIN})")
     for (model, v), color in zip((reach["learned"] or {}).items(), ("tab:blue", "tab:purple"), strict=False):
         rec, prec = v["curve"]
         ax.step(rec, prec, where="post", color=color, lw=1.3, label=f"{model}, trained on the other fleets")
@@ -205,7 +205,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     fleets = ", ".join(f"`{r['spec']}`" for r in results)
     regenerate = "csr bench-validator --write BENCHMARKS.md" + ("" if set_name == "validator" else f" --set {set_name}")
     lines = [
-        "## Validator (issue 6, `csr bench-validator`)",
+        "## Validator (`csr bench-validator`)",
         "",
         f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine{cached}; scenarios cached in "
         f"`bench-out/scenarios`, alignments in `bench-out/validator`, keyed by the sources they come from). "
@@ -220,7 +220,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         "",
         f"**Pooled over {instances} instances: recall {_share(total['recall'])} ({total['caught']} of {total['wrong']} "
         f"wrong instances flagged), precision {_share(total['precision'])} ({total['caught']} of {total['flagged']} "
-        f"flagged are wrong). Issue 6's bound, recall >= {RECALL_MIN} at precision >= {PRECISION_MIN}: "
+        f"flagged are wrong). The target bound, recall >= {RECALL_MIN} at precision >= {PRECISION_MIN}: "
         f"{'met' if met else 'not met'}.** Against the instances still wrong once the offset that the map around "
         f"them shares is removed (an error no comparison of trips can see): recall {_share(local['recall'])}, "
         f"precision {_share(local['precision'])}.",
@@ -252,5 +252,5 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
         lines += [f"![The validator on one fleet: caught, missed, false alarms]({rel.as_posix()})", ""]
-    lines += ["How the flags were chosen and what was tried: docs/topology.md (\"Validation\" and the sessions)."]
+    lines += ["How the flags were chosen and what was tried: docs/topology.md (\"Validation\" and \"Tried and rejected\")."]
     return "\n".join(lines)

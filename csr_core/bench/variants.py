@@ -199,7 +199,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("antenna_ahead", "GNSS antenna 1.5 m ahead of the vehicle frame (the roof, not the rear axle)",
             antenna_forward_left_m=(1.5, 0.0),
             gap="no antenna lever arm is estimated: trips driving a road in opposite directions start 3 m apart "
-                "along it (docs/single-trip.md, session 26)"),
+                "along it (docs/single-trip.md)"),
     Variant("no_centerline", "a perception stack without centrelines (MapTR's classes)", _without_types("centerline")),
     Variant("no_markings", "no stop lines, crosswalks or road markings perceived",
             _without_types("stop_line", "crosswalk", "road_marking")),

@@ -225,7 +225,7 @@ def _unseen_gate_m(noise: ElementNoise, params: SingleTripParams) -> float:
     been seen: ``UNSEEN_CUT_SIGMAS`` of the type's lateral noise in this trip (floored at
     ``INSTANCE_MIXTURE_MIN_SIGMA_M``, as for a near-noiseless perception) plus half the spacing of
     the observation points, and never more than one splice bin (``PAINT_BREAK_GATE_M``, the gate
-    of session 36, which was used for every trip alike)."""
+    used for every trip alike when UNSEEN_CUT_SIGMAS is 0)."""
     if not params.UNSEEN_CUT_SIGMAS:
         return params.PAINT_BREAK_GATE_M
     sigma_m = max(noise.lateral_sigma_m, params.INSTANCE_MIXTURE_MIN_SIGMA_M)
@@ -242,7 +242,7 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
                                [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
                                params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in _CONTINUOUS}, {}, params)
-    step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # session 36: as spliced
+    step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # None: as spliced
     tracks: dict[int, ObservedPoints] = {}  # one per track: the instances cut from one track share its observations
 
     def observed_points(observed: tuple[np.ndarray, np.ndarray], dense_m: float | None) -> ObservedPoints:

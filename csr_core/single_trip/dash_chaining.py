@@ -6,14 +6,13 @@ on each other's chord extension and the within-frame join links them (``tracking
 line turns (a junction's guide line: 3 m dashes, 6 m gaps, 15-35 m radius) the next dash is metres
 off that extension, so every dash becomes a track of its own and splicing drops it as shorter
 than the type's minimum; or the tracker chains dashes of two guide lines leaving a junction side by
-side into one track, whose splice is cut where it runs across its observations (docs/single-trip.md,
-sessions 17, 18 and 28).
+side into one track, whose splice is cut where it runs across its observations (docs/single-trip.md).
 
 Here, after tracking, every dashed-divider track that one line or one circle does not carry is
 split into its dashes (observations of one dash overlap from frame to frame) where the splicer
 cannot separate its lines by their offsets from the path: the whole track when it runs across the
 path; along the path, the stretch of a junction's length where it holds two lines side by side
-(guide lines converging, ``side_by_side_frames``; session 31). The units (whole tracks, runs and
+(guide lines converging, ``side_by_side_frames``). The units (whole tracks, runs and
 dashes) are then chained end to end where one circle carries them: for a gap chord ``c`` of length ``g`` from the end of unit A (its end direction ``d_A``
 holding ``h_A`` behind the end: half the chord of a straight dash, 0 on an arc) to the near end of
 unit B (direction into B ``d_B``), the tangent-chord angles give the curvature on each side,

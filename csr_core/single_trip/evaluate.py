@@ -10,7 +10,7 @@ Per scenario, over all trips (trip-level figures, pooled):
 - instances, scored per type with the contract map metric (0.5 m samples, 0.5 m threshold)
   against the truth kept within 15 m of the trip's true frames (the lateral reach of the BEV
   range); correctness and completeness pooled over trips and over all types, twice:
-  - ``rigid`` (issue 4's figure): each trip's instances moved by the trip's own rigid offset
+  - ``rigid`` (the single-trip targets' figure): each trip's instances moved by the trip's own rigid offset
     (SE(2) least squares of its smoothed onto its true positions);
   - ``local`` (diagnostic): each instance moved instead by the rigid offset of the trip's poses
     over the frames from ``local_offset_m / 2`` of travel before it was first seen to
@@ -19,7 +19,7 @@ Per scenario, over all trips (trip-level figures, pooled):
     a sub-map, and III-D aligns trips sub-map by sub-map.
 - ``true_poses``: the same with the pose smoothing replaced by the true poses (the element
   stages alone; the pose figures are then zero).
-- noise (item 5, with ``true_poses`` only, where a point's error is the perception's alone):
+- noise (with ``true_poses`` only, where a point's error is the perception's alone):
   per line type, the lateral sigma the stage estimated (``TripReconstruction.noise``, mean
   over trips) against the sigma of the detections' distances to the truth (1.4826 x the
   median distance of their points, so ghosts and false positives do not count). The estimate

@@ -2,7 +2,7 @@
 
 A receiver's error is mostly a slowly wandering bias (multipath, atmosphere, orbit) plus a
 little white noise per fix. Treated as white, the bias bends the trajectory: the smoother
-follows whatever the bias does over tens of seconds (the trip's within-trip drift, what issue 4's
+follows whatever the bias does over tens of seconds (the trip's within-trip drift, what the single-trip
 rigid-offset figure measures). Here each node ``k`` gets a bias ``b_k`` and each fix measures
 ``p_k + lever + b_k`` with the white sigma only; consecutive biases are tied by the first-order
 Gauss-Markov step,
@@ -21,10 +21,9 @@ translation residual) and a free rotation; the chain is linear (``add_gauss_mark
 The fixes and the odometry are those the white-noise stages kept and calibrated
 (``pose_graph.smooth_poses``); this stage only re-weighs them.
 
-On since session 32 (``GNSS_BIAS_STATE``). Sessions 23-31 left it off: the single trip gained,
-but the alignment lost with these poses in its e^sm chain (docs/single-trip.md, "Session 23" and
-"Session 27"). The white solve before this one is now kept with the trip for that chain
-("Session 32"); ``python -m csr_core.alignment.compare_single_trip`` measures a change like this
+On (``GNSS_BIAS_STATE``). With these poses in the alignment's e^sm chain the single trip gained
+but the alignment lost (docs/single-trip.md), so the white solve before this one is kept with the
+trip for that chain; ``python -m csr_core.alignment.compare_single_trip`` measures a change like this
 one through the alignment.
 """
 

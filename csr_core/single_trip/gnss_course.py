@@ -4,12 +4,12 @@ A receiver's course over ground is the direction of its Doppler velocity, not of
 fixes, so its error is not the position's slowly wandering bias: the comma2k19 u-blox's course is
 0.31 degrees (1 sigma) off the reference with no measurable bias and no autocorrelation at 10 Hz
 (lags 1-50 fixes inside the white-noise band; 1 s and 2 s block means 1.1x what white noise
-gives; docs/single-trip.md, "Session 33"). Averaged over the fixes of a few seconds it holds the
+gives; docs/single-trip.md). Averaged over the fixes of a few seconds it holds the
 yaw far better than the gyro's random walk, and the yaw over tens of seconds is the trajectory's
 sideways shape: what the position bias cannot be told apart from.
 
 With ``GNSS_HEADING_PER_FIX`` (on; off, the graph takes one course per node, every 5 m or 1 s, at a
-fixed 3 degrees: docs/single-trip.md, "Session 33" and "Session 34") every fix with a course is a
+fixed 3 degrees: docs/single-trip.md) every fix with a course is a
 ``PoseRotationPrior2D`` on
 its node (the odometry's yaw from the node to the instant the course refers to taken off), with a
 sigma measured on the trip:

@@ -4,7 +4,7 @@ A dashed divider is spliced across its dash gaps (``SPLICE_MAX_GAP_M``), so one 
 the gaps between its dashes, which the map counts as part of the line. Paint also stops at a stop
 line and at a crosswalk, and the junction's guide line (or the next road's divider) starts a few
 metres on; the splice bridges that break just as it bridges a dash gap, and the bridge lies where
-the truth has no line (Karlsruhe, docs/single-trip.md "Session 35": 3-6 m bridges at most of its
+the truth has no line (Karlsruhe, docs/single-trip.md: 3-6 m bridges at most of its
 stop lines and crosswalks, in every trip that passes them).
 
 The trip tells the two gaps apart by what lies in them: a stretch of the instance with none of its
@@ -17,7 +17,7 @@ every stretch of one that none of its own observations comes within ``gate_m`` o
 (:func:`cut_unseen`), wherever it lies. Such a stretch is a bridge the splice made across a gap
 of up to ``SPLICE_MAX_GAP_M`` (most often a centreline round the U-turn the trip made at a dead
 end, from one lane's centreline to the other's) or an end carried past what was seen, and on
-every simulated world it lies off the truth (docs/single-trip.md, "Session 36").
+every simulated world it lies off the truth (docs/single-trip.md).
 """
 
 from __future__ import annotations

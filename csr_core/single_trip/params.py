@@ -28,8 +28,8 @@ class SingleTripParams:
     # fix then weighs only its white part, and the trip keeps its shape where the bias wanders.
     # The white solve before this one is kept with the trip (``TripReconstruction.white_poses_xyyaw_world``):
     # the alignment's e^sm chain takes a trip's relative poses from it (with the bias state's, the
-    # alignment lost on the dense fleets and in the per-tile service: docs/single-trip.md, sessions
-    # 23, 26 and 27; docs/alignment.md, session 32). TAU is the bias's correlation time: longer than
+    # alignment lost on the dense fleets and in the per-tile service: docs/single-trip.md,
+    # docs/alignment.md). TAU is the bias's correlation time: longer than
     # the tens of seconds GNSS_CORRELATION_S assumes, shorter than the real u-blox log's (its
     # offset stays within 0.1 m over a minute, docs/gnss-model.md); 30-300 s all beat the white
     # model on every world. The white sigma is measured per trip and status.
@@ -49,10 +49,10 @@ class SingleTripParams:
     GNSS_HEADING_SIGMA_RAD: float = math.radians(3.0)
     GNSS_HEADING_MIN_SPEED_MPS: float = 3.0
     GNSS_HEADING_CAUCHY_C_SIGMAS: float = 2.0
-    # Every fix's course, its sigma measured on the trip (gnss_course.py, session 33). Off: one
-    # course per node at GNSS_HEADING_SIGMA_RAD (also the fallback with too few courses). On since
-    # session 34, once courses came into the plane through its meridian convergence: the
-    # per-tile service had lost with it only for that (docs/single-trip.md, "Session 34").
+    # Every fix's course, its sigma measured on the trip (gnss_course.py). Off: one
+    # course per node at GNSS_HEADING_SIGMA_RAD (also the fallback with too few courses). On once
+    # courses came into the plane through its meridian convergence: the
+    # per-tile service had lost with it only for that (docs/single-trip.md).
     GNSS_HEADING_PER_FIX: bool = True
     COURSE_DECORRELATION_S: float = 1.0  # course changes over this long measure the noise
     GNSS_COURSE_SIGMA_FLOOR_RAD: float = math.radians(0.05)
@@ -116,7 +116,7 @@ class SingleTripParams:
     # kerbs and centrelines: within a frame, a piece joins another only end to end, one per end (a
     # lane ends where its connectors start: tracking.one_continuation_per_end). Left off: on, the
     # trip-level completeness rises and duplicates go, but so many correct duplicate samples go with
-    # them that Karlsruhe s3's rigid correctness share falls under 0.97 (docs/single-trip.md, session 39)
+    # them that Karlsruhe s3's rigid correctness share falls under 0.97 (docs/single-trip.md)
     TRACK_MERGE_ONE_PER_END: bool = False
     # dashed-divider tracks re-cut into the lines their dashes form: a track across the path that no
     # line or circle carries split into its dashes, and dashes and tracks chained end to end where
@@ -159,9 +159,9 @@ class SingleTripParams:
     CONTINUOUS_UNSEEN_CUT: bool = True
     # "seen" for that cut: an observation within SIGMAS x the type's lateral noise in the trip
     # (its residuals before the cut) plus half of STEP, the spacing the observations are densified
-    # to for it; at most PAINT_BREAK_GATE_M. 0: PAINT_BREAK_GATE_M for every trip (session 36).
+    # to for it; at most PAINT_BREAK_GATE_M. 0: PAINT_BREAK_GATE_M for every trip.
     # A splice standing 0.6-0.8 m off its own observations (fragments of junction centrelines,
-    # Karlsruhe) is inside 1 m but far outside the noise (docs/single-trip.md, "Session 37")
+    # Karlsruhe) is inside 1 m but far outside the noise (docs/single-trip.md)
     UNSEEN_CUT_SIGMAS: float = 3.0
     UNSEEN_CUT_STEP_M: float = 0.25
 
@@ -182,7 +182,7 @@ class SingleTripParams:
     SPLICE_ACROSS_WINDOW_M: float = 2.5  # a splice is cut where, within this either side, its observations cross it
     # a splice no part of which runs along its observations (it joined elements that meet at an
     # angle: a kerb's two legs round a traffic island) is regrouped like a mixture and each group
-    # spliced on its own shape, instead of dropped (docs/single-trip.md, "Session 31")
+    # spliced on its own shape, instead of dropped (docs/single-trip.md)
     SPLICE_REGROUP_ACROSS: bool = True
     SPLICE_STRAIGHT_BELOW_M: float = 10.0  # shorter elements (stop lines) spliced on their principal axis
     SPLICE_BACKBONE_SMOOTH_M: float = 3.0  # Gaussian smoothing of a backbone grown from observations

@@ -482,7 +482,7 @@ def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: floa
     observed sides (``_edge_axes``, ``inside`` (per outline, per vertex) marking the vertices
     inside the BEV range), else the principal axes of the points: the part of a crosswalk that the
     range lets through is a strip cut at the range's angle, whose principal axes can lie anywhere
-    (Karlsruhe s3, docs/single-trip.md "Session 36"). Residuals: each observation's points beyond
+    (Karlsruhe s3, docs/single-trip.md). Residuals: each observation's points beyond
     the rectangle, lateral/along the vehicle heading."""
     pts = np.concatenate(polys)
     mu = pts.mean(0)

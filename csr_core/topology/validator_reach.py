@@ -1,4 +1,4 @@
-"""What a validator can reach on a judged map (issue 6's bound: recall >= 0.8 at precision >= 0.5).
+"""What a validator can reach on a judged map (the target bound: recall >= 0.8 at precision >= 0.5).
 
 The validator compares trips with each other (paper III-E: "the obtained instance geometry and
 variance of noise"). Two measurements say how far that can go on a map whose instances were

@@ -21,10 +21,10 @@ _COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
 _COMMAND_MODULES += ("bench_service",)  # csr bench-service: the per-tile pipeline over HTTP
 _COMMAND_MODULES += ("bench_tiles",)  # csr bench-tiles: tile serving vs nginx (services/cli/bench_tiles.py)
 _COMMAND_MODULES += ("demo",)  # csr demo: the README's first command (services/cli/demo.py)
-_COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: issue 4's targets
-_COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: issue 6's validator target
+_COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: the single-trip targets
+_COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: the validator target
 _COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
-_COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where issue 6's mCD comes from
+_COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where the mCD comes from
 
 
 def build_parser() -> argparse.ArgumentParser:

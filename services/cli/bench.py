@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--set", dest="set_name", default="quick", choices=SCENARIO_SETS,
         help="standard: the five worlds, 10 trips x 1.5 km, seed 1; standard-seeds: the same at seeds 1-3; "
-        "dense: 20-70 trips per world, >= 10 trips per place (issue 5's condition)",
+        "dense: 20-70 trips per world, >= 10 trips per place (the targets' condition)",
     )
     p.add_argument("--out", default="bench-out", help="work folder: scenarios cache, runs, results.json")
     p.add_argument(

@@ -1,5 +1,5 @@
 """`csr bench-budget [--set standard-seeds] [--out bench-out] [--jobs 2] [--write BENCHMARKS.md]`:
-where issue 6's mCD comes from (``csr_core.bench.error_budget``).
+where the map's mCD comes from (``csr_core.bench.error_budget``).
 
 Simulates (or reuses from ``--out``/scenarios) the set's scenarios and fuses each one's trips on
 the pipeline's poses, on the poses of an alignment whose registrations are exact, and on the
@@ -27,9 +27,9 @@ from services.cli.bench_common import (
 def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
 
-    p = sub.add_parser("bench-budget", help="issue 6's mCD split into what the poses and the element stages leave")
+    p = sub.add_parser("bench-budget", help="the mCD split into what the poses and the element stages leave")
     p.add_argument("--set", dest="set_name", default="standard-seeds", choices=SCENARIO_SETS,
-                   help="scenario set (default standard-seeds: issue 6's standard profile)")
+                   help="scenario set (default standard-seeds: the standard profile)")
     add_output_arguments(p, "work folder: scenarios cache and budget/ (single-trip results)",
                          "rewrite the set's error-budget section of this file")
     p.set_defaults(func=_run)

@@ -1,4 +1,4 @@
-"""`csr bench-service`: the distributed per-tile pipeline measured over HTTP (issue 7's targets).
+"""`csr bench-service`: the distributed per-tile pipeline measured over HTTP (the service targets).
 
 1. accuracy: simulated fleets (one per ``--accuracy-seeds`` seed) uploaded to the embedded
    deployment, and the first also to the distributed one, processed by their job runners, read

@@ -1,4 +1,4 @@
-"""`csr bench-single-trip [--out bench-out] [--jobs 2] [--write BENCHMARKS.md]`: issue 4's
+"""`csr bench-single-trip [--out bench-out] [--jobs 2] [--write BENCHMARKS.md]`: the
 targets (single-trip reconstruction, paper III-C) on the benchmark's fleets.
 
 Simulates (or reuses from ``--out``/scenarios) the ``standard-seeds`` and ``hard`` sets, runs the
@@ -25,7 +25,7 @@ from services.cli.bench_common import (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench-single-trip", help="issue 4's single-trip targets on the benchmark's fleets")
+    p = sub.add_parser("bench-single-trip", help="the single-trip targets on the benchmark's fleets")
     p.add_argument("--sets", default="standard-seeds,hard",
                    help="comma-separated scenario sets (default standard-seeds,hard; hard gives the GNSS-jump rows)")
     add_output_arguments(p, "work folder: scenarios cache and single-trip/results.json",

@@ -1,4 +1,4 @@
-"""`csr bench-tiles`: tile serving speed (issue 7 targets: warm requests/s at least a quarter of
+"""`csr bench-tiles`: tile serving speed (targets: warm requests/s at least a quarter of
 nginx serving the same tile bytes as static files, side by side; cold p99 under 50 ms for a tile
 of ~1,000 features), on the embedded (SQLite, Python encoder) and PostGIS (``ST_AsMVT``)
 deployments.

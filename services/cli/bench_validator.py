@@ -1,5 +1,5 @@
 """`csr bench-validator [--set validator] [--out bench-out] [--jobs 2] [--write BENCHMARKS.md]`:
-issue 6's validator target (recall >= 0.8 at precision >= 0.5 on the hard profile).
+the validator target (recall >= 0.8 at precision >= 0.5 on the hard profile).
 
 Simulates (or reuses from ``--out``/scenarios) the set's fleets, aligns them (cached in
 ``--out``/validator), generates the topology as the pipeline does and judges every instance
@@ -26,7 +26,7 @@ from services.cli.bench_common import (
 def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
 
-    p = sub.add_parser("bench-validator", help="issue 6's validator recall / precision on the hard profile")
+    p = sub.add_parser("bench-validator", help="the validator's recall / precision on the hard profile")
     p.add_argument("--set", dest="set_name", default="validator", choices=SCENARIO_SETS,
                    help="scenario set (default validator: six hard fleets of 8 trips)")
     add_output_arguments(p, "work folder: scenarios cache and validator/ (alignments)",

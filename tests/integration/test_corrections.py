@@ -1,4 +1,4 @@
-"""Human correction (issue 6): a deliberately wrong match pair is forced into a tile, which bends a
+"""Human correction: a deliberately wrong match pair is forced into a tile, which bends a
 trip by metres where the pair is; undoing it brings the tile back to the accuracy it had; rejecting an automatic pair
 re-optimizes the tile; every correction is audited with the version it made; roles are enforced."""
 

@@ -1,4 +1,4 @@
-"""Contract section 3 and the jobs of issue 2: ingest (track, length, tiles), dirty tiles,
+"""Contract section 3 and the processing jobs: ingest (track, length, tiles), dirty tiles,
 ``/v1/jobs/summary``, ``POST /v1/process``, the quiet period, ``/healthz`` and ``/metrics``."""
 
 from __future__ import annotations

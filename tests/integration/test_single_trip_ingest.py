@@ -1,4 +1,4 @@
-"""Issue 4, item 6: the ingest job runs single-trip reconstruction and stores its result per trip
+"""The ingest job runs single-trip reconstruction and stores its result per trip
 (``trip_reconstructions``), idempotently; ``csr reprocess`` recomputes it from the kept upload;
 a trip that cannot be reconstructed fails with its reason. Both deployments, real processes."""
 

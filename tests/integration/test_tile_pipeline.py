@@ -1,4 +1,4 @@
-"""The per-tile pipeline end to end (issue 7): a simulated fleet uploaded over HTTP, processed by
+"""The per-tile pipeline end to end: a simulated fleet uploaded over HTTP, processed by
 the real job runners (in-process on the embedded default, a Celery worker on PostGIS + Redis),
 read back as poses, map, vector tiles and versions, and scored like ``csr reconstruct``; then an
 incremental trip, two merges racing for one tile, and a worker killed in the middle of a merge."""

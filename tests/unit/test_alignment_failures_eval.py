@@ -1,4 +1,4 @@
-"""``evaluate_failures``' per-trip table (issue 5's hard-profile rule): a trip with poses that
+"""``evaluate_failures``' per-trip table (the hard-profile rule): a trip with poses that
 nothing aligned (``no_overlap``) is shown as such, not as an ordinary aligned trip."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 5: a trip held by nothing but its own GNSS is marked failed; a registered one is not.
+"""A trip held by nothing but its own GNSS is marked failed; a registered one is not.
 
 Known answers on small graphs: three trips on a straight road along x, each with a chain of
 sub-maps; registrations either observe both directions (well constrained) or only across the

@@ -219,8 +219,8 @@ def test_centreline_spliced_round_a_u_turn_is_cut_back_to_what_was_seen():
 
 def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut():
     # a centreline observed with 0.1 m lateral noise, whose splice stands 0.7 m off its
-    # observations over 10 m (a junction's fragment, Karlsruhe s3): within the 1 m gate of
-    # session 36, yet far outside what the trip's noise allows. The gate is 3 sigma of the
+    # observations over 10 m (a junction's fragment, Karlsruhe s3): within a fixed 1 m
+    # gate, yet far outside what the trip's noise allows. The gate is 3 sigma of the
     # type's noise in the trip plus half the observations' spacing, so that stretch is cut
     from csr_core.single_trip import _unseen_gate_m
     from csr_core.single_trip.paint_breaks import ObservedPoints, cut_unseen
@@ -236,7 +236,7 @@ def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut
     assert 0.35 < gate_m < 0.5
     parts = cut_unseen(line, observed, gate_m)
     assert [(p[0, 0], p[-1, 0]) for p in parts] == [(0.0, 15.0), (25.0, 40.0)]
-    assert len(cut_unseen(line, observed, 1.0)) == 1  # session 36's gate kept it
+    assert len(cut_unseen(line, observed, 1.0)) == 1  # a fixed 1 m gate keeps it
     # a near-noiseless perception: the gate keeps a floor, a line on its observations stays whole
     tiny = _unseen_gate_m(ElementNoise(lateral_sigma_m=0.002, along_sigma_m=0.5, n_samples=1000), DEFAULT)
     assert tiny >= 3 * DEFAULT.INSTANCE_MIXTURE_MIN_SIGMA_M

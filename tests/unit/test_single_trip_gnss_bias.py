@@ -136,7 +136,7 @@ def test_a_wandering_gnss_bias_does_not_bend_the_trajectory():
     """Within one trip, what the bias does over minutes is not the road's shape: with the bias as
     a state the smoothed trajectory keeps more of the odometry's shape than the white model (fixes
     inflated by their correlation time), which follows the wander. Trip-aligned error (each
-    trip's own rigid offset removed, issue 4's measure) over four trips."""
+    trip's own rigid offset removed, the single-trip measure) over four trips."""
     models = {"state": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True),
               "white": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False)}
     errors: dict[str, list[np.ndarray]] = {"state": [], "white": []}

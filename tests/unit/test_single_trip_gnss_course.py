@@ -92,7 +92,7 @@ def _weaving_trip(seed: int):
 def test_every_fix_s_course_holds_the_trajectory_s_shape_against_the_gnss_bias():
     """The trajectory's sideways shape over tens of seconds is its yaw, which the gyro holds
     only for seconds and the wandering position bias cannot tell. Every course, weighed by its
-    measured noise, holds it: the trip-aligned error (issue 4's measure) over four trips is
+    measured noise, holds it: the trip-aligned error (the single-trip measure) over four trips is
     lower than with one course per node at the fixed 3 degrees."""
     models = {"per_fix": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=True),
               "per_node": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=False)}

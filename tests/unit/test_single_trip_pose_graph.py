@@ -128,7 +128,7 @@ def test_latency_and_odometry_scale_are_recovered():
 
 
 def test_a_multipath_jump_in_one_window_does_not_set_the_scale():
-    """The hard highway trip of docs/single-trip.md, session 12: a fast window (30 m/s, 600 m)
+    """The hard highway trip (hard profile): a fast window (30 m/s, 600 m)
     with a 6 m multipath excursion for 5 s outweighs the others in an ordinary least-squares
     scale (weights ~ extent squared) and took the scale 1.3 % off and the latency to 0. Each
     window weighted by its own residual variance, the jump's window counts little."""
