@@ -29,11 +29,13 @@ Maps:
 - ``karlsruhe``: the Lanelet2 example map (BSD-3), surveyed streets of Karlsruhe; origin about
   49.0065 N, 8.4354 E; two GNSS urban-canyon zones over its mapped junction areas.
 - ``kashiwanoha``: TIER IV's Kashiwa-no-ha map (Autoware flavour, Apache-2.0), one signalised
-  crossing area of Kashiwa, Chiba, Japan, left-hand traffic; origin about 35.9031 N, 139.9334 E.
+  crossing area of Kashiwa, Chiba, Japan, left-hand traffic; origin 35.9033 N, 139.9336 E.
   Its kerbs are untagged ways, so its boundaries are derived as above; its 4 crosswalks are
   lanelets of subtype ``crosswalk`` between untagged ways. Its ``speed_limit`` tag (10 km/h on
   every lanelet, a setting of the scenario simulator it comes from) is not used: lanes take
-  40 km/h (11.1 m/s), a Japanese urban street's usual signed limit.
+  40 km/h (11.1 m/s), a Japanese urban street's usual signed limit. Its lane graph keeps 69 of
+  77 lanes on one strongly connected component; four lanes end where no lanelet starts (as
+  mapped) and no lane start within 15 m heads back, so they stay dead ends without turnarounds.
 """
 
 from __future__ import annotations

@@ -168,3 +168,20 @@ def test_a_short_trip_gives_uploads_valid_against_the_schema(name, tmp_path):
     assert sum(len(f) for f in trip.elements) > 0
     kinds = {f["properties"]["type"] for f in json.loads((out / "truth" / "map.geojson").read_text())["features"]}
     assert {k for k, n in COUNTS[name].items() if n} <= kinds
+
+
+def test_outline_boundaries_known_answer():
+    """Two opposite 50 m lanelets side by side: the outline's two long sides are the boundaries;
+    the caps at both ends are cut off, and so is a side named as painted."""
+    from csr_core.sim.drivable_area import lanelet_polygon, outline_boundaries
+
+    x = np.linspace(0.0, 50.0, 11)
+    centre, north, south = (np.column_stack([x, np.full_like(x, y)]) for y in (0.0, 3.5, -3.5))
+    polygons = [lanelet_polygon(north, centre), lanelet_polygon(centre[::-1], south[::-1])]
+    caps = [np.array([[0.0, -3.5], [0.0, 3.5]]), np.array([[50.0, -3.5], [50.0, 3.5]])]
+    lines = outline_boundaries(polygons, caps)
+    assert len(lines) == 2
+    for line in lines:
+        assert np.allclose(np.abs(line[:, 1]), 3.5, atol=0.06)
+        assert np.ptp(line[:, 0]) == pytest.approx(50.0 - 2 * 0.3, abs=0.1)  # caps cut with 0.3 m tolerance
+    assert len(outline_boundaries(polygons, caps, [north])) == 1
