@@ -141,7 +141,9 @@ def test_a9_is_a_multi_lane_carriageway_with_a_split():
     assert max(len(c) for c in nx.strongly_connected_components(g)) == 6
 
 
-@pytest.mark.parametrize(("name", "length_m"), [("kashiwanoha", 1000.0), ("carcarana", 1500.0), ("a9", 1500.0)])
+@pytest.mark.parametrize(
+    ("name", "length_m"), [("kashiwanoha", 1000.0), ("carcarana", 1500.0), ("a9", 1500.0)]
+)
 def test_routes_of_the_requested_length_are_drivable(name, length_m):
     world = load_world(name)
     traffic = get_profile("standard").traffic
@@ -166,7 +168,9 @@ def test_a_short_trip_gives_uploads_valid_against_the_schema(name, tmp_path):
     trip = decode_trip(validate_upload_json(body))
     assert trip.n_frames > 100
     assert sum(len(f) for f in trip.elements) > 0
-    kinds = {f["properties"]["type"] for f in json.loads((out / "truth" / "map.geojson").read_text())["features"]}
+    kinds = {
+        f["properties"]["type"] for f in json.loads((out / "truth" / "map.geojson").read_text())["features"]
+    }
     assert {k for k, n in COUNTS[name].items() if n} <= kinds
 
 
