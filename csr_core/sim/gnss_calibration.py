@@ -1,5 +1,6 @@
 """Compare the GNSS model with a real consumer receiver: the comma2k19 u-blox log against the
-fused reference pose (``shared/realdata/comma2k19/segment_40``, 60 s on the I-280).
+fused reference pose (comma2k19 segment 40, 60 s on the I-280; the arrays it reads ship in
+``csr_core/sim/data/comma2k19``, MIT).
 
 Both the real fix and the model are scored the same way against the same reference track:
 horizontal error median / p95, and its along-track / cross-track components (relative to the
@@ -27,7 +28,7 @@ from csr_core.sim.profiles import GnssParams, get_profile
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SEGMENT = Path(__file__).resolve().parents[3] / "shared" / "realdata" / "comma2k19" / "segment_40"
+DEFAULT_SEGMENT = Path(__file__).resolve().parent / "data" / "comma2k19" / "segment_40"
 SEGMENT_ENV = "CSR_COMMA2K19_SEGMENT"
 LAG_GRID_S = np.arange(0.0, 0.2001, 0.001)
 SINGLE = 3

@@ -15,13 +15,8 @@ from csr_core.upload import decode_trip, validate_upload_json
 
 pytestmark = pytest.mark.unit
 
-_SHARED_SCHEMA = (
-    pathlib.Path(__file__).resolve().parents[3] / "shared" / "contract" / "trip-upload.schema.json"
-)
-_REPO_SCHEMA = (
-    pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
-)
-SCHEMA = _SHARED_SCHEMA if _SHARED_SCHEMA.exists() else _REPO_SCHEMA
+# the vendored copy of the contract's schema (test_contract_schema checks it is the contract's)
+SCHEMA = pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
 TRIP_M = 120.0
 
 
