@@ -7,11 +7,11 @@ from collections.abc import Callable
 
 from csr_core.sim.world import SimulationError, World
 
-WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe", "newmarket")
 
 
 def _builders() -> dict[str, Callable[[], World]]:
-    from csr_core.sim import lanelet2_world, worlds_procedural
+    from csr_core.sim import lanelet2_world, opendrive_world, worlds_procedural
 
     return {
         "urban": worlds_procedural.urban_grid,
@@ -19,6 +19,7 @@ def _builders() -> dict[str, Callable[[], World]]:
         "rural": worlds_procedural.rural,
         "roundabout": worlds_procedural.roundabout,
         "karlsruhe": lanelet2_world.karlsruhe,
+        "newmarket": opendrive_world.newmarket,
     }
 
 
