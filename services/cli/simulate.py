@@ -9,14 +9,14 @@ import argparse
 import sys
 import time
 
-WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe", "newmarket")
 PROFILES = ("standard", "hard", "noiseless")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a fleet of trips on a world and write a scenario folder")
     p.add_argument(
-        "--world", required=True, choices=WORLDS, help="procedural world or the Karlsruhe Lanelet2 map"
+        "--world", required=True, choices=WORLDS, help="procedural world or a real map (karlsruhe: Lanelet2; newmarket: OpenDRIVE)"
     )
     p.add_argument("--trips", type=int, required=True, help="number of trips")
     p.add_argument("--profile", default="standard", choices=PROFILES, help="sensor error profile")
