@@ -28,7 +28,7 @@ module over numpy, scipy and the standard library's XML parser.
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
@@ -187,8 +187,7 @@ class Junction:
 class OpenDrive:
     roads: dict[str, Road]
     junctions: dict[str, Junction]
-    rev: tuple[int, int] = (1, 4)
-    extra: dict[str, str] = field(default_factory=dict)
+    rev: tuple[int, int] = (1, 4)  # revMajor, revMinor of the header
 
 
 # --- reading ----------------------------------------------------------------------------------

@@ -199,7 +199,7 @@ def _add_section_paint(builder: WorldBuilder, road: Road, index: int, shift_xy: 
             )
 
 
-def _junction_end(od: OpenDrive, incoming: Road, junction_id: str, near_xy: np.ndarray) -> bool:
+def _junction_end(incoming: Road, junction_id: str, near_xy: np.ndarray) -> bool:
     """Whether ``incoming`` touches the junction at its ``s`` end (else at its start)."""
     at_end = (
         incoming.successor is not None
@@ -261,7 +261,7 @@ def _touching_ends(od: OpenDrive) -> set[tuple[LaneEnd, LaneEnd]]:
                 continue
             c_sec, c_end = section_at(connecting, conn.contact_point)
             c_xy, _ = reference_pose(connecting, np.array([connecting.length_m if c_end else 0.0]))
-            i_end = _junction_end(od, incoming, junction.junction_id, c_xy[0])
+            i_end = _junction_end(incoming, junction.junction_id, c_xy[0])
             i_sec = len(incoming.sections) - 1 if i_end else 0
             for from_id, to_id in conn.lane_links:
                 add(
