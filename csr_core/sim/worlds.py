@@ -7,11 +7,11 @@ from collections.abc import Callable
 
 from csr_core.sim.world import SimulationError, World
 
-WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9")
+WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9", "newmarket")
 
 
 def _builders() -> dict[str, Callable[[], World]]:
-    from csr_core.sim import commonroad_world, lanelet2_world, worlds_procedural
+    from csr_core.sim import commonroad_world, lanelet2_world, opendrive_world, worlds_procedural
 
     return {
         "urban": worlds_procedural.urban_grid,
@@ -22,6 +22,7 @@ def _builders() -> dict[str, Callable[[], World]]:
         "kashiwanoha": lanelet2_world.kashiwanoha,
         "carcarana": commonroad_world.carcarana,
         "a9": commonroad_world.a9,
+        "newmarket": opendrive_world.newmarket,
     }
 
 
