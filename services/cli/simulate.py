@@ -17,9 +17,8 @@ PROFILES = ("standard", "hard", "noiseless", "loops")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a fleet of trips on a world and write a scenario folder")
     p.add_argument(
-WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9",
-          "newmarket")  # csr_core.sim.WORLD_NAMES
-PROFILES = ("standard", "hard", "noiseless", "loops")
+        "--world", required=True, choices=WORLDS,
+        help="procedural world or real map (Lanelet2, CommonRoad, OpenDRIVE)"
     )
     p.add_argument("--trips", type=int, required=True, help="number of trips")
     p.add_argument("--profile", default="standard", choices=PROFILES, help="sensor error profile")
