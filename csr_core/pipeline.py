@@ -31,18 +31,16 @@ from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame
 from csr_core.single_trip import DEFAULT as SINGLE_TRIP_DEFAULT
 from csr_core.single_trip import reconstruct_trip
-from csr_core.single_trip.integrity import gnss_consistency
-from csr_core.single_trip.pose_graph import gnss_sigmas_m
+from csr_core.single_trip.integrity import check_aligned_poses as check_aligned_poses_of_trip
 from csr_core.topology import TopologyResult, generate_topology, reposition_instances
-from csr_core.types import MapFeature, Reconstruction, Trip, TripReconstruction
+from csr_core.topology.degraded import hold_back_degraded
+from csr_core.types import Reconstruction, Trip, TripReconstruction
 
 log = logging.getLogger(__name__)
 
 # A trip that shares no road with any other trip or the map has nothing to be aligned with: it
 # is not a failed alignment (the first trip of an area), so it keeps its single-trip poses.
 NO_OVERLAP = "no_overlap"
-# the flag of a map feature that a degraded trip supports (``hold_back_degraded``)
-DEGRADED_SUPPORT = "degraded_support"
 
 
 class Method(StrEnum):
@@ -151,8 +149,8 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
             "unaligned": unaligned,
             "alignment_reverted": reverted if alignment is not None else {},
             "tile_quality": _jsonable(topology.tile_quality),
-            "flagged_features": sum(1 for f in topology.features if f.properties.get("flags")),
-            "held_back_features": len(topology.suppressed),
+            "flagged_features": sum(1 for f in features if f.properties.get("flags")),
+            "held_back_features": len(held_back),
         },
     )
 
@@ -176,55 +174,23 @@ def poses_after_alignment(recons: Sequence[TripReconstruction], alignment: Align
 
 def check_aligned_poses(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],
                         frame: LocalFrame) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """The integrity test of the single-trip stage (``single_trip.integrity``) on the aligned
-    poses: a trip whose aligned poses fail it while its single-trip poses passed gets those back
-    (the alignment moved it by more than its GNSS error model allows). Returns the poses and
-    the reverted trips with the reason."""
-    params = SINGLE_TRIP_DEFAULT
+    """Each aligned trip through ``integrity.check_aligned_poses``: a trip the alignment moved
+    farther from its own GNSS than its error model allows keeps its single-trip poses. Returns
+    the poses and the reverted trips with the reason."""
     out = dict(poses_by_key)
     reverted: dict[str, str] = {}
     for r in recons:
         key = r.trip.key
-        if key not in out or out[key] is r.poses_xyyaw_world or not params.INTEGRITY_CHECK:
+        if key not in out or out[key] is r.poses_xyyaw_world:
             continue
-        trip = r.trip
-        sigma = gnss_sigmas_m(trip.fix_status, trip.gnss_std_m, params)
-        has_fix = np.isfinite(sigma) & trip.has_fix
-        gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
-        latency = float(r.diagnostics.get("gnss_latency_s", 0.0))
-        aligned = gnss_consistency(trip.timestamps_s, out[key], gnss_xy, sigma, has_fix, params.INTEGRITY_WINDOW_S,
-                                   params.INTEGRITY_FALSE_ALARM, latency)
-        if aligned.passed:
-            continue
-        single = gnss_consistency(trip.timestamps_s, r.poses_xyyaw_world, gnss_xy, sigma, has_fix,
-                                  params.INTEGRITY_WINDOW_S, params.INTEGRITY_FALSE_ALARM, latency)
-        if single.worst_z < aligned.worst_z:
-            out[key] = r.poses_xyyaw_world
-            reverted[key] = (f"aligned poses {aligned.worst_z:.1f} sigma off the trip's GNSS (limit "
-                             f"{aligned.z_limit:.1f}); single-trip poses kept")
-            log.warning("trip %s: %s", key, reverted[key])
+        out[key], reason = check_aligned_poses_of_trip(r.trip, r.poses_xyyaw_world, out[key], frame,
+                                                       SINGLE_TRIP_DEFAULT,
+                                                       float(r.diagnostics.get("gnss_latency_s", 0.0)),
+                                                       r.gnss_inlier)
+        if reason is not None:
+            reverted[key] = reason
+            log.warning("trip %s: %s", key, reason)
     return out, reverted
-
-
-def hold_back_degraded(features: Sequence[MapFeature], held_back: Sequence[MapFeature], degraded: set[str]
-                       ) -> tuple[tuple[MapFeature, ...], tuple[MapFeature, ...]]:
-    """Map features supported by a degraded trip (``Reconstruction.degraded``) carry the flag
-    ``degraded_support`` and the number of such trips; those supported by degraded trips only
-    are held back, like ghosts, for a person to look at."""
-    if not degraded:
-        return tuple(features), tuple(held_back)
-    kept: list[MapFeature] = []
-    back = list(held_back)
-    for f in features:
-        trips = set(f.properties.get("trips", ()))
-        bad = trips & degraded
-        if not bad:
-            kept.append(f)
-            continue
-        props = {**f.properties, "flags": sorted({*f.properties.get("flags", ()), DEGRADED_SUPPORT}),
-                 "degraded_trips": len(bad)}
-        (back if bad == trips else kept).append(replace(f, properties=props))
-    return tuple(kept), tuple(back)
 
 
 def fuse_trips(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],

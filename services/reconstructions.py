@@ -22,7 +22,7 @@ from csr_core.types import DividerStyle, ElementNoise, ElementType, TripInstance
 
 # Bump when single-trip reconstruction changes its results: rows of other versions are kept,
 # `csr reprocess --stale` recomputes the trips without a row of this version.
-ALGORITHM_VERSION = "single_trip-10"
+ALGORITHM_VERSION = "single_trip-11"
 
 _POINT_DECIMALS = 3  # millimetres: far below the perception noise
 

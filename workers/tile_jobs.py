@@ -55,6 +55,8 @@ from csr_core.alignment.corrections import PRIOR_KEY
 from csr_core.alignment.submaps import gnss_prior_poses_xyyaw
 from csr_core.errors import AlignmentFailed
 from csr_core.geo import LocalFrame, tile_bounds_lonlat
+from csr_core.single_trip import DEFAULT as SINGLE_TRIP_DEFAULT
+from csr_core.single_trip.integrity import check_aligned_poses
 from csr_core.tiling import (
     assemble_poses,
     blend_weight,
@@ -73,6 +75,7 @@ from csr_core.topology import (
     reposition_instances,
     update_topology,
 )
+from csr_core.topology.degraded import hold_back_degraded
 from csr_core.types import DividerStyle, ElementType, MapFeature, TripReconstruction
 from csr_core.upload import decode_trip
 from services.db import repo, versions
@@ -194,9 +197,19 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     piece_messages = {key: messages[pk] for key, (pk, _, _) in piece_of.items() if messages.get(pk)}
     alignment = _align(pieces, prior, corrections, piece_messages)
     per_trip: dict[str, list] = {pk: [] for pk in recons}
+    reverted: dict[str, str] = {}
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
         poses, weights, residuals, moved, failed = piece_outcome(piece, alignment, signed, settings.tile_halo_m)
+        if failed is None and weights.any():
+            # a piece the alignment moved farther from its own GNSS than its error model allows
+            # keeps its single-trip poses and has no say on the trip's (like an unaligned one)
+            kept, why = check_aligned_poses(piece.trip, piece.poses_xyyaw_world, poses, frame, SINGLE_TRIP_DEFAULT,
+                                            float(piece.diagnostics.get("gnss_latency_s", 0.0)), piece.gnss_inlier)
+            if why is not None:
+                reverted[pk] = why
+                poses, weights = kept, np.zeros_like(weights)
+                moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
         per_trip[pk].append((start, poses, weights, residuals, moved, failed))
     for pk, parts in per_trip.items():
         if not parts:
@@ -227,6 +240,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         result.match_pairs.append({"trip_pk_i": trip_i, "trip_pk_j": trip_j, "confidence": float(rec.confidence),
                                    "residual_rms_m": float(rec.residual_rms_m), "record": record})
     result.diagnostics = {"pieces": len(pieces), "prior_features": len(prior.features) if prior else 0,
+                          "alignment_reverted": reverted,
                           "bias_messages": sum(len(m) for m in messages.values()),
                           "timings": alignment.diagnostics.get("timings", {})}
     return result
@@ -379,6 +393,8 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         else:
             for k, v in values.items():
                 setattr(row, k, v)
+    _record_alignment_quality(session, z, x, y, [ta.trip_pk for ta in result.trips],
+                              result.diagnostics.get("alignment_reverted", {}))
     if result.full:  # the tile was re-aligned as a whole: its earlier pairs no longer hold
         session.execute(update(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
                                                 MatchPair.job_id != job_id,
@@ -404,6 +420,30 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         repo.add_job(session, kind="merge_tile", subject=f"{z}/{x}/{y}")
     for pk in sorted(taken):
         finish_trip_if_complete(session, pk, job_id)
+
+
+def _record_alignment_quality(session: Session, z: int, x: int, y: int, trip_pks: Sequence[str],
+                              reverted: dict[str, str]) -> None:
+    """Each trip's ``alignment_quality`` (``GET /v1/trips/{id}``'s ``quality.alignment``): by tile,
+    why this tile kept the trip's single-trip poses (``integrity.check_aligned_poses``); the
+    tile's entry cleared when it aligned the trip cleanly this time."""
+    if not trip_pks:
+        return
+    tile = f"{z}/{x}/{y}"
+    r = TripReconstructionRecord
+    rows = session.scalars(select(r).where(r.trip_pk.in_(list(trip_pks)), r.algorithm_version == ALGORITHM_VERSION)
+                           .with_for_update()).all()
+    for row in rows:
+        diagnostics = dict(row.diagnostics or {})
+        by_tile = dict(diagnostics.get("alignment_quality") or {})
+        if row.trip_pk in reverted:
+            by_tile[tile] = reverted[row.trip_pk]
+        elif tile in by_tile:
+            del by_tile[tile]
+        else:
+            continue
+        diagnostics["alignment_quality"] = by_tile or None
+        row.diagnostics = diagnostics
 
 
 def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool:
@@ -562,6 +602,11 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
                                      {pk: v[1] for pk, v in inputs_all.items()}, previous=state,
                                      trip_times={pk: started.get(pk, "") for pk in inputs_all},
                                      match_pairs=records, paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()})
+    with session_factory() as session:
+        degraded = degraded_trips(session, {t for f in topology.features for t in f.properties.get("trips", ())})
+    if degraded:  # features of degraded trips flagged; those only they support held back (like ghosts)
+        kept, held = hold_back_degraded(topology.features, topology.suppressed, degraded)
+        topology = replace(topology, features=kept, suppressed=held)
     features = clip_to_tile(topology.features, frame, z, x, y)
     with session_factory() as session:
         seams = check_seams(session, features, frame, z, x, y)
@@ -578,6 +623,17 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         corrections=applied,
         reason=reason,
     )
+
+
+def degraded_trips(session: Session, trip_pks: set[str]) -> set[str]:
+    """The trips among ``trip_pks`` whose single-trip poses failed the integrity test even after
+    the repair (``quality.verdict == "degraded"`` in their reconstruction's diagnostics)."""
+    if not trip_pks:
+        return set()
+    r = TripReconstructionRecord
+    rows = session.execute(select(r.trip_pk, r.diagnostics).where(
+        r.trip_pk.in_(sorted(trip_pks)), r.algorithm_version == ALGORITHM_VERSION)).all()
+    return {pk for pk, diag in rows if ((diag or {}).get("quality") or {}).get("verdict") == "degraded"}
 
 
 class _PairView:

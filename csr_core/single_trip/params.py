@@ -85,7 +85,8 @@ class SingleTripParams:
     INTEGRITY_CHECK: bool = True
     INTEGRITY_WINDOW_S: float = 20.0  # shorter than the GNSS bias's correlation time
     INTEGRITY_FALSE_ALARM: float = 1e-3  # per trip, shared by its windows (Bonferroni)
-    INTEGRITY_RMSE_FACTOR: float = 1.5  # the trip's RMS distance to its fixes over the error model's
+    INTEGRITY_MEDIAN_FACTOR: float = 1.5  # the trip's median distance to its fixes over the error model's
+    INTEGRITY_MAX_REJECTED_SHARE: float = 0.25  # of the trip's fixes rejected by the smoother
     INTEGRITY_REPAIR_YAW_FACTOR: float = 30.0  # repair: the odometry yaw drift sigma times this
     INTEGRITY_ANCHOR_YAW_FACTOR: float = 300.0  # fallback: odometry sigmas times this (GNSS-anchored)
 

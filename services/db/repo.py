@@ -205,6 +205,7 @@ def reconstruction_summary(
             r.n_keyframes,
             r.n_instances,
             r.noise,
+            r.diagnostics,
             r.created_at,
         ).where(r.trip_pk == trip_pk, r.algorithm_version == algorithm_version)
     ).one_or_none()

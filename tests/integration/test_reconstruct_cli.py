@@ -98,6 +98,8 @@ def test_outputs_follow_contract_section_4(scenario, outputs, method):
     assert all(f["properties"]["status"] == "held_back" for f in held["features"])
     if method == "pipeline":
         assert len(held["features"]) == report["diagnostics"]["held_back_features"]
+        # trips with good GNSS: none marked degraded, none reverted after the alignment
+        assert report["degraded"] == {} and report["diagnostics"]["alignment_reverted"] == {}
 
 
 def test_gnss_only_accuracy_is_in_the_band_the_profile_implies(scenario, outputs):

@@ -14,8 +14,10 @@ import orjson
 import pytest
 import sqlalchemy as sa
 
+from csr_core import se2
 from csr_core.geo import LocalFrame, region_frame_for
 from csr_core.sim import simulate_scenario
+from csr_core.single_trip.pose_graph import integrate_increments
 from services.reconstructions import ALGORITHM_VERSION, decode_arrays
 from tests.integration.conftest import (
     BIN,
@@ -130,9 +132,38 @@ def test_ingest_stores_smoothed_poses_instances_and_noise(deployment: Deployment
     )
     assert summary["noise"]["lane_divider"]["lateral_sigma_m"] > 0
     assert summary["frame"] == {"origin_lat": row["origin_lat"], "origin_lon": row["origin_lon"]}
+    # a trip whose GNSS is good passes the integrity test at the first solve
+    assert trip["quality"]["verdict"] == "ok" and trip["quality"]["degraded"] is False
+    assert trip["quality"]["median_offset_m"] < 1.5 * trip["quality"]["gnss_median_expected_m"]
     with deployment.admin() as http:
         poses_answer = http.get(f"/v1/trips/{trip_pk}/poses")
     assert poses_answer.status_code == 409 and poses_answer.json()["error"] == "not_aligned"
+
+
+def _with_gyro_bias(doc: dict[str, Any], bias_deg_s: float) -> dict[str, Any]:
+    """``doc`` with its odometry re-integrated from increments whose yaw carries a constant
+    gyro bias (a runaway heading for a smoother that trusts the odometry's yaw)."""
+    odom = np.array([[f["odom"]["x"], f["odom"]["y"], f["odom"]["yaw"]] for f in doc["frames"]])
+    t = np.array([f["t"] for f in doc["frames"]])
+    incr = se2.between(odom[:-1], odom[1:])
+    incr[:, 2] += np.radians(bias_deg_s) * np.diff(t)
+    biased = integrate_increments(odom[0], incr)
+    frames = [{**f, "odom": {"x": round(float(p[0]), 3), "y": round(float(p[1]), 3), "yaw": round(float(p[2]), 6)}}
+              for f, p in zip(doc["frames"], biased, strict=True)]
+    return {**doc, "frames": frames}
+
+
+def test_a_runaway_heading_is_caught_and_reported_on_the_trip(deployment: Deployment, simulated_doc):
+    """A gyro bias of 3 deg/s planted in the upload: the poses fail the test against the trip's
+    own GNSS; the trip says so in ``quality`` (repaired, or degraded with GNSS-anchored poses)
+    and its stored poses stay within its GNSS error."""
+    doc = _with_gyro_bias({**simulated_doc, "trip_id": "runaway-" + secrets.token_hex(4)}, 3.0)
+    trip_pk = _upload_and_wait(deployment, doc)
+    quality = _trip(deployment, trip_pk)["quality"]
+    assert quality["verdict"] in ("repaired", "degraded"), quality
+    assert "from the trip's GNSS" in quality["reason"] or "off the trip's GNSS" in quality["reason"]
+    assert quality["degraded"] == (quality["verdict"] == "degraded")
+    assert quality["median_offset_m"] <= 1.5 * quality["gnss_median_expected_m"]
 
 
 def test_a_rerun_ingest_job_leaves_exactly_one_row(deployment: Deployment):

@@ -100,3 +100,22 @@ def test_outputs_round_trip_through_the_scenario_readers(tmp_path):
 
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["failed"] == {failed_key: "test failure"} and report["trips_with_poses"] == 1
+
+
+def test_features_of_degraded_trips_are_flagged_and_those_only_they_support_held_back():
+    from csr_core.topology.degraded import DEGRADED_SUPPORT, hold_back_degraded
+    from csr_core.types import ElementType, MapFeature
+
+    def feature(fid: str, trips: list[str]) -> MapFeature:
+        return MapFeature(ElementType.LANE_DIVIDER, np.array([[0.0, 0.0], [10.0, 0.0]]), feature_id=fid,
+                          properties={"trips": trips, "flags": []})
+
+    ghost = feature("ghost", ["c"])
+    features = [feature("both", ["a", "b"]), feature("clean", ["a"]), feature("only", ["b"])]
+    kept, held = hold_back_degraded(features, [ghost], {"b"})
+    assert [f.feature_id for f in kept] == ["both", "clean"]
+    assert [f.feature_id for f in held] == ["ghost", "only"]
+    assert kept[0].properties["flags"] == [DEGRADED_SUPPORT] and kept[0].properties["degraded_trips"] == 1
+    assert kept[1].properties["flags"] == []
+    assert held[1].properties["flags"] == [DEGRADED_SUPPORT]
+    assert hold_back_degraded(features, [ghost], set()) == (tuple(features), (ghost,))

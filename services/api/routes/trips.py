@@ -66,7 +66,24 @@ def trip_json(
         out["tiles"] = [f"{t.z}/{t.x}/{t.y}" for t in tiles]
         out["tiles_pending"] = sum(t.processed_job_id is None for t in tiles)
         out["reconstruction"] = reconstruction_json(reconstruction)
+        out["quality"] = quality_json(reconstruction)
     return out
+
+
+def quality_json(summary: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The trip's integrity verdict (``csr_core.single_trip.integrity``): its poses tested
+    against its own GNSS after single-trip smoothing, and, once a tile job aligned it, after
+    alignment. ``None`` until the ingest job stored the reconstruction.
+
+    ``{"verdict": "ok" | "repaired" | "degraded", "degraded": bool, "reason", "stretches_s",
+    "worst_z", "z_limit", "median_offset_m", "gnss_median_expected_m", "rejected_share",
+    "rmse_to_gnss_m", "alignment": {tile: reason} | null}``"""
+    if summary is None:
+        return None
+    diagnostics = summary.get("diagnostics") or {}
+    single = diagnostics.get("quality") or {"verdict": "ok", "reason": "not tested (reconstructed without the test)"}
+    return {**single, "degraded": single.get("verdict") == "degraded",
+            "alignment": diagnostics.get("alignment_quality")}
 
 
 def _check_headers(request: Request, max_body_bytes: int) -> bool:
