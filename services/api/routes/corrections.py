@@ -19,7 +19,7 @@ from fastapi import APIRouter, Query
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sqlalchemy import select
 
-from services.api.deps import Admin, Ctx, Reader, SessionDep
+from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.db import repo
 from services.db.models import Correction, MatchPair, Trip, TripTile, utcnow
@@ -80,7 +80,7 @@ def correction_json(c: Correction) -> dict[str, Any]:
 
 
 @router.get("/tiles/{z}/{x}/{y}/match-pairs")
-def list_match_pairs(_: Reader, session: SessionDep, z: int, x: int, y: int,
+def list_match_pairs(_: Reader, session: ReadSessionDep, z: int, x: int, y: int,
                      status: Annotated[str | None, Query(description="active, added, rejected or superseded")] = None,
                      ) -> dict[str, Any]:
     stmt = select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y)
@@ -134,7 +134,7 @@ def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: i
 
 
 @router.get("/corrections")
-def list_corrections(_: Reader, session: SessionDep, z: int | None = None, x: int | None = None,
+def list_corrections(_: Reader, session: ReadSessionDep, z: int | None = None, x: int | None = None,
                      y: int | None = None) -> dict[str, Any]:
     stmt = select(Correction)
     for column, value in ((Correction.z, z), (Correction.x, x), (Correction.y, y)):

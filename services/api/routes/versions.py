@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from sqlalchemy.orm import Session
 
-from services.api.deps import Admin, Reader, SessionDep
+from services.api.deps import Admin, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.db import versions as vs
 from services.db.models import TileVersion
@@ -45,7 +45,7 @@ def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, loca
 
 
 @router.get("/tiles/{z}/{x}/{y}/versions")
-def tile_history(_: Reader, session: SessionDep, z: int, x: int, y: int) -> dict[str, Any]:
+def tile_history(_: Reader, session: ReadSessionDep, z: int, x: int, y: int) -> dict[str, Any]:
     """Every version of a pipeline tile, oldest first: status, reason, job, trips, corrections,
     quality, change counts."""
     with session.begin():
@@ -66,7 +66,7 @@ def tile_history(_: Reader, session: SessionDep, z: int, x: int, y: int) -> dict
 )
 def tile_version_geojson(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -98,7 +98,7 @@ def tile_version_geojson(
 @router.get("/tiles/{z}/{x}/{y}/diff")
 def tile_diff(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -116,7 +116,7 @@ def tile_diff(
 @router.get("/changes")
 def changes(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     since: Annotated[int, Query(ge=0, description="map version already seen (0: from the start)")] = 0,
     limit: Annotated[int, Query(ge=1, le=FEED_LIMIT_MAX)] = 100,
 ) -> JSONResponse:
@@ -200,7 +200,7 @@ def approve(
 
 
 @router.get("/features/{feature_id}")
-def feature(_: Reader, session: SessionDep, feature_id: str) -> JSONResponse:
+def feature(_: Reader, session: ReadSessionDep, feature_id: str) -> JSONResponse:
     """One feature: its geometry and properties in the live map (else its newest version) and its
     history across versions."""
     with session.begin():
