@@ -1,0 +1,90 @@
+"""``GET /v1/tiles/{z}/{x}/{y}/match-pairs`` in pages (``limit`` + opaque ``cursor``, ``next`` and
+``Link``) on both deployments: the pages cover every pair once, in the stable order (confidence,
+then id), and a bad ``limit`` or ``cursor`` is a 422 naming it."""
+
+from __future__ import annotations
+
+import base64
+import itertools
+
+import pytest
+
+from services.api.pagination import MAX_LIMIT
+from services.cli.bench_match_pairs import write_pairs
+
+pytestmark = pytest.mark.integration
+
+N_PAIRS = 230
+_tiles = itertools.count(100)  # a tile of its own for every test of the session's deployments
+
+
+@pytest.fixture
+def tile_with_pairs(deployment):
+    """A tile of ``N_PAIRS`` pairs whose confidences (one decimal) tie often; its pairs' ids in
+    the listing's order."""
+    tile = (16, 34000 + next(_tiles), 22400)
+    ids = write_pairs(deployment.db_url, N_PAIRS, tile=tile, seed=tile[1], decimals=1)
+    rows = deployment.rows(
+        "SELECT id, confidence FROM match_pairs WHERE z = :z AND x = :x AND y = :y",
+        z=tile[0], x=tile[1], y=tile[2],
+    )
+    assert sorted(r.id for r in rows) == sorted(ids)
+    return "/v1/tiles/{}/{}/{}/match-pairs".format(*tile), [r.id for r in sorted(rows, key=lambda r: (r[1], r[0]))]
+
+
+def test_pages_cover_every_pair_once_in_a_stable_order(deployment, tile_with_pairs) -> None:
+    url, expected = tile_with_pairs
+    seen: list[str] = []
+    with deployment.admin() as http:
+        whole = http.get(url).raise_for_status()  # the default page holds them all
+        assert whole.json()["next"] is None and "link" not in whole.headers
+        assert [p["id"] for p in whole.json()["match_pairs"]] == expected
+        next_url: str | None = url + "?limit=37"
+        pages = 0
+        while next_url is not None:
+            page = http.get(next_url).raise_for_status()
+            body = page.json()
+            assert len(body["match_pairs"]) <= 37
+            if body["next"] is not None:
+                assert page.headers["link"] == f'<{body["next"]}>; rel="next"'
+            seen += [p["id"] for p in body["match_pairs"]]
+            next_url, pages = body["next"], pages + 1
+    assert pages == -(-N_PAIRS // 37)
+    assert seen == expected  # every pair once, confidence then id
+
+
+def test_a_status_filter_pages_too(deployment, tile_with_pairs) -> None:
+    url, expected = tile_with_pairs
+    with deployment.admin() as http:
+        first = http.get(url, params={"status": "active", "limit": 200}).raise_for_status().json()
+        rest = http.get(first["next"]).raise_for_status().json()
+        assert "status=active" in first["next"]
+        assert [p["id"] for p in first["match_pairs"] + rest["match_pairs"]] == expected
+        assert rest["next"] is None
+        assert http.get(url, params={"status": "rejected"}).raise_for_status().json()["match_pairs"] == []
+
+
+@pytest.mark.parametrize("limit", ["0", "-3", str(MAX_LIMIT + 1), "many"])
+def test_a_bad_limit_is_a_422_naming_it(deployment, tile_with_pairs, limit) -> None:
+    url, _ = tile_with_pairs
+    with deployment.admin() as http:
+        answer = http.get(url, params={"limit": limit})
+    assert answer.status_code == 422
+    body = answer.json()
+    assert body["error"] == "invalid_request" and body["location"] == "query.limit"
+    assert "limit" in body["message"]
+
+
+def _b64(raw: bytes) -> str:
+    return base64.urlsafe_b64encode(raw).decode().rstrip("=")
+
+
+@pytest.mark.parametrize("cursor", ["not a cursor!", _b64(b"{}"), _b64(b'["0.5"]'), _b64(b"[0.5, 7]"), "%%%"])
+def test_a_bad_cursor_is_a_422_naming_it(deployment, tile_with_pairs, cursor) -> None:
+    url, _ = tile_with_pairs
+    with deployment.admin() as http:
+        answer = http.get(url, params={"cursor": cursor})
+    assert answer.status_code == 422
+    body = answer.json()
+    assert body["error"] == "invalid_request" and body["location"] == "query.cursor"
+
