@@ -1,8 +1,8 @@
 """Keyset pagination of listings: ``?limit=N&cursor=C``.
 
 A page is the first ``limit`` rows after the cursor in the listing's stable order (its sort key
-ends with the primary key, so no row is skipped or repeated between pages, even while rows are
-added). The answer carries ``next``, the URL of the following page (``null`` on the last page),
+is unique within the listing, e.g. ends with the primary key, so no row is skipped or repeated
+between pages, even while rows are added). The answer carries ``next``, the URL of the following page (``null`` on the last page),
 which is also sent as a ``Link: <...>; rel="next"`` header (RFC 8288). A cursor is opaque to
 clients: the base64url JSON of the last row's sort key. The query reads ``limit + 1`` rows to
 know whether a next page exists, along an index that starts with the listing's filter columns
@@ -25,7 +25,7 @@ from sqlalchemy.sql.elements import ColumnElement
 
 from services.api.errors import ApiError
 
-DEFAULT_LIMIT = 1000  # one page holds every pair of the busiest tiles seen (259): unpaginated clients keep working
+DEFAULT_LIMIT = 1000  # a page holds all of the busiest tile seen (259 pairs): clients that do not page keep working
 MAX_LIMIT = 5000
 
 Limit = Annotated[int, Query(ge=1, le=MAX_LIMIT, description=f"rows per page (default {DEFAULT_LIMIT})")]
@@ -69,8 +69,8 @@ def _bad_cursor(why: str) -> ApiError:
 def keyset_page(
     session: Any, stmt: Select, key: Sequence[ColumnElement], *, limit: int, after: tuple[Any, ...] | None
 ) -> Page:
-    """The page of ``stmt`` (rows whose last ``len(key)`` columns are the sort key ``key``, which
-    must end with the primary key) after the sort key ``after``."""
+    """The page of ``stmt`` (rows whose last ``len(key)`` columns are the sort key ``key``, unique
+    within the listing) after the sort key ``after``."""
     if after is not None:
         stmt = stmt.where(tuple_(*key) > tuple_(*after))
     rows = session.execute(stmt.order_by(*key).limit(limit + 1)).all()

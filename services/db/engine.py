@@ -11,6 +11,7 @@ best-effort session (:func:`without_waiting`) writes only when the lock is free 
 from __future__ import annotations
 
 import logging
+import time
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,8 @@ READ_ONLY = "csr_read_only"
 NO_WAIT = "csr_no_wait"
 _MODE = "csr_mode"  # a pooled SQLite connection's current (read_only, no_wait) pragmas
 SQLITE_BUSY_TIMEOUT_S = 60.0  # how long a SQLite writer waits for the write lock before it fails
+SLOW_WRITE_S = 5.0  # a SQLite write transaction holding the lock longer is logged (others wait meanwhile)
+_BEGUN = "csr_write_begun"  # monotonic start of a connection's open write transaction
 
 
 def make_engine(url: str, *, busy_timeout_s: float = SQLITE_BUSY_TIMEOUT_S) -> Engine:
@@ -65,6 +68,15 @@ def _sqlite_engine(url: str, busy_timeout_s: float) -> Engine:
             conn.exec_driver_sql(f"PRAGMA busy_timeout={0 if mode[1] else int(busy_timeout_s * 1000)}")
             conn.info[_MODE] = mode
         conn.exec_driver_sql("BEGIN DEFERRED" if mode[0] else "BEGIN IMMEDIATE")
+        if not mode[0]:
+            conn.info[_BEGUN] = time.monotonic()
+
+    @event.listens_for(engine, "commit")
+    @event.listens_for(engine, "rollback")
+    def _on_end(conn: Any) -> None:
+        begun = conn.info.pop(_BEGUN, None)
+        if begun is not None and (held := time.monotonic() - begun) > SLOW_WRITE_S:
+            log.warning("a write transaction held SQLite's write lock for %.1f s", held, stack_info=True)
 
     return engine
 

@@ -1,6 +1,7 @@
-"""``GET /v1/tiles/{z}/{x}/{y}/match-pairs`` in pages (``limit`` + opaque ``cursor``, ``next`` and
-``Link``) on both deployments: the pages cover every pair once, in the stable order (confidence,
-then id), and a bad ``limit`` or ``cursor`` is a 422 naming it."""
+"""A tile's listings in pages (``limit`` + opaque ``cursor``, ``next`` and ``Link``) on both
+deployments: ``GET /v1/tiles/{z}/{x}/{y}/match-pairs`` covers every pair once, in the stable order
+(confidence, then id), ``.../versions`` every version in order, and a bad ``limit`` or ``cursor``
+is a 422 naming it."""
 
 from __future__ import annotations
 
@@ -88,3 +89,40 @@ def test_a_bad_cursor_is_a_422_naming_it(deployment, tile_with_pairs, cursor) ->
     body = answer.json()
     assert body["error"] == "invalid_request" and body["location"] == "query.cursor"
 
+
+
+def write_versions(db_url: str, tile: tuple[int, int, int], n: int) -> None:
+    """``n`` published versions of ``tile`` (a few elements each), as the merge job writes them."""
+    import mercantile
+
+    from services.cli.bench_tiles import LAT, LON, tile_features
+    from services.db import versions as vs
+    from services.db.engine import make_engine, make_session_factory
+
+    engine = make_engine(db_url)
+    for i in range(n):
+        with make_session_factory(engine).begin() as session:
+            vs.write_tile_version(
+                session, z=tile[0], x=tile[1], y=tile[2], features=tile_features(mercantile.Tile(*tile[1:], tile[0]), 3, i),
+                reason="merge", job_id=None, trips=[], corrections=[], quality={}, origin_lat=LAT, origin_lon=LON,
+                state=b"state", publish=True, expected_latest=i or None)
+    engine.dispose()
+
+
+def test_a_tiles_versions_page_too(deployment) -> None:
+    tile = (16, 34000 + next(_tiles), 22400)
+    write_versions(deployment.db_url, tile, 5)
+    url = "/v1/tiles/{}/{}/{}/versions".format(*tile)
+    with deployment.admin() as http:
+        whole = http.get(url).raise_for_status().json()
+        assert [v["version"] for v in whole["versions"]] == [1, 2, 3, 4, 5] and whole["next"] is None
+        numbers, next_url = [], url + "?limit=2"
+        while next_url is not None:
+            body = http.get(next_url).raise_for_status().json()
+            assert body["latest_version"] == 5 and body["live_version"] == 5
+            numbers += [v["version"] for v in body["versions"]]
+            next_url = body["next"]
+        assert numbers == [1, 2, 3, 4, 5]
+        bad = http.get(url, params={"cursor": _b64(b'["1"]')})
+        assert bad.status_code == 422 and bad.json()["location"] == "query.cursor"
+        assert http.get("/v1/tiles/16/1/1/versions").status_code == 404
