@@ -6,7 +6,8 @@ is a hash of those ``(z, x, y, version, id)`` tuples, the format, the encoder (P
 and :data:`mvt.ENCODING_VERSION`. The body is looked up by ETag in the in-process LRU, then in
 ``tile_renders`` (rendered at publish time, or at the first read), and only then encoded (and
 stored). A read encodes in a read-only transaction and stores the new body afterwards in a short
-write of its own that never waits for the write lock (``render_then_keep``). The HTTP fast path in front of FastAPI (``services.tiles.fastpath``) caches the ETag itself.
+write of its own that never waits for the write lock (``render_then_keep``). The HTTP fast path
+in front of FastAPI (``services.tiles.fastpath``) caches the ETag itself.
 """
 
 from __future__ import annotations
