@@ -30,8 +30,40 @@ def _check(response: httpx.Response, *expected: int) -> httpx.Response:
     return response
 
 
+BUSY_ATTEMPTS = 5  # tries of a call the service answers 503 (its database busy or unreachable)
+BUSY_WAIT_MAX_S = 30.0  # the longest Retry-After honoured between two tries
+
+
+class RetryBusy(httpx.BaseTransport):
+    """Sends a call again after the ``Retry-After`` of a 503, at most :data:`BUSY_ATTEMPTS` times
+    (every call of the fleet is idempotent: an upload sent twice is the same trip)."""
+
+    def __init__(self, inner: httpx.BaseTransport, attempts: int = BUSY_ATTEMPTS) -> None:
+        self.inner, self.attempts = inner, attempts
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        for _ in range(self.attempts - 1):
+            response = self.inner.handle_request(request)
+            if response.status_code != 503:
+                return response
+            response.close()
+            time.sleep(_retry_after_s(response))
+        return self.inner.handle_request(request)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _retry_after_s(response: httpx.Response) -> float:
+    try:
+        return min(max(float(response.headers.get("Retry-After", "1")), 0.0), BUSY_WAIT_MAX_S)
+    except ValueError:  # an HTTP date: not sent by this service
+        return 1.0
+
+
 def client_for(base_url: str, key: str, timeout_s: float = 120.0) -> httpx.Client:
-    return httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s)
+    return httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s,
+                        transport=RetryBusy(httpx.HTTPTransport()))
 
 
 def upload_scenario(client: httpx.Client, scenario_dir: str | Path, *, progress: bool = True) -> dict[str, str]:

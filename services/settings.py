@@ -68,6 +68,10 @@ class Settings(BaseSettings):
     )
     poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
     worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
+    sqlite_busy_timeout_s: float = Field(
+        60.0, gt=0,
+        description="embedded default: how long a write waits for SQLite's write lock before the API answers 503",
+    )
     test_merge_delay_s: float = Field(
         0.0, ge=0, description="TEST ONLY: sleep in the first attempt of a merge job, before it writes"
     )

@@ -4,6 +4,9 @@ imports, so the API does not load the job code to answer a correction.)"""
 
 from __future__ import annotations
 
+from functools import lru_cache
+from typing import Any
+
 from csr_core.geo import LocalFrame, region_frame_for, tile_bounds_lonlat
 from services.db.models import MatchPair
 
@@ -11,8 +14,10 @@ from services.db.models import MatchPair
 Side = tuple[str | None, tuple[int, int]]
 
 
+@lru_cache(maxsize=4096)
 def tile_frame(z: int, x: int, y: int) -> LocalFrame:
-    """The world frame a tile is processed in: its region's (shared with the trips around it)."""
+    """The world frame a tile is processed in: its region's (shared with the trips around it).
+    Cached: a frame builds each of its projections once, on first use (~36 ms each)."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
     return region_frame_for(((west + east) / 2, (south + north) / 2))
 
@@ -29,6 +34,12 @@ def parse_tile(subject: str) -> tuple[int, int, int]:
 
 def record_sides(pair: MatchPair) -> tuple[Side, Side]:
     """A stored match pair's two sides as trip frames (its record names pieces: ``key@start``)."""
+    return sides_of(pair.trip_pk_i, pair.trip_pk_j, pair.record)
+
+
+def sides_of(trip_pk_i: str | None, trip_pk_j: str | None, record: dict[str, Any]) -> tuple[Side, Side]:
+    """The two sides, as trip frames, of a pair between trips ``trip_pk_i`` and ``trip_pk_j`` (None:
+    the pre-built map) whose ``record`` is ``MatchPair.record``."""
 
     def side(pk: str | None, key: str, frames) -> Side:
         if pk is None:
@@ -36,5 +47,5 @@ def record_sides(pair: MatchPair) -> tuple[Side, Side]:
         start = int(key.rsplit("@", 1)[1]) if "@" in key else 0
         return pk, (int(frames[0]) + start, int(frames[1]) + start)
 
-    r = pair.record
-    return side(pair.trip_pk_i, r["trip_key_i"], r["frames_i"]), side(pair.trip_pk_j, r["trip_key_j"], r["frames_j"])
+    return (side(trip_pk_i, record["trip_key_i"], record["frames_i"]),
+            side(trip_pk_j, record["trip_key_j"], record["frames_j"]))

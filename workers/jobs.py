@@ -35,6 +35,7 @@ from csr_core.single_trip import reconstruct_trip
 from csr_core.tiling import owned_frame_counts
 from csr_core.upload import decode_trip
 from services.db import repo
+from services.db.engine import read_only
 from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
 from services.reconstructions import row_values
 from services.settings import Settings
@@ -155,7 +156,7 @@ def _finish(session_factory: sessionmaker[Session], job_id: str, started: float,
 
 
 def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoom: int) -> IngestResult:
-    with session_factory() as session:
+    with read_only(session_factory)() as session:
         upload = repo.raw_upload(session, trip_pk=trip_pk)
         if upload is None:
             raise JobFailed(f"trip {trip_pk} has no stored upload")

@@ -79,6 +79,7 @@ from csr_core.topology.degraded import hold_back_degraded
 from csr_core.types import DividerStyle, ElementType, MapFeature, TripReconstruction
 from csr_core.upload import decode_trip
 from services.db import repo, versions
+from services.db.engine import read_only
 from services.db.models import (
     Correction,
     DirtyTile,
@@ -162,7 +163,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     """``full``: re-align every trip of the tile with the map team's corrections (a ``correct_tile``
     job), against the neighbouring tiles' map only (the tile's own map is what is being redone)."""
     frame = tile_frame(z, x, y)
-    with session_factory() as session:
+    with read_only(session_factory)() as session:
         waiting = neighbours_to_wait_for(session, z, x, y) if not full and settings.tile_checkerboard else []
         if waiting:
             session.close()
@@ -556,7 +557,7 @@ class MergeTileResult:
 def compute_merge_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int
                        ) -> MergeTileResult:
     frame = tile_frame(z, x, y)
-    with session_factory() as session:
+    with read_only(session_factory)() as session:
         latest = versions.latest_version(session, z=z, x=x, y=y)
         expected = latest.version if latest is not None else None
         state = _load_state(latest)
@@ -592,7 +593,7 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
                                    paths_xy_per_trip=paths)
     else:  # the first version, or trips re-aligned: rebuild from every aligned trip, ids continue
         if state is not None:
-            with session_factory() as session:
+            with read_only(session_factory)() as session:
                 everything = session.scalars(select(TripTileAlignment).where(
                     TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y)).all()
                 inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything}
@@ -608,7 +609,7 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         kept, held = hold_back_degraded(topology.features, topology.suppressed, degraded)
         topology = replace(topology, features=kept, suppressed=held)
     features = clip_to_tile(topology.features, frame, z, x, y)
-    with session_factory() as session:
+    with read_only(session_factory)() as session:
         seams = check_seams(session, features, frame, z, x, y)
     quality = {**tile_quality(features), "seams": seams,
                "held_back": held_back_counts(clip_to_tile(topology.suppressed, frame, z, x, y))}

@@ -28,7 +28,7 @@ from services.api.routes import (
     web,
 )
 from services.db import repo
-from services.db.engine import make_engine, make_session_factory, migrate
+from services.db.engine import make_engine, make_session_factory, migrate, read_only
 from services.settings import Settings
 from services.tiles.fastpath import TileFastPath
 
@@ -39,7 +39,7 @@ def start_context(settings: Settings) -> AppContext:
     """Connect, migrate, install the admin key, start the job runner."""
     if not settings.database_url:
         settings.ensure_data_dir()
-    engine = make_engine(settings.sqlalchemy_url)
+    engine = make_engine(settings.sqlalchemy_url, busy_timeout_s=settings.sqlite_busy_timeout_s)
     migrate(engine)
     session_factory = make_session_factory(engine)
     with session_factory.begin() as session:
@@ -61,7 +61,8 @@ def start_context(settings: Settings) -> AppContext:
         engine.dialect.name,
         "in-process" if settings.embedded_jobs else "Celery on Redis",
     )
-    return AppContext(settings, engine, session_factory, Metrics(session_factory), runner, celery)
+    reads = read_only(session_factory)
+    return AppContext(settings, engine, session_factory, reads, Metrics(reads), runner, celery)
 
 
 def stop_context(ctx: AppContext) -> None:

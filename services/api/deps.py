@@ -20,6 +20,7 @@ class AppContext:
     settings: Settings
     engine: Engine
     session_factory: sessionmaker[Session]
+    read_session_factory: sessionmaker[Session]  # sessions that only read (services.db.engine.read_only)
     metrics: Metrics
     runner: Any  # EmbeddedRunner | OutboxRelay: woken after new jobs are committed
     celery: Any | None = None
@@ -33,16 +34,24 @@ Ctx = Annotated[AppContext, Depends(get_ctx)]
 
 
 def get_session(ctx: Ctx) -> Iterator[Session]:
+    """A session that may write: for the calls that change something."""
     with ctx.session_factory() as session:
         yield session
 
 
+def get_read_session(ctx: Ctx) -> Iterator[Session]:
+    """A session that only reads: it never waits for a writer (on SQLite it takes no write lock)."""
+    with ctx.read_session_factory() as session:
+        yield session
+
+
 SessionDep = Annotated[Session, Depends(get_session)]
+ReadSessionDep = Annotated[Session, Depends(get_read_session)]
 
 
 def require(*roles: str) -> Callable[..., Caller]:
     def dependency(ctx: Ctx, authorization: Annotated[str | None, Header()] = None) -> Caller:
-        return authorize(authenticate(ctx.session_factory, authorization), roles)
+        return authorize(authenticate(ctx.read_session_factory, authorization), roles)
 
     return dependency
 

@@ -5,12 +5,17 @@ from __future__ import annotations
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from csr_core.errors import UploadError
 
 # The status of each upload rejection reason (README "Errors").
 UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_order": 422, "version": 422}
+# Retry-After of a 503: a database busy or unreachable beyond the service's own waiting
+DATABASE_RETRY_AFTER_S = 5
+# SQLite's messages for a lock still taken when its busy timeout ran out
+_SQLITE_BUSY = ("database is locked", "database table is locked", "database is busy")
 
 
 class ApiError(Exception):
@@ -31,6 +36,21 @@ def as_api_error(exc: UploadError | ApiError) -> ApiError:
     return ApiError(UPLOAD_ERROR_STATUS.get(exc.reason, 422), exc.reason, exc.message, location=exc.location)
 
 
+def database_error(exc: OperationalError) -> ApiError:
+    """503 for a database that did not answer in time: SQLite's write lock still taken after its
+    busy timeout (the service's bounded wait and retry), or a database that cannot be reached."""
+    detail = str(exc.orig) if exc.orig is not None else str(exc)
+    busy = any(m in detail for m in _SQLITE_BUSY)
+    return ApiError(
+        503,
+        "database_busy" if busy else "database_unavailable",
+        ("the database is busy with a long write; retry later" if busy else "the database is unavailable")
+        + f" ({detail.splitlines()[0] if detail else type(exc).__name__})",
+        location="database",
+        headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+    )
+
+
 def _json(error: ApiError) -> JSONResponse:
     return JSONResponse(error.as_dict(), status_code=error.status, headers=error.headers)
 
@@ -43,6 +63,10 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(UploadError)
     async def _upload_error(_: Request, exc: UploadError) -> JSONResponse:
         return _json(as_api_error(exc))
+
+    @app.exception_handler(OperationalError)
+    async def _database_error(_: Request, exc: OperationalError) -> JSONResponse:
+        return _json(database_error(exc))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:

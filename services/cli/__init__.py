@@ -20,6 +20,7 @@ _COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "benc
 _COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
 _COMMAND_MODULES += ("bench_service",)  # csr bench-service: the per-tile pipeline over HTTP
 _COMMAND_MODULES += ("bench_tiles",)  # csr bench-tiles: tile serving vs nginx (services/cli/bench_tiles.py)
+_COMMAND_MODULES += ("bench_match_pairs",)  # csr bench-match-pairs: a tile's match-pairs listing
 _COMMAND_MODULES += ("demo",)  # csr demo: the README's first command (services/cli/demo.py)
 _COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: the single-trip targets
 _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: the validator target

@@ -252,7 +252,8 @@ class MatchPair(Base):
     ``added`` (made by a correction) | ``superseded`` (a later alignment of the tile replaced it)."""
 
     __tablename__ = "match_pairs"
-    __table_args__ = (Index("ix_match_pairs_zxy", "z", "x", "y"),)
+    # a tile's pairs in the listing's order (confidence, id): its pages are index range scans
+    __table_args__ = (Index("ix_match_pairs_tile_order", "z", "x", "y", "confidence", "id"),)
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
     z: Mapped[int] = mapped_column(Integer)

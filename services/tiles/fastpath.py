@@ -108,7 +108,7 @@ class TileFastPath:
             configure_mappers()
             _key_role(ctx, "csr-warm-up")
             _map_version(ctx)
-            with ctx.session_factory() as session:
+            with ctx.read_session_factory() as session:
                 etag, _ = render.tile_etag(session, kind="mvt", z=MAX_ZOOM, x=0, y=0, map_version=None)
                 store.lookup(session, etag)
             self._watch(ctx)
@@ -218,7 +218,7 @@ class _RequestLike:
 
 
 def _key_role(ctx: Any, secret: str) -> str | None:
-    with ctx.session_factory() as session:
+    with ctx.read_session_factory() as session:
         row = repo.active_key(session, secret=secret)
         return row.role if row is not None else None
 
@@ -226,7 +226,7 @@ def _key_role(ctx: Any, secret: str) -> str | None:
 def _map_version(ctx: Any) -> int:
     from services.db import versions as vs
 
-    with ctx.session_factory() as session:
+    with ctx.read_session_factory() as session:
         return vs.current_map_version(session)
 
 
@@ -241,18 +241,17 @@ def _render(
     pinned: int | None,
     if_none_match: str | None,
 ) -> tuple[render.Tile, bool]:
-    with ctx.session_factory() as session, session.begin():
-        return render.render(
-            session,
-            cache,
-            kind=kind,
-            z=z,
-            x=x,
-            y=y,
-            map_version=pinned,
-            if_none_match=if_none_match,
-            pinned_etags=pinned_etags,
-        )
+    return render.render_then_keep(
+        ctx.session_factory,
+        cache,
+        kind=kind,
+        z=z,
+        x=x,
+        y=y,
+        map_version=pinned,
+        if_none_match=if_none_match,
+        pinned_etags=pinned_etags,
+    )
 
 
 # --- the answer ------------------------------------------------------------------------------------

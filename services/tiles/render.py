@@ -5,12 +5,15 @@ live or pinned versions near it whose feature extent meets its buffered bounds),
 is a hash of those ``(z, x, y, version, id)`` tuples, the format, the encoder (PostGIS or Python)
 and :data:`mvt.ENCODING_VERSION`. The body is looked up by ETag in the in-process LRU, then in
 ``tile_renders`` (rendered at publish time, or at the first read), and only then encoded (and
-stored). The HTTP fast path in front of FastAPI (``services.tiles.fastpath``) caches the ETag itself.
+stored). A read encodes in a read-only transaction and stores the new body afterwards in a short
+write of its own that never waits for the write lock (``render_then_keep``). The HTTP fast path
+in front of FastAPI (``services.tiles.fastpath``) caches the ETag itself.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -19,12 +22,16 @@ from typing import Any
 
 import orjson
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session, sessionmaker
 
 from services.db import versions as vs
+from services.db.engine import read_only, without_waiting
 from services.db.models import MapFeatureRow, TileHead
 from services.tiles import mvt, store
 from services.tiles.mercator import MAX_ZOOM, buffered_bounds_lonlat
+
+log = logging.getLogger(__name__)
 
 CACHE_MAX_BYTES = 64 * 1024 * 1024
 CACHE_MAX_ENTRIES = 4096
@@ -70,6 +77,7 @@ class Tile:
     body: bytes | None  # None: an empty tile (204)
     etag: str  # strong, quoted
     media_type: str
+    encoded: bool = False  # encoded by this call (not found in a cache or in tile_renders)
 
 
 def make_etag(kind: str, z: int, x: int, y: int, versions: Sequence[tuple], backend: str) -> str:
@@ -182,8 +190,32 @@ def render(
             )
         if store_renders:
             store.store(session, etag=etag, kind=kind, z=z, x=x, y=y, body=body)
+        cache.put(etag, body)
+        return Tile(body, etag, media, encoded=True), False
     cache.put(etag, body)
     return Tile(body, etag, media), False
+
+
+def render_then_keep(
+    session_factory: sessionmaker[Session], cache: TileCache, *, kind: str, z: int, x: int, y: int, **options: Any
+) -> tuple[Tile, bool]:
+    """``render`` for a request: read in a read-only transaction (it never waits for a job's write),
+    then keep a newly encoded body in ``tile_renders`` without waiting (``keep_render``)."""
+    with read_only(session_factory)() as session, session.begin():
+        tile, not_modified = render(session, cache, kind=kind, z=z, x=x, y=y, store_renders=False, **options)
+    if tile.encoded:
+        keep_render(session_factory, tile, kind=kind, z=z, x=x, y=y)
+    return tile, not_modified
+
+
+def keep_render(session_factory: sessionmaker[Session], tile: Tile, *, kind: str, z: int, x: int, y: int) -> None:
+    """Store an encoded tile if the write lock is free now; otherwise it stays in the in-process
+    cache and a later read stores it (a stored render is an optimisation, never required)."""
+    try:
+        with without_waiting(session_factory).begin() as session:
+            store.store(session, etag=tile.etag, kind=kind, z=z, x=x, y=y, body=tile.body)
+    except OperationalError as exc:
+        log.info("tile %s/%s/%s: render not stored now (%s)", z, x, y, exc.orig)
 
 
 def etag_matches(if_none_match: str, etag: str) -> bool:

@@ -13,17 +13,23 @@ new version whose ``reason`` is ``correction`` (or ``undo correction``) and whic
 
 from __future__ import annotations
 
+import json
+from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
+import numpy as np
+import orjson
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from sqlalchemy import select
+from sqlalchemy import Text, cast, select
 
-from services.api.deps import Admin, Ctx, Reader, SessionDep
+from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
+from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
 from services.db import repo
 from services.db.models import Correction, MatchPair, Trip, TripTile, utcnow
-from services.tile_frames import record_sides, tile_frame
+from services.tile_frames import record_sides, sides_of, tile_frame
 
 router = APIRouter(prefix="/v1", tags=["corrections"])
 
@@ -55,17 +61,44 @@ class CorrectionRequest(BaseModel):
         return self
 
 
-def pair_json(pair: MatchPair) -> dict[str, Any]:
-    r = pair.record
-    lon, lat = tile_frame(pair.z, pair.x, pair.y).to_lonlat([r["centre_xy_world"]])[0]
-    (_, frames_i), (_, frames_j) = record_sides(pair)
+# The columns a listed pair is built from (its record as JSON text: parsed with orjson, several
+# times faster than the JSON type's json.loads); the listing's sort key (confidence, id) comes last.
+PAIR_COLUMNS = (MatchPair.status, MatchPair.job_id, MatchPair.trip_pk_i, MatchPair.trip_pk_j,
+                MatchPair.residual_rms_m, cast(MatchPair.record, Text).label("record_json"), MatchPair.created_at)
+PAIR_ORDER = (MatchPair.confidence, MatchPair.id)
+
+
+def parse_record(text: str) -> dict[str, Any]:
+    """A stored record's JSON text (Python's json writes NaN, which only json.loads reads back)."""
+    try:
+        return orjson.loads(text)
+    except orjson.JSONDecodeError:
+        return json.loads(text)
+
+
+def pair_json(pair: Any, record: dict[str, Any], tile: str, centre_lonlat: Sequence[float]) -> dict[str, Any]:
+    """A listed pair: a row of :data:`PAIR_COLUMNS` and :data:`PAIR_ORDER`, its parsed ``record``,
+    and the record's ``centre_xy_world`` in lon/lat."""
+    (_, frames_i), (_, frames_j) = sides_of(pair.trip_pk_i, pair.trip_pk_j, record)
     return {
-        "id": pair.id, "tile": f"{pair.z}/{pair.x}/{pair.y}", "status": pair.status, "job_id": pair.job_id,
+        "id": pair.id, "tile": tile, "status": pair.status, "job_id": pair.job_id,
         "trip_i": pair.trip_pk_i, "frames_i": list(frames_i), "trip_j": pair.trip_pk_j, "frames_j": list(frames_j),
-        "confidence": pair.confidence, "residual_rms_m": pair.residual_rms_m, "centre": [lon, lat],
-        "relative_pose_xyyaw": r["relative_pose_xyyaw"], "n_element_matches": len(r["instance_matches"]),
-        "human": bool(r.get("human", False)), "created_at": pair.created_at.isoformat(),
+        "confidence": pair.confidence, "residual_rms_m": pair.residual_rms_m,
+        "centre": [float(centre_lonlat[0]), float(centre_lonlat[1])],
+        "relative_pose_xyyaw": record["relative_pose_xyyaw"], "n_element_matches": len(record["instance_matches"]),
+        "human": bool(record.get("human", False)), "created_at": pair.created_at.isoformat(),
     }
+
+
+def pairs_json(pairs: Sequence[Any], z: int, x: int, y: int) -> list[dict[str, Any]]:
+    """Pairs of tile z/x/y as listed: their centres projected in one call with the tile's frame
+    (a projection built per pair cost ~36 ms each)."""
+    if not pairs:
+        return []
+    records = [parse_record(p.record_json) for p in pairs]
+    centres = tile_frame(z, x, y).to_lonlat(np.array([r["centre_xy_world"] for r in records], float))
+    tile = f"{z}/{x}/{y}"
+    return [pair_json(p, r, tile, c) for p, r, c in zip(pairs, records, centres, strict=True)]
 
 
 def correction_json(c: Correction) -> dict[str, Any]:
@@ -80,13 +113,16 @@ def correction_json(c: Correction) -> dict[str, Any]:
 
 
 @router.get("/tiles/{z}/{x}/{y}/match-pairs")
-def list_match_pairs(_: Reader, session: SessionDep, z: int, x: int, y: int,
+def list_match_pairs(_: Reader, request: Request, session: ReadSessionDep, z: int, x: int, y: int,
                      status: Annotated[str | None, Query(description="active, added, rejected or superseded")] = None,
-                     ) -> dict[str, Any]:
-    stmt = select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y)
+                     limit: Limit = DEFAULT_LIMIT, cursor: Cursor = None) -> Response:
+    """A page of the tile's match pairs (all but ``superseded``, or those of ``status``), lowest
+    confidence first (then by id); ``next`` is the following page's URL (services.api.pagination)."""
+    after = decode_cursor(cursor, (float, str)) if cursor is not None else None
+    stmt = select(*PAIR_COLUMNS, *PAIR_ORDER).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y)
     stmt = stmt.where(MatchPair.status == status) if status else stmt.where(MatchPair.status != "superseded")
-    pairs = session.scalars(stmt.order_by(MatchPair.confidence)).all()
-    return {"tile": f"{z}/{x}/{y}", "match_pairs": [pair_json(p) for p in pairs]}
+    page = keyset_page(session, stmt, PAIR_ORDER, limit=limit, after=after)
+    return page_response(request, {"tile": f"{z}/{x}/{y}", "match_pairs": pairs_json(page.rows, z, x, y)}, page)
 
 
 def _trip_in_tile(session, trip_pk: str, frames: list[int], z: int, x: int, y: int, field: str) -> None:
@@ -134,7 +170,7 @@ def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: i
 
 
 @router.get("/corrections")
-def list_corrections(_: Reader, session: SessionDep, z: int | None = None, x: int | None = None,
+def list_corrections(_: Reader, session: ReadSessionDep, z: int | None = None, x: int | None = None,
                      y: int | None = None) -> dict[str, Any]:
     stmt = select(Correction)
     for column, value in ((Correction.z, z), (Correction.x, x), (Correction.y, y)):

@@ -15,7 +15,7 @@ from csr_core.errors import CsrError
 from csr_core.export import LonLatFeature, export_lanelet2
 from csr_core.geo import LocalFrame
 from csr_core.types import DividerStyle, ElementType
-from services.api.deps import Reader, SessionDep
+from services.api.deps import Reader, ReadSessionDep
 from services.api.errors import ApiError
 from services.db import versions as vs
 from services.tiles.http import check_map_version, parse_bbox
@@ -50,7 +50,7 @@ def _lonlat_features(features: list[vs.VersionFeature]) -> tuple[list[LonLatFeat
 @router.get("/lanelet2", response_class=Response, responses={200: {"content": {OSM_XML: {}}}})
 def export_lanelet2_osm(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
     version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
 ) -> Response:

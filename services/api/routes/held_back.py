@@ -21,7 +21,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from services.api.deps import Reader, SessionDep
+from services.api.deps import Reader, ReadSessionDep
 from services.api.errors import ApiError
 from services.api.routes.versions import version_or_404
 from services.db import versions as vs
@@ -40,7 +40,7 @@ HELD_BACK_STATUS = "held_back"  # each feature's ``status``: not in the publishe
 )
 def held_back_lines(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,

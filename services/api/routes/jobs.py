@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from services.api.deps import Admin, Ctx, Reader, SessionDep
+from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.db import repo
 
 router = APIRouter(prefix="/v1", tags=["jobs"])
 
 
 @router.get("/jobs/summary")
-def jobs_summary(_: Reader, session: SessionDep) -> dict[str, int]:
+def jobs_summary(_: Reader, session: ReadSessionDep) -> dict[str, int]:
     return repo.job_summary(session)
 
 

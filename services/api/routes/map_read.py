@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from services.api.deps import Reader, SessionDep
+from services.api.deps import Reader, ReadSessionDep
 from services.db import versions as vs
 from services.tiles.http import (
     CORS_HEADERS,
@@ -25,7 +25,7 @@ router = APIRouter(prefix="/v1", tags=["map"])
 @router.get("/map", response_class=Response, responses={200: {"content": {"application/geo+json": {}}}})
 def get_map(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
     version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
 ) -> Response:

@@ -15,8 +15,8 @@ router = APIRouter(tags=["ops"])
 @router.get("/healthz")
 def healthz(ctx: Ctx) -> JSONResponse:
     try:
-        with ctx.engine.connect() as conn:
-            conn.execute(text("SELECT 1"))
+        with ctx.read_session_factory() as session:
+            session.execute(text("SELECT 1"))
     except Exception as exc:
         return JSONResponse({"status": "error", "database": str(exc)}, status_code=503)
     deployment = "embedded" if ctx.settings.embedded_jobs else "distributed"

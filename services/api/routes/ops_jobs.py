@@ -18,8 +18,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse
 from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
 
-from services.api.deps import Admin, Ctx, Reader, SessionDep
+from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.db import repo
 from services.db.models import DirtyTile, Job, Trip, TripTile, utcnow
@@ -53,7 +54,7 @@ def job_json(job: Job, *, retried_by: str | None = None) -> dict[str, Any]:
     }
 
 
-def _retried_by(session: SessionDep, jobs: list[Job]) -> dict[str, str]:
+def _retried_by(session: Session, jobs: list[Job]) -> dict[str, str]:
     """For each failed job: the id of the newest later job of the same kind and subject."""
     failed = [j for j in jobs if j.state == "failed"]
     if not failed:
@@ -78,7 +79,7 @@ def _retried_by(session: SessionDep, jobs: list[Job]) -> dict[str, str]:
 @router.get("/jobs")
 def list_jobs(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     state: Annotated[str | None, Query(description="queued | running | done | failed")] = None,
     kind: Annotated[str | None, Query(description="ingest_trip | align_tile | ...")] = None,
     subject: Annotated[str | None, Query(description="a trip id or z/x/y")] = None,
@@ -104,7 +105,7 @@ def list_jobs(
     return {"jobs": [job_json(j, retried_by=retried.get(j.id)) for j in jobs], "queues": queues}
 
 
-def _load_job(session: SessionDep, job_id: str) -> Job:
+def _load_job(session: Session, job_id: str) -> Job:
     job = repo.get_job(session, job_id=job_id)
     if job is None:
         raise ApiError(404, "not_found", f"no job {job_id!r}", location="id")
@@ -112,14 +113,14 @@ def _load_job(session: SessionDep, job_id: str) -> Job:
 
 
 @router.get("/jobs/{job_id}")
-def get_job(job_id: str, _: Reader, session: SessionDep) -> dict[str, Any]:
+def get_job(job_id: str, _: Reader, session: ReadSessionDep) -> dict[str, Any]:
     job = _load_job(session, job_id)
     return job_json(job, retried_by=_retried_by(session, [job]).get(job.id))
 
 
 @router.get("/tiles/dirty")
 def dirty_tiles(
-    _: Reader, session: SessionDep, limit: Annotated[int, Query(ge=1, le=10 * MAX_LIMIT)] = 1000
+    _: Reader, session: ReadSessionDep, limit: Annotated[int, Query(ge=1, le=10 * MAX_LIMIT)] = 1000
 ) -> dict[str, Any]:
     """Tiles with trips not yet processed, oldest mark first: the job scheduled for each (if any)
     and how many of its trips wait."""

@@ -14,7 +14,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from services.api.deps import Ctx, Reader, SessionDep
+from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.tiles import render
 from services.tiles.http import (
     CORS_HEADERS,
@@ -38,7 +38,8 @@ IfNoneMatch = Annotated[str | None, Header()]
 def _tile(
     kind: str,
     request: Request,
-    session: SessionDep,
+    ctx: Ctx,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -49,17 +50,17 @@ def _tile(
     cache, pinned_etags = caches(request)
     with session.begin():
         map_version = check_map_version(session, v, location="v")
-        tile, not_modified = render.render(
-            session,
-            cache,
-            kind=kind,
-            z=z,
-            x=x,
-            y=y,
-            map_version=map_version,
-            if_none_match=if_none_match,
-            pinned_etags=pinned_etags,
-        )
+    tile, not_modified = render.render_then_keep(
+        ctx.session_factory,
+        cache,
+        kind=kind,
+        z=z,
+        x=x,
+        y=y,
+        map_version=map_version,
+        if_none_match=if_none_match,
+        pinned_etags=pinned_etags,
+    )
     return tile_response(
         tile.body,
         etag=tile.etag,
@@ -78,7 +79,8 @@ def _tile(
 def tile_mvt(
     _: Reader,
     request: Request,
-    session: SessionDep,
+    ctx: Ctx,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -87,7 +89,7 @@ def tile_mvt(
 ) -> Response:
     """A Mapbox Vector Tile (web-mercator XYZ, extent 4096, buffer 256) of the road structure: one
     layer ``road``, properties ``id``, ``type``, ``style`` and the elements' scalar properties."""
-    return _tile("mvt", request, session, z, x, y, v, if_none_match)
+    return _tile("mvt", request, ctx, session, z, x, y, v, if_none_match)
 
 
 @router.get(
@@ -98,7 +100,8 @@ def tile_mvt(
 def tile_geojson(
     _: Reader,
     request: Request,
-    session: SessionDep,
+    ctx: Ctx,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -106,11 +109,11 @@ def tile_geojson(
     if_none_match: IfNoneMatch = None,
 ) -> Response:
     """The same features as the ``.mvt`` tile as a GeoJSON FeatureCollection (lon/lat, unclipped)."""
-    return _tile("geojson", request, session, z, x, y, v, if_none_match)
+    return _tile("geojson", request, ctx, session, z, x, y, v, if_none_match)
 
 
 @router.get("/tiles.json")
-def tile_json(_: Reader, request: Request, ctx: Ctx, session: SessionDep) -> JSONResponse:
+def tile_json(_: Reader, request: Request, ctx: Ctx, session: ReadSessionDep) -> JSONResponse:
     """TileJSON 3.0.0: the tile URL pinned to the current map version, zooms, data bounds, vector_layers."""
     base = str(request.base_url).rstrip("/")
     with session.begin():

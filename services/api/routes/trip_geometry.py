@@ -19,7 +19,7 @@ import shapely
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import select
 
-from services.api.deps import AnyRole, Ctx, Reader, SessionDep
+from services.api.deps import AnyRole, Ctx, Reader, ReadSessionDep
 from services.api.errors import ApiError
 from services.api.routes.trips import _iso_utc
 from services.auth import may_read_trip
@@ -83,7 +83,7 @@ def trip_summary(trip: Trip) -> dict[str, Any]:
 def trips_in_bbox(
     _: Reader,
     ctx: Ctx,
-    session: SessionDep,
+    session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat")],
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 100,
 ) -> dict[str, Any]:
@@ -125,7 +125,7 @@ def _poses_line(arrays: bytes) -> tuple[list[list[float]], dict[str, Any]]:
 
 
 @router.get("/{trip_pk}/track.geojson")
-def trip_track(trip_pk: str, caller: AnyRole, session: SessionDep) -> Response:
+def trip_track(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> Response:
     """FeatureCollection: ``kind: raw`` (GNSS fixes, once ingested) and ``kind: aligned`` (final
     poses, once aligned); each feature is left out until it exists."""
     trip = repo.get_trip(session, trip_pk=trip_pk)

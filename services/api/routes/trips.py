@@ -8,11 +8,12 @@ from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from csr_core.errors import UploadError
 from services.api.body import read_limited, too_large
-from services.api.deps import AnyRole, Ctx, Reader, SessionDep, Uploader
+from services.api.deps import AnyRole, Ctx, Reader, ReadSessionDep, Uploader
 from services.api.errors import ApiError, as_api_error
 from services.auth import may_read_trip
 from services.db import repo
@@ -135,7 +136,7 @@ async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONRespo
     )
 
 
-def _load_trip(session: SessionDep, trip_pk: str) -> Trip:
+def _load_trip(session: Session, trip_pk: str) -> Trip:
     trip = repo.get_trip(session, trip_pk=trip_pk)
     if trip is None:
         raise ApiError(404, "not_found", f"no trip {trip_pk!r}", location="id")
@@ -143,7 +144,7 @@ def _load_trip(session: SessionDep, trip_pk: str) -> Trip:
 
 
 @router.get("/{trip_pk}")
-def get_trip(trip_pk: str, caller: AnyRole, session: SessionDep) -> dict[str, Any]:
+def get_trip(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
     may_read_trip(caller, trip.vehicle_id)
     summary = repo.reconstruction_summary(session, trip_pk=trip.id, algorithm_version=ALGORITHM_VERSION)
@@ -151,7 +152,7 @@ def get_trip(trip_pk: str, caller: AnyRole, session: SessionDep) -> dict[str, An
 
 
 @router.get("/{trip_pk}/poses")
-def get_poses(trip_pk: str, caller: Reader, session: SessionDep) -> dict[str, Any]:
+def get_poses(trip_pk: str, caller: Reader, session: ReadSessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
     poses = session.get(TripPoses, trip.id) if trip.status == "aligned" else None
     if poses is None:  # contract section 3: 409 before it is aligned

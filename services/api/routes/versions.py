@@ -3,15 +3,17 @@ the ``changes?since=`` feed, rollback and approval (admin), and one feature acro
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
-from sqlalchemy.orm import Session
+from sqlalchemy import select
+from sqlalchemy.orm import Session, defer
 
-from services.api.deps import Admin, Reader, SessionDep
+from services.api.deps import Admin, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
+from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
 from services.db import versions as vs
 from services.db.models import TileVersion
 from services.tiles.http import CORS_HEADERS, check_tile
@@ -20,14 +22,6 @@ from services.tiles.render import feature_collection, feature_json
 router = APIRouter(prefix="/v1", tags=["versions"])
 
 FEED_LIMIT_MAX = 1000
-
-
-def _history_or_404(session: Session, z: int, x: int, y: int) -> list[TileVersion]:
-    check_tile(z, x, y)
-    history = vs.tile_versions(session, z=z, x=x, y=y)
-    if not history:
-        raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
-    return history
 
 
 def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, location: str) -> TileVersion:
@@ -45,18 +39,24 @@ def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, loca
 
 
 @router.get("/tiles/{z}/{x}/{y}/versions")
-def tile_history(_: Reader, session: SessionDep, z: int, x: int, y: int) -> dict[str, Any]:
-    """Every version of a pipeline tile, oldest first: status, reason, job, trips, corrections,
-    quality, change counts."""
+def tile_history(_: Reader, request: Request, session: ReadSessionDep, z: int, x: int, y: int,
+                 limit: Limit = DEFAULT_LIMIT, cursor: Cursor = None) -> Response:
+    """A page of a pipeline tile's versions, oldest first: status, reason, job, trips, corrections,
+    quality, change counts; ``next`` is the following page's URL (services.api.pagination). The
+    versions' topology states (the large column) are not read."""
+    check_tile(z, x, y)
+    after = decode_cursor(cursor, (int,)) if cursor is not None else None
+    stmt = (select(TileVersion, TileVersion.version).options(defer(TileVersion.state))
+            .where(TileVersion.z == z, TileVersion.x == x, TileVersion.y == y))
     with session.begin():
-        history = _history_or_404(session, z, x, y)
         head = vs.tile_head(session, z=z, x=x, y=y)
-    return {
-        "tile": f"{z}/{x}/{y}",
-        "latest_version": head.latest_version if head else None,
-        "live_version": head.live_version if head else None,
-        "versions": [vs.version_summary(v) for v in history],
-    }
+        if head is None:
+            raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
+        page = keyset_page(session, stmt, (TileVersion.version,), limit=limit, after=after)
+        versions = [vs.version_summary(row[0]) for row in page.rows]
+    body = {"tile": f"{z}/{x}/{y}", "latest_version": head.latest_version, "live_version": head.live_version,
+            "versions": versions}
+    return page_response(request, body, page)
 
 
 @router.get(
@@ -66,7 +66,7 @@ def tile_history(_: Reader, session: SessionDep, z: int, x: int, y: int) -> dict
 )
 def tile_version_geojson(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -98,7 +98,7 @@ def tile_version_geojson(
 @router.get("/tiles/{z}/{x}/{y}/diff")
 def tile_diff(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     z: int,
     x: int,
     y: int,
@@ -116,7 +116,7 @@ def tile_diff(
 @router.get("/changes")
 def changes(
     _: Reader,
-    session: SessionDep,
+    session: ReadSessionDep,
     since: Annotated[int, Query(ge=0, description="map version already seen (0: from the start)")] = 0,
     limit: Annotated[int, Query(ge=1, le=FEED_LIMIT_MAX)] = 100,
 ) -> JSONResponse:
@@ -200,7 +200,7 @@ def approve(
 
 
 @router.get("/features/{feature_id}")
-def feature(_: Reader, session: SessionDep, feature_id: str) -> JSONResponse:
+def feature(_: Reader, session: ReadSessionDep, feature_id: str) -> JSONResponse:
     """One feature: its geometry and properties in the live map (else its newest version) and its
     history across versions."""
     with session.begin():
