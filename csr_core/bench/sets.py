@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+#: the real maps the simulator ships (csr_core/sim/data): the main accuracy set
+REAL_MAP_WORLDS = ("karlsruhe", "kashiwanoha", "carcarana", "a9", "newmarket")
 
 
 @dataclass(frozen=True, slots=True)
@@ -23,7 +25,8 @@ class ScenarioSpec:
 
 
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
-SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "variants", "full", "toy")
+SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "variants", "full", "toy",
+                 "real-maps", "real-maps-quick", "loops")
 #: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
 #: by half in aligned ATE), so the reported figures average three
 STANDARD_SEEDS = (1, 2, 3)
@@ -61,6 +64,13 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         return [ScenarioSpec(w, 8, "hard", seed, 1500.0) for w, seed in VALIDATOR_FLEETS]
     if name == "variants":
         return [ScenarioSpec(w, n, "standard", 1, length) for w, n, length in VARIANT_FLEETS]
+    if name == "real-maps":  # every real map, standard and hard, three seeds
+        return [ScenarioSpec(w, 10, profile, seed, 1500.0) for profile in ("standard", "hard")
+                for seed in STANDARD_SEEDS for w in REAL_MAP_WORLDS]
+    if name == "real-maps-quick":  # one seed of the standard profile
+        return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in REAL_MAP_WORLDS]
+    if name == "loops":  # trips that lap short loops with long stops (the integrity test's case)
+        return [ScenarioSpec(w, 8, "loops", 1, 2000.0) for w in ("roundabout", "urban", "kashiwanoha")]
     if name == "toy":
         return [ScenarioSpec("toy", 3, "toy", 1, 300.0)]
     if name == "full":

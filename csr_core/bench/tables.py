@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from csr_core.bench.evaluate import EvaluatedOutput
 from csr_core.bench.runner import Record
 from csr_core.metrics import MCD_TYPES, TABLE_TYPES, MapScores, TrajectoryScores
 
@@ -194,7 +195,16 @@ def table_ablation(records: Sequence[Record]) -> str | None:
     return markdown_table(["alignment", "RPE RMSE", "RPE ME", "paper RPE RMSE", "paper RPE ME"], rows)
 
 
+def worst_trip_rmse_m(ev: EvaluatedOutput) -> float:
+    """The largest per-trip position RMSE (metres, raw: no alignment to the truth) of a run."""
+    errors = [float(np.sqrt(np.mean(np.sum((est - ev.true_xy_by_key[k]) ** 2, axis=1))))
+              for k, est in ev.est_xy_by_key.items() if len(est)]
+    return max(errors) if errors else float("nan")
+
+
 def table_per_world(records: Sequence[Record]) -> str:
+    """One row per scenario and method; "worst trip" is the largest raw per-trip position RMSE
+    and "marked" the trips the run reported failed or degraded."""
     main = _main_records(records)
     header = [
         "scenario",
@@ -206,6 +216,8 @@ def table_per_world(records: Sequence[Record]) -> str:
         "corr.",
         "ATE RMSE",
         "RPE RMSE",
+        "worst trip",
+        "marked",
         "coverage",
         "wall s",
     ]
@@ -219,6 +231,8 @@ def table_per_world(records: Sequence[Record]) -> str:
                     "-",
                     "",
                     "failed",
+                    "",
+                    "",
                     "",
                     "",
                     "",
@@ -241,6 +255,8 @@ def table_per_world(records: Sequence[Record]) -> str:
                 fmt(_mean([m.per_type[t].correctness for t in MCD_TYPES]), 2),
                 fmt(ev.aligned.ate.rmse),
                 fmt(ev.aligned.rpe.rmse),
+                fmt(worst_trip_rmse_m(r.ev), 2),
+                str(len(r.report.get("failed", {})) + len(r.report.get("degraded", {}))),
                 fmt(ev.coverage, 2),
                 fmt(r.run.wall_s, 1),
             ]

@@ -146,23 +146,27 @@ def _walk(world: World, rng: np.random.Generator, length_m: float, params: Traff
     return Route(path_rs, limit_rs, stops_arr[:, 0], stops_arr[:, 1], tuple(lanes))
 
 
-def _shortest_loop(world: World, lane: int) -> list[int] | None:
-    """The shortest cycle of successor edges through ``lane`` (by centreline length), or None."""
+def _shortest_loops(world: World) -> dict[int, tuple[float, list[int]]]:
+    """For each visible lane on a cycle of successor edges: the shortest such cycle through it
+    (its length in metres of centreline, its lanes starting with that one)."""
     g = world.lane_graph
+    length = {n: _lane_length(world, n) for n in g.nodes}
     succ = nx.DiGraph()
     succ.add_nodes_from(g.nodes)
-    succ.add_edges_from((u, v) for u, v, d in g.edges(data=True) if d["kind"] == SUCCESSOR)
-    best: tuple[float, list[int]] | None = None
-    for nxt in succ.successors(lane):
-        try:
-            length, path = nx.single_source_dijkstra(
-                succ, nxt, lane, weight=lambda _u, v, _d: _lane_length(world, v))
-        except nx.NetworkXNoPath:
+    succ.add_weighted_edges_from((u, v, length[v]) for u, v, d in g.edges(data=True) if d["kind"] == SUCCESSOR)
+    out: dict[int, tuple[float, list[int]]] = {}
+    for lane in sorted(g.nodes):
+        if not g.nodes[lane]["visible"]:
             continue
-        length += _lane_length(world, nxt)
-        if best is None or length < best[0]:
-            best = (length, [lane, *path[:-1]])
-    return None if best is None else best[1]
+        dist, paths = nx.single_source_dijkstra(succ, lane)
+        # a cycle closes through a predecessor of the lane reached from it
+        best: tuple[float, list[int]] | None = None
+        for pred in succ.predecessors(lane):
+            if pred in dist and (best is None or dist[pred] + length[lane] < best[0]):
+                best = (dist[pred] + length[lane], list(paths[pred]))
+        if best is not None:
+            out[lane] = best
+    return out
 
 
 def looping_route(world: World, rng: np.random.Generator, length_m: float, params: TrafficParams) -> Route:
@@ -172,15 +176,14 @@ def looping_route(world: World, rng: np.random.Generator, length_m: float, param
     lights). Its GNSS/odometry chords longer than a loop are all in the approach, the case a
     trip-level odometry calibration must not be fooled by."""
     g = world.lane_graph
-    loops = {lane: _shortest_loop(world, lane) for lane in sorted(g.nodes) if g.nodes[lane]["visible"]}
-    loops = {k: v for k, v in loops.items() if v is not None}
+    loops = _shortest_loops(world)
     if not loops:
         raise SimulationError(f"world {world.name!r}: no loop in the lane graph")
-    shortest = min(sum(_lane_length(world, n) for n in v) for v in loops.values())
+    shortest = min(length for length, _ in loops.values())
     # the loops within twice the shortest: the small blocks, rings and turnarounds of the map
-    small = [k for k, v in loops.items() if sum(_lane_length(world, n) for n in v) <= 2.0 * shortest]
+    small = sorted(k for k, (length, _) in loops.items() if length <= 2.0 * shortest)
     entry = small[int(rng.integers(len(small)))]
-    loop = loops[entry]
+    loop = loops[entry][1]
     # approach: the lanes leading into the entry lane, walked backwards, cut to its length
     approach_m = float(rng.uniform(*params.loop_approach_m))
     back: list[int] = []
@@ -215,9 +218,9 @@ def looping_route(world: World, rng: np.random.Generator, length_m: float, param
     n_stops = int(rng.poisson(params.loop_stops_per_km * run / 1000.0))
     stop_s = np.sort(rng.uniform(10.0, max(run - 10.0, 10.0), n_stops))
     stop_wait = rng.uniform(*params.red_light_wait_s, n_stops)
-    stop_s = np.r_[PATH_STEP_M, stop_s]
+    stop_s = np.r_[0.0, stop_s]
     stop_wait = np.r_[float(rng.uniform(*params.start_standstill_s)), stop_wait]
-    return Route(path_rs, limit_rs, stop_s, stop_wait, (*reversed(back), *loop))
+    return Route(path_rs, limit_rs, stop_s, stop_wait, tuple([*reversed(back), *loop]))
 
 
 def _smooth(points_xy: np.ndarray, window: int) -> np.ndarray:
@@ -252,7 +255,7 @@ def drive(route: Route, rng: np.random.Generator, params: TrafficParams) -> Driv
         route.speed_limit_mps * factor, np.sqrt(params.max_lateral_accel_mps2 / np.maximum(kappa, 1e-5))
     )
     v[0] = v[-1] = 0.0
-    stop_idx = np.clip(np.searchsorted(s, route.stops_s_m), 1, len(s) - 2)
+    stop_idx = np.clip(np.searchsorted(s, route.stops_s_m), 0, len(s) - 2)  # 0: a standstill at the start
     v[stop_idx] = 0.0
     for i in range(1, len(v)):  # acceleration limit
         v[i] = min(v[i], np.sqrt(v[i - 1] ** 2 + 2 * params.max_accel_mps2 * ds[i - 1]))

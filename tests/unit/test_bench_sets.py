@@ -48,3 +48,27 @@ def test_the_validator_set_is_the_six_hard_fleets_it_has_been_measured_on():
     assert [(s.world, s.seed) for s in specs] == list(VALIDATOR_FLEETS)
     assert all(s.profile == "hard" and s.trips == 8 and s.trip_length_m == 1500.0 for s in specs)
     assert specs[0].name == "urban-hard-8x-1500m-s5"
+
+
+def test_the_real_map_set_is_every_shipped_real_map_at_both_profiles_and_three_seeds():
+    from csr_core.bench.sets import REAL_MAP_WORLDS, STANDARD_SEEDS
+    from csr_core.sim.worlds import WORLD_NAMES
+
+    assert set(REAL_MAP_WORLDS) <= set(WORLD_NAMES)
+    specs = scenario_set("real-maps")
+    assert {(s.world, s.profile, s.seed) for s in specs} == {
+        (w, p, seed) for w in REAL_MAP_WORLDS for p in ("standard", "hard") for seed in STANDARD_SEEDS}
+    assert [s.world for s in scenario_set("real-maps-quick")] == list(REAL_MAP_WORLDS)
+    assert all(s.profile == "loops" for s in scenario_set("loops"))
+
+
+def test_the_worst_trip_is_the_largest_raw_per_trip_rmse():
+    from types import SimpleNamespace
+
+    from csr_core.bench.tables import worst_trip_rmse_m
+
+    truth = {"a": _straight(0.0, 0.0, 10.0), "b": _straight(0.0, 0.0, 10.0)}
+    est = {"a": truth["a"] + [0.0, 0.3], "b": truth["b"] + [4.0, 0.0]}
+    ev = SimpleNamespace(true_xy_by_key=truth, est_xy_by_key=est)
+    assert worst_trip_rmse_m(ev) == pytest.approx(4.0)
+    assert np.isnan(worst_trip_rmse_m(SimpleNamespace(true_xy_by_key=truth, est_xy_by_key={})))
