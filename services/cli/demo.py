@@ -347,11 +347,15 @@ def run_fleet(service: Service, scenario_dir: Path, out_dir: Path) -> dict[str, 
         if out_dir.exists():
             shutil.rmtree(out_dir)
         counts = fleet.download_results(http, ids, out_dir, fleet.scenario_bbox(scenario_dir))
-        failed = {}
+        failed, marked = {}, {}
         for key, status in statuses.items():
+            trip = http.get(f"/v1/trips/{ids[key]}").json()
             if status == "failed":
-                failed[key] = http.get(f"/v1/trips/{ids[key]}").json().get("error") or "failed"
-    return {"ids": ids, "statuses": statuses, "failed": failed, "counts": counts,
+                failed[key] = trip.get("error") or "failed"
+            quality = trip.get("quality") or {}
+            if quality.get("verdict") in ("repaired", "degraded"):
+                marked[key] = f"{quality['verdict']}: {quality.get('reason', '')}"
+    return {"ids": ids, "statuses": statuses, "failed": failed, "marked": marked, "counts": counts,
             "upload_s": t1 - t0, "process_s": t2 - t1}
 
 
@@ -505,6 +509,8 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
           f"{fleet_run['counts']['features']} map features", flush=True)
     for key, error in fleet_run["failed"].items():
         print(f"  failed {key}: {error}")
+    for key, verdict in fleet_run["marked"].items():  # poses off the trip's own GNSS at first
+        print(f"  {key}: {verdict}")
 
     evaluated = {SERVICE_METHOD: evaluate_output(scenario_dir, data_dir / "results" / "service")}
     if not args.no_baseline:
