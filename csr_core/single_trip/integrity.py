@@ -262,10 +262,11 @@ def smooth_poses_checked(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gn
         return smoothed, quality(TripVerdict.OK, "", first, first)
     why = _why(first)
     log.info("trip poses off their GNSS (%s): repairing", why)
-    # repair: no odometry yaw calibration, the heading loosely held (the GNSS course and the
-    # positions set it), hardly any fix rejected
+    # repair: no odometry yaw calibration, the heading and the distance loosely held (the GNSS
+    # course and positions set them), hardly any fix rejected
     repair_params = replace(params, CAL_ENABLED=False, GNSS_MIN_INLIER_SHARE=0.9,
-                            ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_REPAIR_YAW_FACTOR)
+                            ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_REPAIR_YAW_FACTOR,
+                            ODOM_SIGMA_XY_PER_M=params.ODOM_SIGMA_XY_PER_M * params.INTEGRITY_REPAIR_XY_FACTOR)
     repaired = smooth_poses(*args, repair_params)
     second = check(repaired)
     if second.passed:

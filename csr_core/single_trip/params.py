@@ -88,6 +88,7 @@ class SingleTripParams:
     INTEGRITY_MEDIAN_FACTOR: float = 1.5  # the trip's median distance to its fixes over the error model's
     INTEGRITY_MAX_REJECTED_SHARE: float = 0.25  # of the trip's fixes rejected by the smoother
     INTEGRITY_REPAIR_YAW_FACTOR: float = 30.0  # repair: the odometry yaw drift sigma times this
+    INTEGRITY_REPAIR_XY_FACTOR: float = 4.0  # repair: the odometry distance sigma times this
     INTEGRITY_ANCHOR_YAW_FACTOR: float = 300.0  # fallback: odometry sigmas times this (GNSS-anchored)
 
     # graph nodes (frames in between follow the odometry): keeps the cost per km fixed
