@@ -138,9 +138,7 @@ class PerceptionParamsB:
 
 def traffic_b() -> TrafficParams:
     """Fleet b drives the same routes generator with more red-light stops and some loops."""
-    return dataclasses.replace(
-        TrafficParams(), red_light_prob=0.7, red_light_wait_s=(8.0, 50.0), loop_route_share=0.25
-    )
+    return dataclasses.replace(TrafficParams(), red_light_prob=0.7, loop_route_share=0.25)
 
 
 @dataclass(frozen=True, slots=True)

@@ -57,6 +57,7 @@ class TruthIndexB:
     samples_xy: np.ndarray  # (M, 2)
     sample_line: np.ndarray  # (M,) index into ``lines``
     sample_seq: np.ndarray  # (M,) ordinal along its line
+    sample_s: np.ndarray  # (M,) arclength along its line, m
     sample_dash: np.ndarray  # (M,) dash number, or _NOT_DASHED / _GAP
     tree: cKDTree | None
     polygons: tuple[TruthElement, ...]
@@ -74,7 +75,7 @@ def dash_numbers(element_id: int, s_m: np.ndarray, params: PerceptionParamsB) ->
 def build_truth_index_b(elements: tuple[TruthElement, ...], params: PerceptionParamsB) -> TruthIndexB:
     lines = tuple(e for e in elements if e.type in _LINE_TYPES and len(e.points_xy_world) >= 2)
     polys = tuple(e for e in elements if e.type.is_polygon and len(e.points_xy_world) >= 3)
-    xy, which, seq, dash = [], [], [], []
+    xy, which, seq, dash, arc = [], [], [], [], []
     for i, e in enumerate(lines):
         pts = geo.dedupe(np.asarray(e.points_xy_world, float))
         if len(pts) < 2:
@@ -84,6 +85,7 @@ def build_truth_index_b(elements: tuple[TruthElement, ...], params: PerceptionPa
         xy.append(geo.interpolate_at(pts, s))
         which.append(np.full(len(s), i))
         seq.append(np.arange(len(s)))
+        arc.append(s)
         dashed = e.type == ElementType.LANE_DIVIDER and e.style == DividerStyle.DASHED
         dash.append(dash_numbers(e.element_id, s, params) if dashed else np.full(len(s), _NOT_DASHED))
     samples = np.vstack(xy) if xy else np.zeros((0, 2))
@@ -94,6 +96,7 @@ def build_truth_index_b(elements: tuple[TruthElement, ...], params: PerceptionPa
         samples,
         np.concatenate(which) if which else np.zeros(0, np.int64),
         np.concatenate(seq) if seq else np.zeros(0, np.int64),
+        np.concatenate(arc) if arc else np.zeros(0),
         np.concatenate(dash) if dash else np.zeros(0, np.int64),
         cKDTree(samples) if len(samples) else None,
         polys,
@@ -150,11 +153,6 @@ def _score(r_m: float, occluded_share: float, params: PerceptionParamsB, rng: np
     logit = params.score_logit_base - params.score_logit_range * r_m / r_max - 2.0 * occluded_share
     logit += rng.normal(0.0, params.score_logit_sigma)
     return round(float(1.0 / (1.0 + np.exp(-logit))), 3)
-
-
-def _resample_n(points_xy: np.ndarray, n: int) -> np.ndarray:
-    s = geo.arclength_m(points_xy)
-    return geo.interpolate_at(points_xy, np.linspace(0.0, s[-1], n))
 
 
 def _apply_rig(points_xy: np.ndarray, rig: np.ndarray) -> np.ndarray:
@@ -215,38 +213,64 @@ def perceive_lines(
     if len(vis) == 0:
         return []
     seq, li, ky = index.sample_seq[cand][vis], line[vis], key[vis]
-    cuts = np.flatnonzero((np.diff(li) != 0) | (np.diff(seq) != 1) | (np.diff(ky) != 0)) + 1
+    s_m, pts_v, r_v = index.sample_s[cand][vis], local[vis], r[vis]
+    first = np.flatnonzero(np.r_[True, (np.diff(li) != 0) | (np.diff(seq) != 1) | (np.diff(ky) != 0)])
+    last = np.r_[first[1:], len(vis)] - 1
+    count = last - first + 1
+    length_m = s_m[last] - s_m[first]
+    r_mean = np.add.reduceat(r_v, first) / count
+    small = np.array([index.lines[i].type == ElementType.STOP_LINE for i in li[first]])
+    r_max = max(abs(v) for v in params.range_x_m)
+    occ = occluded_share[li[first]]
+    p_miss = params.miss_prob_base + params.miss_prob_range * (r_mean / r_max) ** 2
+    p_miss = np.minimum(p_miss + params.miss_prob_occlusion * occ + params.small_element_miss_prob * small, 1.0)
+    # the ordinal of each run among the runs of its (line, dash) in this frame
+    run_key = li[first] * 1_000_003 + ky[first]
+    ordinal = np.zeros(len(first), dtype=np.int64)
+    _, inverse = np.unique(run_key, return_inverse=True)
+    seen: dict[int, int] = {}
+    for j, g in enumerate(inverse.tolist()):
+        ordinal[j] = seen.get(g, 0)
+        seen[g] = ordinal[j] + 1
+    detected = (count >= 2) & (length_m >= params.min_piece_m) & (rng.random(len(first)) >= p_miss)
+    runs = np.flatnonzero(detected)
+    if len(runs) == 0:
+        return []
+    # resample every detected run to n points by arclength (runs kept apart by a large offset)
+    n_pts = np.clip(np.ceil(length_m[runs] / params.min_point_spacing_m) + 1, 2, params.points_per_instance)
+    n_pts = n_pts.astype(np.int64)
+    run_of_sample = np.repeat(np.arange(len(first)), count)
+    s_global = s_m + run_of_sample * 1.0e6
+    run_of_pt = np.repeat(runs, n_pts)
+    starts = np.r_[0, np.cumsum(n_pts)[:-1]]
+    frac = (np.arange(n_pts.sum()) - np.repeat(starts, n_pts)) / np.repeat(n_pts - 1, n_pts)
+    s_new = s_m[first][run_of_pt] + frac * length_m[run_of_pt] + run_of_pt * 1.0e6
+    pts = np.column_stack([np.interp(s_new, s_global, pts_v[:, 0]), np.interp(s_new, s_global, pts_v[:, 1])])
+    # noise: per-track bias and per-instance offset normal to the chord, per-point white noise
+    tracks = [tracker.assign((index.lines[li[first[j]]].element_id, int(ky[first[j]]), int(ordinal[j])),
+                             frame_k, rng) for j in runs.tolist()]
+    ends = starts + n_pts - 1
+    chord = pts[ends] - pts[starts]
+    normal = np.column_stack([-chord[:, 1], chord[:, 0]]) / np.maximum(np.linalg.norm(chord, axis=1), 1e-9)[:, None]
+    offset = np.array([b for _, b in tracks]) + rng.standard_normal(len(runs)) * sigma_at_range_m(
+        params.offset_sigma_base_m, params.offset_sigma_quad_per_m2, r_mean[runs])
+    factor = np.array([params.centerline_noise_factor if index.lines[li[first[j]]].type == ElementType.CENTERLINE
+                       else 1.0 for j in runs.tolist()])
+    sig = sigma_at_range_m(params.point_sigma_base_m, params.point_sigma_quad_per_m2, np.linalg.norm(pts, axis=1))
+    k_of_pt = np.repeat(np.arange(len(runs)), n_pts)
+    pts = pts + factor[k_of_pt, None] * (
+        (offset * normal.T).T[k_of_pt] + sig[:, None] * rng.standard_normal(pts.shape))
+    coords = np.round(_apply_rig(pts, rig), 3).tolist()
+    logit = params.score_logit_base - params.score_logit_range * r_mean[runs] / r_max - 2.0 * occ[runs]
+    score = np.round(1.0 / (1.0 + np.exp(-(logit + params.score_logit_sigma * rng.standard_normal(len(runs))))), 3)
     out: list[dict] = []
-    ordinal: dict[tuple[int, int], int] = {}
-    for run in np.split(np.arange(len(vis)), cuts):
-        pts = local[vis[run]]
-        if len(pts) < 2 or geo.arclength_m(pts)[-1] < params.min_piece_m:
-            continue
-        i, k = int(li[run[0]]), int(ky[run[0]])
-        truth = index.lines[i]
-        o = ordinal.get((i, k), 0)
-        ordinal[(i, k)] = o + 1
-        r_mean = float(np.mean(r[vis[run]]))
-        small = truth.type == ElementType.STOP_LINE
-        if rng.random() < miss_probability(r_mean, float(occluded_share[i]), small, params):
-            continue
-        track_id, bias_m = tracker.assign((truth.element_id, k, o), frame_k, rng)
-        length_m = float(geo.arclength_m(pts)[-1])
-        n_pts = int(np.clip(np.ceil(length_m / params.min_point_spacing_m) + 1, 2, params.points_per_instance))
-        pts = _resample_n(pts, n_pts)
-        factor = params.centerline_noise_factor if truth.type == ElementType.CENTERLINE else 1.0
-        chord = pts[-1] - pts[0]
-        normal = np.array([-chord[1], chord[0]]) / max(float(np.linalg.norm(chord)), 1e-9)
-        offset = bias_m + rng.normal(0.0, 1.0) * sigma_at_range_m(
-            params.offset_sigma_base_m, params.offset_sigma_quad_per_m2, r_mean)
-        sig = sigma_at_range_m(params.point_sigma_base_m, params.point_sigma_quad_per_m2,
-                               np.linalg.norm(pts, axis=1))
-        pts = pts + factor * (offset * normal + sig[:, None] * rng.standard_normal(pts.shape))
-        el: dict = {"type": truth.type.value, "points": np.round(_apply_rig(pts, rig), 3).tolist()}
+    for k, j in enumerate(runs.tolist()):
+        truth = index.lines[li[first[j]]]
+        el: dict = {"type": truth.type.value, "points": coords[starts[k] : starts[k] + n_pts[k]]}
         if truth.type == ElementType.LANE_DIVIDER:
-            el["style"] = _style(truth, r_mean, params, rng)
-        el["score"] = _score(r_mean, float(occluded_share[i]), params, rng)
-        el["track_id"] = track_id
+            el["style"] = _style(truth, float(r_mean[j]), params, rng)
+        el["score"] = float(score[k])
+        el["track_id"] = tracks[k][0]
         out.append(el)
     return out
 
