@@ -11,7 +11,8 @@ errors):
 - Yaw rate: the true rate times ``1 + gyro scale error`` (per vehicle) plus a bias that starts at
   ``N(0, gyro_bias_init_sigma_rad_s)`` and follows a random walk of
   ``gyro_bias_rw_rad_s_per_sqrt_s`` (rate random walk), plus white noise ``gyro_white_rad_s`` per
-  sample. At standstill (no tick in a step) the heading is held, as a zero-velocity update does.
+  sample. At standstill (no wheel tick within ``standstill_window_s``) the heading is held, as a
+  zero-velocity update does.
 - Integration: heading by the measured rate, position by the tick distance along the mid-step
   heading; the odometry frame starts at a random pose (only differences are meaningful), yaw
   wrapped to (-pi, pi].
@@ -78,7 +79,10 @@ def simulate_odometry_b(
     bias = b0 + np.concatenate([[0.0], np.cumsum(steps[:-1])])
     omega_meas = omega * (1.0 + odometer.gyro_scale_error) + bias
     omega_meas += params.gyro_white_rad_s * rng.standard_normal(len(dt))
-    dyaw = np.where(d_meas > 0.0, omega_meas * dt, 0.0)
+    # standstill: no wheel tick within +-standstill_window_s (one tick gap at 1 m/s is 0.02 s)
+    half = max(1, int(round(params.standstill_window_s * params.integration_rate_hz)))
+    ticking = np.convolve((d_meas > 0.0).astype(float), np.ones(2 * half + 1), mode="same") > 0.0
+    dyaw = np.where(ticking, omega_meas * dt, 0.0)
 
     x0, y0 = rng.uniform(-params.start_pose_span_m, params.start_pose_span_m, 2)
     yaw0 = rng.uniform(-np.pi, np.pi)

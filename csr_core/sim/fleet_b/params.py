@@ -74,6 +74,7 @@ class OdometryParamsB:
     gyro_bias_rw_rad_s_per_sqrt_s: float = 1.0e-5  # random walk of the bias (rate random walk)
     gyro_white_rad_s: float = 8.7e-4  # white noise per 100 Hz sample (0.3 deg/sqrt(h) ARW ~ 0.05 deg/s)
     gyro_scale_sigma: float = 0.003  # per vehicle yaw-rate scale factor error
+    standstill_window_s: float = 0.5  # no wheel tick within +- this: standstill, heading held
     start_pose_span_m: float = 5000.0  # the odometry frame starts at a random pose (+-this, any yaw)
 
 

@@ -323,9 +323,9 @@ def false_positives(params: PerceptionParamsB, rig: np.ndarray, tracker: Tracker
     (x0, x1), (y0, y1) = params.range_x_m, params.range_y_m
     for _ in range(int(rng.poisson(params.false_positive_rate_per_frame))):
         kind = _FP_TYPES[int(rng.choice(len(_FP_TYPES), p=_FP_TYPE_PROBS))]
-        start = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
-        ang = rng.normal(0.0, 0.3)
         length = rng.uniform(*params.false_positive_length_m)
+        start = np.array([rng.uniform(x0, max(x0, x1 - length)), rng.uniform(y0, y1)])
+        ang = rng.normal(0.0, 0.3)
         u = np.linspace(0.0, length, params.points_per_instance)[:, None]
         pts = start + u * np.array([np.cos(ang), np.sin(ang)])
         pts = np.column_stack([np.clip(pts[:, 0], x0, x1), np.clip(pts[:, 1], y0, y1)])
