@@ -290,7 +290,7 @@ def test_lines_are_clipped_at_the_bev_range():
 @pytest.fixture(scope="module")
 def fleet_b_scenario(tmp_path_factory):
     out = tmp_path_factory.mktemp("fleet_b") / "urban"
-    meta = simulate_scenario("urban", 2, "standard", 7, out, trip_length_m=60.0, fleet="b")
+    meta = simulate_scenario("urban", 1, "standard", 7, out, trip_length_m=60.0, fleet="b")
     return out, meta
 
 
@@ -310,7 +310,7 @@ def test_fleet_b_uploads_validate_and_scenario_json_records_the_model(fleet_b_sc
 
 def test_fleet_b_is_deterministic(fleet_b_scenario, tmp_path):
     out, _ = fleet_b_scenario
-    simulate_scenario("urban", 2, "standard", 7, tmp_path / "again", trip_length_m=60.0, fleet="b")
+    simulate_scenario("urban", 1, "standard", 7, tmp_path / "again", trip_length_m=60.0, fleet="b")
     assert _folder_hash(tmp_path / "again") == _folder_hash(out)
 
 
