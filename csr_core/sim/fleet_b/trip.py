@@ -62,7 +62,8 @@ def simulate_trip_b(
     """Route, drive, sense with fleet b; the upload document and the truth."""
     rng_route, rng_drive, rng_gnss, rng_odom, rng_perc = (np.random.default_rng(s) for s in seed_seq.spawn(5))
     traffic = params.traffic
-    if rng_route.random() < traffic.loop_route_share:
+    loops = bool(rng_route.random() < traffic.loop_route_share)
+    if loops:
         route = looping_route(world, rng_route, trip_length_m, traffic)
     else:
         route = random_route(world, rng_route, trip_length_m, traffic)
@@ -82,6 +83,7 @@ def simulate_trip_b(
         "frames": len(t),
         "duration_s": round(float(t[-1]), 1),
         "length_m": round(float(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1).sum()), 1),
+        "route": "loop" if loops else "random",
         "gnss_status_share": {n: round(float(np.mean(gnss.status == s)), 3) for s, n in enumerate(_STATUS_NAMES)},
         "gnss_error_median_m": round(float(np.median(err)), 3) if err.size else None,
         "gnss_receiver": vehicle.receiver.kind,
