@@ -110,14 +110,20 @@ def test_gnss_course_noise_scales_with_one_over_speed_and_is_absent_when_slow():
     assert np.isnan(g.course_deg).mean() > 0.99
 
 
-def test_gnss_multipath_bursts_start_at_the_stated_rate():
-    params = dataclasses.replace(_one_status(0), multipath_rate_per_s=0.01, multipath_mean_m=3.0)
+def test_gnss_multipath_bursts_start_at_the_stated_rate_and_cost_the_rtk_fix():
+    params = dataclasses.replace(_one_status(0), multipath_rate_per_s=0.01)
     t, poses = _straight(200_000, 10.0)
     g = simulate_gnss_b(t, poses, params, np.zeros((0, 3)), np.random.default_rng(5), ReceiverB(True, 0.0))
-    big = np.linalg.norm(g.error_xy_m, axis=1) > 0.5  # far beyond the rtk_fixed error
-    starts = np.count_nonzero(np.diff(big.astype(int)) == 1)
-    expected = params.multipath_rate_per_s * t[-1]
-    assert 0.6 * expected < starts < 1.1 * expected  # small bursts stay below the threshold
+    in_burst = g.multipath_m > 0.0
+    starts = np.count_nonzero(np.diff(in_burst.astype(int)) == 1)
+    # a burst starting inside another merges with it: exp(-rate x mean duration) are seen apart
+    mean_s = np.mean(params.multipath_duration_s)
+    expected = params.multipath_rate_per_s * t[-1] * np.exp(-params.multipath_rate_per_s * mean_s)
+    assert abs(starts - expected) < 3.5 * np.sqrt(expected)
+    assert g.multipath_m.max() <= params.multipath_max_m
+    large = g.multipath_m > 0.5 * params.multipath_max_m  # only in bursts over multipath_unfix_m
+    assert (g.status[large] == GnssStatus.RTK_FLOAT).all()
+    assert np.mean(g.status[~in_burst] == GnssStatus.RTK_FIXED) > 0.999  # (a burst's first epoch has 0 m)
 
 
 # --- odometry ---------------------------------------------------------------------------------

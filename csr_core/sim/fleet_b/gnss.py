@@ -13,7 +13,9 @@ Kaplan and Hegarty, *Understanding GPS/GNSS*, 3rd ed., ch. 11):
   sigma e_k``, ``phi = exp(-dt / tau)``), running the whole trip; a status change switches to the
   other solution's bias, so the fix jumps as a receiver's does when its solution changes.
 - Multipath bursts: Poisson starts (more inside the world's canyon zones), a half-sine offset of
-  exponential amplitude in a random direction; the receiver does not see them in ``std_m``.
+  exponential amplitude (capped) in a random direction; the receiver does not see them in
+  ``std_m``, but a burst larger than ``multipath_unfix_m`` costs an RTK fix (rtk_fixed is
+  reported as rtk_float while it lasts).
 - Outages: Poisson starts, status ``none``.
 - ``std_m``: the status's true 2-D RMS error times ``std_report_factor`` (below 1: optimistic, as
   float and single solutions typically are) times a per-fix log-normal jitter.
@@ -57,6 +59,7 @@ class GnssTrackB:
     error_xy_m: np.ndarray  # (N, 2) fix minus true reference position
     std_m: np.ndarray  # (N,) reported std, NaN where status is NONE
     course_deg: np.ndarray  # (N,) grid course clockwise from north, NaN where absent
+    multipath_m: np.ndarray  # (N,) size of the multipath offset in the fix (0 outside bursts)
 
 
 def draw_receiver_b(params: GnssParamsB, rng: np.random.Generator) -> ReceiverB:
@@ -125,6 +128,22 @@ def simulate_gnss_b(
 
     allowed = tuple(range(4)) if receiver.has_corrections else tuple(int(s) for s in _DEGRADED)
     status = status_chain(n, params, allowed, rng)
+
+    # multipath bursts: half-sine offsets, unseen by std_m; a large one costs an RTK fix
+    in_zone = _in_zones(true_xy, canyon_zones_xyr)
+    rate = params.multipath_rate_per_s * dt_s * np.where(in_zone, params.multipath_canyon_factor, 1.0)
+    multipath = np.zeros((n, 2))
+    for k0 in _events(rate, rng):
+        amp = min(rng.exponential(params.multipath_mean_m), params.multipath_max_m)
+        ang = rng.uniform(0.0, 2.0 * np.pi)
+        dur = rng.uniform(*params.multipath_duration_s)
+        k1 = min(n, k0 + max(1, int(round(dur / dt_s))))
+        phase = (t_s[k0:k1] - t_s[k0]) / dur
+        multipath[k0:k1] += amp * np.sin(np.pi * phase)[:, None] * np.array([np.cos(ang), np.sin(ang)])
+        if amp > params.multipath_unfix_m:
+            seg = status[k0:k1]
+            seg[seg == GnssStatus.RTK_FIXED] = GnssStatus.RTK_FLOAT
+
     bias = np.zeros((n, 2))
     white = rng.standard_normal((n, 2))
     sigma_white = np.zeros(n)
@@ -137,18 +156,7 @@ def simulate_gnss_b(
         sigma_white[here] = model.white_sigma_m
         honest_2d[here] = np.sqrt(2.0 * (model.bias_sigma_m**2 + model.white_sigma_m**2))
         factor[here] = model.std_report_factor
-    error = bias + sigma_white[:, None] * white
-
-    # multipath bursts: half-sine offsets, unseen by std_m
-    in_zone = _in_zones(true_xy, canyon_zones_xyr)
-    rate = params.multipath_rate_per_s * dt_s * np.where(in_zone, params.multipath_canyon_factor, 1.0)
-    for k0 in _events(rate, rng):
-        amp = rng.exponential(params.multipath_mean_m)
-        ang = rng.uniform(0.0, 2.0 * np.pi)
-        dur = rng.uniform(*params.multipath_duration_s)
-        k1 = min(n, k0 + max(1, int(round(dur / dt_s))))
-        phase = (t_s[k0:k1] - t_s[k0]) / dur
-        error[k0:k1] += amp * np.sin(np.pi * phase)[:, None] * np.array([np.cos(ang), np.sin(ang)])
+    error = bias + sigma_white[:, None] * white + multipath
 
     # outages
     for k0 in _events(np.full(n, params.outage_rate_per_s * dt_s), rng):
@@ -163,4 +171,4 @@ def simulate_gnss_b(
     course[(speed_meas < params.course_min_speed_mps) | none] = np.nan
     std[none] = np.nan
     position = xy_lag + error
-    return GnssTrackB(status, position, position - true_xy, std, course)
+    return GnssTrackB(status, position, position - true_xy, std, course, np.linalg.norm(multipath, axis=1))

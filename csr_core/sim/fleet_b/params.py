@@ -51,7 +51,9 @@ class GnssParamsB:
     # multipath bursts: Poisson starts, a half-sine offset in a random direction, not in std_m
     multipath_rate_per_s: float = 0.004
     multipath_canyon_factor: float = 10.0  # rate multiplier inside the world's canyon zones
-    multipath_mean_m: float = 2.5  # burst amplitude ~ exponential with this mean
+    multipath_mean_m: float = 2.5  # burst amplitude ~ exponential with this mean ...
+    multipath_max_m: float = 8.0  # ... capped here
+    multipath_unfix_m: float = 1.0  # a larger burst turns rtk_fixed into rtk_float while it lasts
     multipath_duration_s: tuple[float, float] = (1.0, 6.0)
     # short outages (bridges, tunnels): status none, no std_m nor course
     outage_rate_per_s: float = 0.001
