@@ -255,8 +255,10 @@ def _simulate_scenario(
     prof = _fleet_params(fleet, profile)
     world = load_world(world_name)
     frame = LocalFrame(world.origin_lat, world.origin_lon)
-    index = build_truth_index(world, prof.perception) if fleet == "a" else None
-    index_b = build_truth_index_b(world.elements, prof.perception) if fleet == "b" else None
+    index: Any = (
+        build_truth_index(world, prof.perception) if fleet == "a" else build_truth_index_b(world.elements, prof.perception)
+    )
+    simulate: Callable[..., Any] = simulate_trip if fleet == "a" else simulate_trip_b
     out = Path(out_dir)
     for stale in [*out.glob("trips/*.json.gz"), *out.glob("truth/poses/*.csv")]:
         stale.unlink()
@@ -281,11 +283,10 @@ def _simulate_scenario(
         vehicle = vehicles[i % n_vehicles]
         started = starts[i]
         trip_id = f"{started:%Y-%m-%dT%H-%M-%SZ}-{i + 1:04d}"
-        simulate = simulate_trip if fleet == "a" else simulate_trip_b
         trip = simulate(
             world,
             frame,
-            index if fleet == "a" else index_b,
+            index,
             prof,
             children[i + 1],
             vehicle,
