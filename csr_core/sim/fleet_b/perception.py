@@ -134,9 +134,9 @@ class Tracker:
         return track[0], track[2]
 
 
-def sigma_at_range_m(base_m: float, quad_per_m2: float, r_m: np.ndarray | float) -> np.ndarray | float:
+def sigma_at_range_m(base_m: float, quad_per_m2: float, r_m: np.ndarray | float) -> np.ndarray:
     """Noise sigma growing quadratically with the distance ``r_m`` from the vehicle."""
-    return base_m + quad_per_m2 * np.square(r_m)
+    return base_m + quad_per_m2 * np.square(np.asarray(r_m, dtype=float))
 
 
 def miss_probability(
