@@ -1,6 +1,7 @@
 """`csr simulate`: write a simulated fleet scenario folder (contract section 5).
 
 csr simulate --world urban --trips 20 --profile standard --seed 1 --out scen/urban [--trip-length-m 2000] [--plot]
+             [--fleet a|b]
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import time
 WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9",
           "newmarket")  # csr_core.sim.WORLD_NAMES
 PROFILES = ("standard", "hard", "noiseless", "loops")
+FLEETS = ("a", "b")  # csr_core.sim.scenario.FLEETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,6 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed: byte-identical output)")
     p.add_argument("--out", required=True, help="scenario folder to write")
     p.add_argument("--trip-length-m", type=float, default=2000.0, help="length of each trip (metres)")
+    p.add_argument(
+        "--fleet", default="a", choices=FLEETS,
+        help="fleet model: a (profiles.py models, --profile applies) or b (csr_core.sim.fleet_b, its own parameters)",
+    )
     p.add_argument("--plot", action="store_true", help="also draw OUT/overview.png (truth map and trips)")
     p.set_defaults(func=_run)
 
@@ -55,6 +61,7 @@ def _run(args: argparse.Namespace) -> int:
             args.out,
             trip_length_m=args.trip_length_m,
             progress=progress,
+            fleet=args.fleet,
         )
     if args.plot:
         from csr_core.sim import load_world
