@@ -172,6 +172,8 @@ def ensure_scenario(spec: ScenarioSpec, cache_dir: Path, fingerprint: str | None
     ]
     if spec.trip_length_m:
         argv += ["--trip-length-m", str(spec.trip_length_m)]
+    if spec.fleet != "a":
+        argv += ["--fleet", spec.fleet]
     log.info("simulating %s", spec.name)
     run = run_measured(argv)
     if run.returncode != 0:

@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe")
+#: the fleet models of ``csr simulate --fleet`` (docs/simulator.md): every real map runs with both
+FLEETS = ("a", "b")
 #: the real maps the simulator ships (csr_core/sim/data): the main accuracy set
 REAL_MAP_WORLDS = ("karlsruhe", "kashiwanoha", "carcarana", "a9", "newmarket")
 
@@ -17,11 +19,13 @@ class ScenarioSpec:
     profile: str = "standard"
     seed: int = 1
     trip_length_m: float | None = None
+    fleet: str = "a"  # the fleet model (csr simulate --fleet): a, or b (csr_core.sim.fleet_b)
 
     @property
     def name(self) -> str:
         length = f"-{int(self.trip_length_m)}m" if self.trip_length_m else ""
-        return f"{self.world}-{self.profile}-{self.trips}x{length}-s{self.seed}"
+        fleet = "" if self.fleet == "a" else f"-fleet{self.fleet}"
+        return f"{self.world}-{self.profile}{fleet}-{self.trips}x{length}-s{self.seed}"
 
 
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
@@ -64,11 +68,11 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
         return [ScenarioSpec(w, 8, "hard", seed, 1500.0) for w, seed in VALIDATOR_FLEETS]
     if name == "variants":
         return [ScenarioSpec(w, n, "standard", 1, length) for w, n, length in VARIANT_FLEETS]
-    if name == "real-maps":  # every real map, standard and hard, three seeds
-        return [ScenarioSpec(w, 10, profile, seed, 1500.0) for profile in ("standard", "hard")
-                for seed in STANDARD_SEEDS for w in REAL_MAP_WORLDS]
-    if name == "real-maps-quick":  # one seed of the standard profile
-        return [ScenarioSpec(w, 10, "standard", 1, 1500.0) for w in REAL_MAP_WORLDS]
+    if name == "real-maps":  # every real map, both fleet models, standard and hard, three seeds
+        return [ScenarioSpec(w, 10, profile, seed, 1500.0, fleet) for fleet in FLEETS
+                for profile in ("standard", "hard") for seed in STANDARD_SEEDS for w in REAL_MAP_WORLDS]
+    if name == "real-maps-quick":  # one seed of the standard profile, both fleet models
+        return [ScenarioSpec(w, 10, "standard", 1, 1500.0, fleet) for fleet in FLEETS for w in REAL_MAP_WORLDS]
     if name == "loops":  # trips that lap short loops with long stops (the integrity test's case)
         return [ScenarioSpec(w, 8, "loops", 1, 2000.0) for w in ("roundabout", "urban", "kashiwanoha")]
     if name == "toy":

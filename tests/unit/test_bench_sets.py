@@ -56,9 +56,13 @@ def test_the_real_map_set_is_every_shipped_real_map_at_both_profiles_and_three_s
 
     assert set(REAL_MAP_WORLDS) <= set(WORLD_NAMES)
     specs = scenario_set("real-maps")
-    assert {(s.world, s.profile, s.seed) for s in specs} == {
-        (w, p, seed) for w in REAL_MAP_WORLDS for p in ("standard", "hard") for seed in STANDARD_SEEDS}
-    assert [s.world for s in scenario_set("real-maps-quick")] == list(REAL_MAP_WORLDS)
+    assert {(s.world, s.profile, s.seed, s.fleet) for s in specs} == {
+        (w, p, seed, f) for w in REAL_MAP_WORLDS for p in ("standard", "hard") for seed in STANDARD_SEEDS
+        for f in ("a", "b")}
+    assert len({s.name for s in specs}) == len(specs)
+    quick = scenario_set("real-maps-quick")
+    assert [(s.world, s.fleet) for s in quick] == [(w, f) for f in ("a", "b") for w in REAL_MAP_WORLDS]
+    assert quick[0].name == "karlsruhe-standard-10x-1500m-s1" and quick[-1].name.endswith("-fleetb-10x-1500m-s1")
     assert all(s.profile == "loops" for s in scenario_set("loops"))
 
 
