@@ -172,8 +172,8 @@ def looping_route(world: World, rng: np.random.Generator, length_m: float, param
     lights). Its GNSS/odometry chords longer than a loop are all in the approach, the case a
     trip-level odometry calibration must not be fooled by."""
     g = world.lane_graph
-    loops = {lane: _shortest_loop(world, lane) for lane in sorted(g.nodes) if g.nodes[lane]["visible"]}
-    loops = {k: v for k, v in loops.items() if v is not None}
+    found = {lane: _shortest_loop(world, lane) for lane in sorted(g.nodes) if g.nodes[lane]["visible"]}
+    loops = {k: v for k, v in found.items() if v is not None}
     if not loops:
         raise SimulationError(f"world {world.name!r}: no loop in the lane graph")
     shortest = min(sum(_lane_length(world, n) for n in v) for v in loops.values())
