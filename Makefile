@@ -46,6 +46,7 @@ test-integration: setup
 
 lint: setup
 	$(BIN)/ruff check services workers migrations tests csr_core
+	$(BIN)/ruff format --check csr_core services workers migrations tests
 	$(BIN)/mypy
 
 # Ingest throughput (BENCHMARKS.md); the distributed row uses a scratch database on the local PostGIS

@@ -131,7 +131,7 @@ def _check_semantics(doc: dict[str, Any]) -> None:
         )
 
 
-def validate_upload_json(body: bytes | str) -> dict[str, Any]:
+def validate_upload_json(body: bytes | bytearray | str) -> dict[str, Any]:
     """Validate a raw JSON upload; return the parsed document.
 
     Raises :class:`UploadError` naming the frame and field of the first problem.

@@ -82,7 +82,9 @@ class LocalDeployment:
     @property
     def effective_database_url(self) -> str:
         if self.kind == "distributed":
+            assert self.database_url is not None, "a distributed deployment needs a database URL"
             return self.database_url
+        assert self._tmp is not None, "the deployment is not running"
         return f"sqlite:///{Path(self._tmp.name) / 'csr.sqlite3'}"
 
     def job_seconds(self) -> dict[str, float]:
@@ -97,6 +99,7 @@ class LocalDeployment:
         return {r[0]: float(r[1]) for r in rows}
 
     def _wait_healthy(self, timeout_s: float = 90.0) -> None:
+        assert self._tmp is not None
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self._procs[0].poll() is not None:

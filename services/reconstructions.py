@@ -30,7 +30,7 @@ _POINT_DECIMALS = 3  # millimetres: far below the perception noise
 def encode_arrays(recon: TripReconstruction) -> bytes:
     n = recon.trip.n_frames
     inlier = recon.gnss_inlier if recon.gnss_inlier is not None else recon.trip.has_fix
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "poses_xyyaw_world": np.asarray(recon.poses_xyyaw_world, np.float64).reshape(n, 3),
         "pose_sigma_xy_m": np.asarray(recon.pose_sigma_xy_m, np.float32).reshape(n),
         "keyframe_indices": np.asarray(recon.keyframe_indices, np.int32),
@@ -39,7 +39,8 @@ def encode_arrays(recon: TripReconstruction) -> bytes:
     if recon.white_poses_xyyaw_world is not None:
         arrays["white_poses_xyyaw_world"] = np.asarray(recon.white_poses_xyyaw_world, np.float64).reshape(n, 3)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
+    # mypy checks the **arrays values against allow_pickle: bool too (no key is named so)
+    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
     return buffer.getvalue()
 
 

@@ -97,6 +97,7 @@ def accept_upload(
 ) -> Accepted:
     """Validate and store one upload; raises :class:`ApiError` or ``UploadError`` (nothing stored)."""
     is_gzip = gzipped or body[:2] == GZIP_MAGIC
+    json_body: bytes | bytearray
     if is_gzip:
         json_body = gunzip_limited(body, max_bytes=settings.max_decompressed_bytes)
     elif len(body) > settings.max_decompressed_bytes:

@@ -110,7 +110,7 @@ def _tiles_with_versions(session: Session, tiles: set[Tile]) -> set[Tile]:
         select(TileVersion.z, TileVersion.x, TileVersion.y).distinct()
         .where(TileVersion.z.in_(set(zs)), TileVersion.x.between(min(xs), max(xs)),
                TileVersion.y.between(min(ys), max(ys)))).all()
-    return {tuple(r) for r in rows} & tiles
+    return {(z, x, y) for z, x, y in rows} & tiles
 
 
 def frames_to_align(session: Session, tiles: Iterable[Tile]) -> dict[Tile, int]:

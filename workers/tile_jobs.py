@@ -177,8 +177,8 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             .order_by(Trip.received_at, Trip.id)
         ).all()
         trip_pks = [pk for pk, done in rows if not (has_version and done)]
-        recons = {pk: _load_reconstruction(session, pk, frame) for pk in trip_pks}
-        recons = {pk: r for pk, r in recons.items() if r is not None}
+        loaded = {pk: _load_reconstruction(session, pk, frame) for pk in trip_pks}
+        recons = {pk: r for pk, r in loaded.items() if r is not None}
         prior = _prior_map(session, z, x, y, frame, settings.tile_halo_m, exclude_own=full)
         constraints = corrections_of_tile(session, z, x, y) if full else ([], [])
         messages = bias_messages_of(session, recons, z, x, y, frame)
@@ -569,7 +569,7 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
         started = dict(session.execute(select(Trip.id, Trip.started_at).where(
             Trip.id.in_([r.trip_pk for r in rows]))).all()) if rows else {}
         new = [r for r in rows if r.merged_version_id is None]
-        everything = list(rows)
+        everything: Sequence[TripTileAlignment] = list(rows)
         inputs_new = {r.trip_pk: _alignment_inputs(r, frame) for r in new}
         inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything} if state is None else {}
         pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
@@ -825,5 +825,6 @@ def pending_corrections(session: Session, z: int, x: int, y: int) -> list[str]:
 
 def _npz(**arrays: np.ndarray) -> bytes:
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in arrays.items()})
+    # mypy checks the **arrays values against allow_pickle: bool too (no key is named so)
+    np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]
     return buffer.getvalue()

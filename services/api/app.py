@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 
@@ -32,6 +33,10 @@ from services.db.engine import make_engine, make_session_factory, migrate, read_
 from services.settings import Settings
 from services.tiles.fastpath import TileFastPath
 
+if TYPE_CHECKING:
+    from workers.embedded import EmbeddedRunner
+    from workers.outbox import OutboxRelay
+
 log = logging.getLogger(__name__)
 
 
@@ -45,6 +50,7 @@ def start_context(settings: Settings) -> AppContext:
     with session_factory.begin() as session:
         repo.ensure_bootstrap_admin(session, secret=settings.admin_secret())
     celery = None
+    runner: EmbeddedRunner | OutboxRelay
     if settings.embedded_jobs:
         from workers.embedded import EmbeddedRunner
 

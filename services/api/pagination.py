@@ -20,8 +20,7 @@ from typing import Annotated, Any
 import orjson
 from fastapi import Query, Request
 from fastapi.responses import Response
-from sqlalchemy import Select, tuple_
-from sqlalchemy.sql.elements import ColumnElement
+from sqlalchemy import ColumnExpressionArgument, Select, tuple_
 
 from services.api.errors import ApiError
 
@@ -67,7 +66,12 @@ def _bad_cursor(why: str) -> ApiError:
 
 
 def keyset_page(
-    session: Any, stmt: Select, key: Sequence[ColumnElement], *, limit: int, after: tuple[Any, ...] | None
+    session: Any,
+    stmt: Select,
+    key: Sequence[ColumnExpressionArgument[Any]],
+    *,
+    limit: int,
+    after: tuple[Any, ...] | None,
 ) -> Page:
     """The page of ``stmt`` (rows whose last ``len(key)`` columns are the sort key ``key``, unique
     within the listing) after the sort key ``after``."""

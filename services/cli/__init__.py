@@ -16,6 +16,7 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 
 # module name -> owns these subcommands
+_COMMAND_MODULES: tuple[str, ...]
 _COMMAND_MODULES = ("serve", "worker", "simulate", "reconstruct", "bench", "bench_ingest", "reprocess")
 _COMMAND_MODULES += ("export",)  # csr export: Lanelet2 (services/cli/export.py)
 _COMMAND_MODULES += ("bench_service",)  # csr bench-service: the per-tile pipeline over HTTP

@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from services.cli.bench_ingest import _free_port, _percentile
 
@@ -41,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def write_pairs(db_url: str, n: int, *, tile: tuple[int, int, int] = TILE, seed: int = 1, decimals: int = 6) -> list[str]:
     """``n`` active match pairs in ``tile``, as the align job stores them (confidences rounded to
     ``decimals``: few decimals make ties); returns their ids."""
+    import numpy as np
     from sqlalchemy import insert
 
     from csr_core.geo import tile_bounds_lonlat
@@ -51,9 +53,9 @@ def write_pairs(db_url: str, n: int, *, tile: tuple[int, int, int] = TILE, seed:
     engine = make_engine(db_url)
     migrate(engine)
     west, south, east, north = tile_bounds_lonlat(*tile)
-    (x_min, y_min), (x_max, y_max) = tile_frame(*tile).to_local([[west, south], [east, north]])
+    (x_min, y_min), (x_max, y_max) = tile_frame(*tile).to_local(np.array([[west, south], [east, north]]))
     rng = random.Random(seed)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for i in range(n):
         confidence = round(rng.random(), decimals)
         record = {

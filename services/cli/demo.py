@@ -534,9 +534,9 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
 
     service.check_alive()
     print(f"\ncsr demo: done in {time.perf_counter() - started:.0f} s")
-    for label, path in (("viewer", "/viewer/"), ("ops", "/ops/"), ("API docs", "/docs")):
-        answer = httpx.get(service.base_url + path, timeout=10)
+    for label, route in (("viewer", "/viewer/"), ("ops", "/ops/"), ("API docs", "/docs")):
+        answer = httpx.get(service.base_url + route, timeout=10)
         note = "" if answer.status_code == 200 else f"   (answers {answer.status_code}: {answer.text[:120]})"
-        print(f"  {label:<11} {service.base_url}{path}{note}")
+        print(f"  {label:<11} {service.base_url}{route}{note}")
     print(f"  {'admin key':<11} {service.admin_key}   (also in {data_dir}/service/admin.key; the pages ask for it)\n"
           f"  {'service log':<11} {service.log_path}", flush=True)

@@ -9,9 +9,9 @@ import secrets
 import uuid
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import case, delete, func, or_, select, update
+from sqlalchemy import ColumnElement, CursorResult, case, delete, func, or_, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session, aliased
@@ -81,7 +81,7 @@ def revoke_key(session: Session, *, key_id: str) -> bool:
     result = session.execute(
         update(ApiKey).where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None)).values(revoked_at=utcnow())
     )
-    return result.rowcount == 1
+    return cast(CursorResult, result).rowcount == 1
 
 
 def active_key(session: Session, *, secret: str) -> ApiKey | None:
@@ -269,7 +269,7 @@ def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetim
     long that the broker may have lost the message; tile alignments after the other kinds, then
     oldest first. Rows are locked (``SKIP LOCKED`` on PostgreSQL) so that concurrent relays split
     them. ``workers.dispatch`` decides which of them go and in what order."""
-    pending = Job.dispatched_at.is_(None)
+    pending: ColumnElement[bool] = Job.dispatched_at.is_(None)
     if redispatch_before is not None:
         pending = or_(pending, (Job.state == "queued") & (Job.dispatched_at < redispatch_before))
     stmt = (
@@ -286,9 +286,9 @@ def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetim
 
 def reset_running_jobs(session: Session) -> int:
     """Embedded start-up: jobs left running by a previous process of this deployment run again."""
-    return session.execute(
+    return cast(CursorResult, session.execute(
         update(Job).where(Job.state == "running").values(state="queued", dispatched_at=None)
-    ).rowcount
+    )).rowcount
 
 
 def job_summary(session: Session) -> dict[str, int]:
@@ -315,8 +315,10 @@ def job_summary(session: Session) -> dict[str, int]:
 def job_counts(session: Session) -> list[tuple[str, str, int]]:
     """``(queue, state, count)`` for the metrics."""
     return [
-        tuple(r)
-        for r in session.execute(select(Job.queue, Job.state, func.count()).group_by(Job.queue, Job.state))
+        (queue, state, count)
+        for queue, state, count in session.execute(
+            select(Job.queue, Job.state, func.count()).group_by(Job.queue, Job.state)
+        )
     ]
 
 
@@ -354,7 +356,7 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     jobs = []
     for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
         job = add_job(session, kind="align_tile", subject=tile_subject(tile.z, tile.x, tile.y))
-        taken = session.execute(
+        taken = cast(CursorResult, session.execute(
             update(DirtyTile)
             .where(
                 DirtyTile.z == tile.z,
@@ -363,7 +365,7 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
                 DirtyTile.job_id.is_(None),
             )
             .values(job_id=job.id)
-        ).rowcount
+        )).rowcount
         if taken:
             jobs.append(job)
         else:

@@ -165,6 +165,7 @@ class TileFastPath:
                     if len(self._live) > MAX_LIVE_ENTRIES:
                         self._live.clear()
                     self._live[(kind, z, x, y)] = (etag, time.monotonic() + LIVE_TTL_S, generation)
+        assert etag is not None
         await _respond(send, kind, etag, body, pinned=pinned, not_modified=not_modified)
         return True
 

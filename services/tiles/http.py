@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import Any, Protocol
 
-from fastapi import Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session
 
@@ -32,7 +32,14 @@ MAX_BBOX_AREA_DEG2 = 0.25
 _lock = threading.Lock()
 
 
-def caches(request: Request) -> tuple[TileCache, TileCache]:
+class HasApp(Protocol):
+    """What :func:`caches` reads of a request: ``.app`` (also ``fastpath``'s stand-in)."""
+
+    @property
+    def app(self) -> Any: ...
+
+
+def caches(request: HasApp) -> tuple[TileCache, TileCache]:
     """The app's tile cache (ETag -> bytes) and pinned-ETag cache ((kind, z/x/y, v) -> ETag)."""
     state = request.app.state
     if getattr(state, "tile_cache", None) is None:

@@ -57,7 +57,10 @@ def extents(session: Session, version_ids: Sequence[int]) -> dict[int, Bounds | 
             t.tile_version_id.in_(list(version_ids))
         )
     )
-    return {vid: (None if w is None else (w, s, e, n)) for vid, w, s, e, n in rows}
+    return {
+        vid: (None if w is None or s is None or e is None or n is None else (w, s, e, n))
+        for vid, w, s, e, n in rows
+    }
 
 
 def _meets(extent: Bounds, bounds: Bounds) -> bool:

@@ -23,8 +23,10 @@ def test_ops_page_lists_and_retries_a_failed_job(browser_ready, make_isolated) -
         job_id = http.get("/v1/jobs", params={"subject": good}).json()["jobs"][0]["id"]
     with Session(dep.engine) as session, session.begin():  # an outage recorded as its failure
         job = session.get(Job, job_id)
+        assert job is not None
         job.state, job.error = "failed", "OperationalError: simulated database outage"
         trip = session.get(Trip, good)
+        assert trip is not None
         trip.status, trip.error = "failed", "simulated"
 
     result = run_driver("ops", base=dep.base_url, key=dep.admin_key, retry_job=job_id)

@@ -301,10 +301,12 @@ class Deployment:
             return http.post("/v1/trips", content=body, headers=headers)
 
     def scalar(self, sql: str, **params: Any) -> Any:
+        assert self.engine is not None, "start_server first"
         with self.engine.connect() as conn:
             return conn.execute(sa.text(sql), params).scalar()
 
     def rows(self, sql: str, **params: Any) -> list[sa.Row]:
+        assert self.engine is not None, "start_server first"
         with self.engine.connect() as conn:
             return list(conn.execute(sa.text(sql), params))
 

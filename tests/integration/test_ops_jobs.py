@@ -100,8 +100,10 @@ def test_retry_failed_ingest_runs_a_new_job(deployment: Deployment) -> None:
     assert first["state"] == "done"
     with Session(deployment.engine) as session, session.begin():
         job = session.get(Job, first["id"])
+        assert job is not None
         job.state, job.error = "failed", "OperationalError: simulated outage"
         trip = session.get(Trip, trip_pk)
+        assert trip is not None
         trip.status, trip.error = "failed", "simulated outage"
 
     with deployment.admin() as http:
@@ -165,4 +167,8 @@ def test_retry_failed_tile_job_moves_the_dirty_tile_to_the_new_job(deployment: D
     with Session(deployment.engine) as session:
         dirty = session.get(DirtyTile, (z, x, y))
         # done: the job cleared the tile; failed: the tile waits for the new job, not the old one
-        assert (dirty is None) if final["state"] == "done" else (dirty.job_id == retry["id"])
+        assert (
+            (dirty is None)
+            if final["state"] == "done"
+            else (dirty is not None and dirty.job_id == retry["id"])
+        )

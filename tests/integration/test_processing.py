@@ -6,6 +6,7 @@ from __future__ import annotations
 import secrets
 import time
 
+import numpy as np
 import pytest
 
 from csr_core.geo import tiles_touched
@@ -30,13 +31,14 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     )
     assert trip["length_km"] == pytest.approx(1.0, abs=0.005)
     lonlat = [(f["gnss"]["lon"], f["gnss"]["lat"]) for f in doc["frames"]]
-    gnss_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(lonlat, zoom=16)]
+    gnss_tiles = [f"{z}/{x}/{y}" for z, x, y in tiles_touched(np.array(lonlat), zoom=16)]
     # tiles own frames by smoothed position: within a metre of the GNSS track, so the same tiles
     # unless the track grazes a tile corner
     expected_tiles = trip["tiles"]
     assert len(expected_tiles) >= 2 and len(set(expected_tiles) ^ set(gnss_tiles)) <= 1, (expected_tiles, gnss_tiles)
     assert trip["tiles_pending"] == len(expected_tiles)
 
+    assert deployment.engine is not None
     if deployment.engine.dialect.name == "postgresql":
         geometry = deployment.rows(
             "SELECT ST_GeometryType(track), ST_SRID(track), ST_NPoints(track), "

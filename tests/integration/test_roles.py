@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import orjson
 import pytest
@@ -24,7 +25,7 @@ class World:
 def world(deployment: Deployment) -> World:
     with deployment.admin() as http:
 
-        def key(**body) -> str:
+        def key(**body) -> dict[str, Any]:
             response = http.post("/v1/keys", json=body)
             assert response.status_code == 201, response.text
             return response.json()
@@ -52,7 +53,7 @@ def world(deployment: Deployment) -> World:
 
 BBOX = "8.39,49.0,8.41,49.02"
 # endpoint -> (method, path, request keyword arguments); the tile 16/0/0 is always empty
-REQUESTS = {
+REQUESTS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "GET /healthz": ("GET", "/healthz", {}),
     "GET /metrics": ("GET", "/metrics", {}),
     "GET /v1/trips": ("GET", "/v1/trips", {"params": {"bbox": BBOX}}),

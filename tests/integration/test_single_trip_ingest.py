@@ -73,6 +73,7 @@ def _stored(dep: Deployment, trip_pk: str) -> list[dict[str, Any]]:
 
 
 def _execute(dep: Deployment, sql: str, **params: Any) -> None:
+    assert dep.engine is not None
     with dep.engine.begin() as conn:
         conn.execute(sa.text(sql), params)
 
@@ -108,7 +109,7 @@ def test_ingest_stores_smoothed_poses_instances_and_noise(deployment: Deployment
     assert (row["origin_lat"], row["origin_lon"]) == pytest.approx((region.origin_lat, region.origin_lon))
     fixes = [(i, f["gnss"]) for i, f in enumerate(doc["frames"]) if f["gnss"]["status"] != "none"]
     gnss_xy = LocalFrame(row["origin_lat"], row["origin_lon"]).to_local(
-        [(g["lon"], g["lat"]) for _, g in fixes]
+        np.array([(g["lon"], g["lat"]) for _, g in fixes])
     )
     offsets_m = np.linalg.norm(poses[[i for i, _ in fixes], :2] - gnss_xy, axis=1)
     assert np.median(offsets_m) < 2.0 and np.percentile(offsets_m, 95) < 5.0, offsets_m

@@ -56,7 +56,7 @@ def fleet_dirs(tmp_path_factory) -> dict[str, Path]:
     return dirs
 
 
-def _run_fleet(dep: Deployment, scenario: Path, out: Path) -> dict[str, str]:
+def _run_fleet(dep: Deployment, scenario: Path, out: Path) -> dict[str, dict[str, str]]:
     with fleet.client_for(dep.base_url, dep.admin_key) as http:
         ids = fleet.upload_scenario(http, scenario, progress=False)
         statuses = fleet.wait_until_processed(http, ids, timeout_s=600, progress=False)
@@ -195,7 +195,7 @@ def _check_bias_messages(dep: Deployment) -> None:
     from workers.tile_jobs import _load_reconstruction, bias_messages_of
 
     rows = dep.rows("SELECT trip_pk, z, x, y FROM trip_tile_alignments WHERE failed_reason IS NULL")
-    tiles_of: dict[str, set] = {}
+    tiles_of: dict[str, set[tuple[int, int, int]]] = {}
     for r in rows:
         tiles_of.setdefault(r.trip_pk, set()).add((r.z, r.x, r.y))
     pk, tiles = max(tiles_of.items(), key=lambda kv: len(kv[1]))
@@ -204,9 +204,11 @@ def _check_bias_messages(dep: Deployment) -> None:
     frame = tile_frame(*here)
     with Session(dep.engine) as session:
         recon = _load_reconstruction(session, pk, frame)
+        assert recon is not None
         messages = bias_messages_of(session, {pk: recon}, *here, frame)[pk]
         assert len(messages) == len(tiles) - 1  # every other tile, not this one
         other = session.get(TripTileAlignment, (pk, *there))
+        assert other is not None
         arrays = decode_arrays(other.arrays)
         idx, w = arrays["frame_indices"].astype(int), arrays["weights"]
         aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(other.origin_lat, other.origin_lon), frame)[:, :2]

@@ -10,6 +10,7 @@ import itertools
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import httpx
 import mapbox_vector_tile
@@ -53,7 +54,7 @@ class Tiled:
         return self.dep.client(key or self.reader)
 
     def write(self, tile: mercantile.Tile, features: Sequence[vs.VersionFeature], **kw) -> vs.TileVersion:
-        args = dict(
+        args: dict[str, Any] = dict(
             reason="merge",
             job_id="job-test",
             trips=["trip-a"],
@@ -221,6 +222,7 @@ def test_postgis_and_python_encoders_give_the_same_tiles(tiled: Tiled):
     for t, python, sql in pairs:
         with tiled.http() as http:  # the server's tile: PostGIS on PostgreSQL, Python on SQLite
             served = http.get(f"/v1/tiles/{t.z}/{t.x}/{t.y}.mvt").content
+        assert python is not None, t
         for other in (served, sql) if sql is not None else (served,):
             a, b = decode(python), decode(other)
             assert set(a) == set(b) and a, t

@@ -175,6 +175,7 @@ def test_rollback_publishes_the_old_version_again(tiled: Tiled):
         assert set(decode(after.content)) == {f.feature_id for f in road(tile)}
     with tiled.sessions() as session:
         third = vs.get_version(session, z=tile.z, x=tile.x, y=tile.y, version=3)
+        assert third is not None
         assert third.state == first.state == b"state" and third.trips == first.trips
     old, new = _features(tiled, first.id), _features(tiled, third.id)
     assert [(f.feature_id, f.type, f.style, f.properties) for f in old] == [
@@ -228,7 +229,8 @@ def test_a_stale_expected_version_is_a_conflict_and_writes_nothing(tiled: Tiled)
         assert err.value.latest == 1 and err.value.expected == stale
     assert _counts(tiled) == counts
     with tiled.sessions() as session:
-        assert vs.tile_head(session, z=tile.z, x=tile.x, y=tile.y).latest_version == 1
+        head = vs.tile_head(session, z=tile.z, x=tile.x, y=tile.y)
+        assert head is not None and head.latest_version == 1
 
 
 def test_two_concurrent_writers_one_wins_the_other_conflicts(tiled: Tiled):
@@ -289,6 +291,6 @@ def test_two_concurrent_writers_one_wins_the_other_conflicts(tiled: Tiled):
     assert _counts(tiled) == (versions_before + 1, rows_before + 4)
     with tiled.sessions() as session:
         head = session.get(TileHead, (tile.z, tile.x, tile.y))
-        assert (head.latest_version, head.live_version) == (2, 2)
+        assert head is not None and (head.latest_version, head.live_version) == (2, 2)
         latest = vs.latest_version(session, z=tile.z, x=tile.x, y=tile.y)
-        assert latest.job_id == "job-a" and latest.trips == ["job-a"]
+        assert latest is not None and latest.job_id == "job-a" and latest.trips == ["job-a"]

@@ -111,7 +111,6 @@ def make_trip(key: str, truth_xyyaw: np.ndarray, elements, rng, *, offset_xy=(0.
         if rng.random() < miss_prob:
             continue
         etype = dense[e][0]
-        pts = np.unique(np.vstack(chunks), axis=0) if etype.is_polygon else None
         if etype.is_polygon:
             pts = dense[e][1]
         else:
@@ -167,7 +166,8 @@ def submaps_every_20_frames(trips) -> tuple[list, dict[int, list]]:
     ``(sub-maps, sub-maps by trip index)``, sub-map ids = their index (for pose-graph tests)."""
     from csr_core.alignment.submaps import Submap
 
-    subs, by_trip = [], {}
+    subs: list[Submap] = []
+    by_trip: dict[int, list[Submap]] = {}
     for k, t in enumerate(trips):
         for a in range(10, t.trip.n_frames - 10, 20):
             s = Submap(len(subs), a, k, t.trip.key, a, a - 10, a + 10, t.poses_xyyaw_world[a].copy(), ())

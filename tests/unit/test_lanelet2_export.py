@@ -60,7 +60,7 @@ def _parse(xml: bytes) -> tuple[dict, dict, dict]:
 
     root = ET.fromstring(xml)
     tags = lambda el: {t.get("k"): t.get("v") for t in el.findall("tag")}  # noqa: E731
-    nodes = {n.get("id"): (float(n.get("lon")), float(n.get("lat"))) for n in root.findall("node")}
+    nodes = {n.get("id"): (float(n.attrib["lon"]), float(n.attrib["lat"])) for n in root.findall("node")}
     ways = {w.get("id"): ([nd.get("ref") for nd in w.findall("nd")], tags(w)) for w in root.findall("way")}
     rels = {r.get("id"): ({m.get("role"): m.get("ref") for m in r.findall("member")}, tags(r))
             for r in root.findall("relation")}
@@ -199,7 +199,9 @@ def _load(xml: bytes, tmp_path):
     from lanelet2.io import Origin
     from lanelet2.projection import LocalCartesianProjector
 
-    lat0, lon0 = (float(v) for v in re.search(rb"\+lat_0=([-\d.]+) \+lon_0=([-\d.]+)", xml).groups())
+    origin = re.search(rb"\+lat_0=([-\d.]+) \+lon_0=([-\d.]+)", xml)
+    assert origin is not None
+    lat0, lon0 = (float(v) for v in origin.groups())
     path = tmp_path / "map.osm"
     path.write_bytes(xml)
     lmap, errors = lanelet2.io.loadRobust(str(path), LocalCartesianProjector(Origin(lat0, lon0)))

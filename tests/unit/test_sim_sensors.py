@@ -101,7 +101,7 @@ def test_odometry_scale_error_and_noiseless_identity():
 
 
 @pytest.mark.parametrize("world_name", ["urban", "highway"])
-def test_noiseless_perception_reproduces_truth_geometry(world_name):
+def test_noiseless_perception_reproduces_truth_geometry(world_name: str) -> None:
     world = load_world(world_name)
     prof = noiseless()
     rng = np.random.default_rng(5)
@@ -197,7 +197,7 @@ def test_fleet_mixes_rtk_and_consumer_receivers():
     assert set(np.unique(seq).tolist()) <= {int(GnssStatus.DGPS), int(GnssStatus.SINGLE)}
 
 
-def test_perception_noise_grows_with_distance_and_is_larger_for_boundaries():
+def test_perception_noise_grows_with_distance_and_is_larger_for_boundaries() -> None:
     world = load_world("highway")
     prof = standard()
     rng = np.random.default_rng(8)

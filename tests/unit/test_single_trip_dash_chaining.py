@@ -28,7 +28,9 @@ def _tracks_of(dashes: list[list[np.ndarray]], seed: int = 3):
     consecutive frames, 3 cm of noise each), as the tracker leaves a curved dashed line; the
     vehicle sits at the origin heading +x in every frame (only ``points_v``'s x-extent is read)."""
     rng = np.random.default_rng(seed)
-    frame, points, tracks, elements = [], [], [], {}
+    frame: list[int] = []
+    elements: dict[int, list[PerceivedElement]] = {}
+    points, tracks = [], []
     for t, dash_pieces in enumerate(dashes):
         members = []
         for d, dash in enumerate(dash_pieces):
@@ -39,9 +41,9 @@ def _tracks_of(dashes: list[list[np.ndarray]], seed: int = 3):
                 points.append(dash + rng.normal(0.0, 0.03, dash.shape))
                 elements.setdefault(fr, []).append(PerceivedElement(ElementType.LANE_DIVIDER, dash,
                                                                     DividerStyle.DASHED))
-        members = np.array(members)
-        order = np.lexsort((members, np.array(frame)[members]))
-        tracks.append(Track(ElementType.LANE_DIVIDER, members[order], np.unique(np.array(frame)[members])))
+        index = np.array(members)
+        order = np.lexsort((index, np.array(frame)[index]))
+        tracks.append(Track(ElementType.LANE_DIVIDER, index[order], np.unique(np.array(frame)[index])))
     n_frames = max(frame) + 1
     element_index = np.zeros(len(frame), dtype=np.int64)
     seen: dict[int, int] = {}

@@ -132,7 +132,7 @@ def _wander_trip(seed: int):
     return t, true, odom, gnss, status, np.full(len(t), 0.6)
 
 
-def test_a_wandering_gnss_bias_does_not_bend_the_trajectory():
+def test_a_wandering_gnss_bias_does_not_bend_the_trajectory() -> None:
     """Within one trip, what the bias does over minutes is not the road's shape: with the bias as
     a state the smoothed trajectory keeps more of the odometry's shape than the white model (fixes
     inflated by their correlation time), which follows the wander. Trip-aligned error (each

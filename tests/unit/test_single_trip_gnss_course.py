@@ -89,7 +89,7 @@ def _weaving_trip(seed: int):
     return t, true, odom, gnss, status, np.full(n, 0.5), np.mod(heading_deg, 360.0)
 
 
-def test_every_fix_s_course_holds_the_trajectory_s_shape_against_the_gnss_bias():
+def test_every_fix_s_course_holds_the_trajectory_s_shape_against_the_gnss_bias() -> None:
     """The trajectory's sideways shape over tens of seconds is its yaw, which the gyro holds
     only for seconds and the wandering position bias cannot tell. Every course, weighed by its
     measured noise, holds it: the trip-aligned error (the single-trip measure) over four trips is

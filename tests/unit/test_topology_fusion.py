@@ -291,7 +291,8 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
     out as exactly one line on it, supported by each of those trips."""
     rng = np.random.default_rng(5)
     block, size, n = 100.0, 500.0, 6
-    trips, seen = {}, {}
+    trips = {}
+    seen: dict[tuple[int, int], set[str]] = {}
     for k in range(96):
         key = f"veh-1__t{k:02d}"
         if k < 60:  # a part of one street, either way

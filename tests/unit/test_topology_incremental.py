@@ -60,8 +60,10 @@ def test_adding_trips_one_by_one_keeps_a_tight_curve() -> None:
     truth = _arc(25.0, 0.0, np.pi / 2)
     trips = [_trip(f"veh-1__t{k:02d}", [_noisy_copy(truth, rng)], t=f"2026-01-01T00:{k:02d}:00Z") for k in range(33)]
 
-    def merged(parts):
-        inst, noise, times = {}, {}, {}
+    def merged(parts) -> tuple[dict, dict, dict]:
+        inst: dict = {}
+        noise: dict = {}
+        times: dict = {}
         for i, n, t in parts:
             inst.update(i), noise.update(n), times.update(t)
         return inst, noise, times

@@ -22,10 +22,10 @@ def _line(fid: str, y: np.ndarray | float, *, support: int = 4, unc: float = 0.1
                                   **props})
 
 
-def _kinds(features: list[MapFeature], cover: list[int] | None = None) -> dict[str, set[str]]:
+def _kinds(features: list[MapFeature], cover: list[int] | None = None) -> dict[str | None, set[str]]:
     flags, _ = validate(features, cover if cover is not None else [f.properties["support_trips"] for f in features],
                         DEFAULT)
-    out: dict[str, set[str]] = {f.feature_id: set() for f in features}
+    out: dict[str | None, set[str]] = {f.feature_id: set() for f in features}
     for fl in flags:
         out[fl.feature_id].add(fl.kind)
     return out

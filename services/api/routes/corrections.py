@@ -140,6 +140,7 @@ def _trip_in_tile(session, trip_pk: str, frames: list[int], z: int, x: int, y: i
 def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: int, y: int,
                       body: CorrectionRequest) -> dict[str, Any]:
     with session.begin():
+        payload: dict[str, Any]
         if body.kind == "reject_pair":
             pair = session.get(MatchPair, body.pair_id, with_for_update=True)
             if pair is None or (pair.z, pair.x, pair.y) != (z, x, y):
@@ -152,6 +153,8 @@ def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: i
             payload = {"pair_id": pair.id, "trip_i": ti, "frames_i": list(fi), "trip_j": tj, "frames_j": list(fj)}
             pair.status = "rejected"
         else:
+            # add_pair: CorrectionRequest's validator requires these
+            assert body.trip_i is not None and body.frames_i is not None and body.frames_j is not None
             _trip_in_tile(session, body.trip_i, body.frames_i, z, x, y, "trip_i")
             if body.trip_j is not None:
                 _trip_in_tile(session, body.trip_j, body.frames_j, z, x, y, "trip_j")
