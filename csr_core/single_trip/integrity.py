@@ -298,7 +298,11 @@ def check_aligned_poses(trip: Any, single_poses_xyyaw: np.ndarray, aligned_poses
     sigma = gnss_sigmas_m(trip.fix_status, trip.gnss_std_m, params)
     has_fix = np.isfinite(sigma) & np.asarray(trip.has_fix, bool)
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
-    lenient = replace(params, INTEGRITY_MAX_REJECTED_SHARE=1.0)
+    # aligned poses sit near the truth, so their offsets are the fixes' whole error, bias
+    # included (the single-trip poses follow the bias): the whole-trip median is bounded like
+    # one window, at the error model's tail, and the smoother's rejections are not judged again
+    lenient = replace(params, INTEGRITY_MAX_REJECTED_SHARE=1.0,
+                      INTEGRITY_MEDIAN_FACTOR=params.INTEGRITY_ALIGNED_MEDIAN_FACTOR)
 
     def check(poses: np.ndarray) -> GnssConsistency:
         return gnss_consistency(trip.timestamps_s, poses, gnss_xy, sigma, has_fix, lenient, gnss_latency_s,

@@ -87,6 +87,9 @@ class SingleTripParams:
     INTEGRITY_FALSE_ALARM: float = 1e-3  # per trip, shared by its windows (Bonferroni)
     INTEGRITY_MEDIAN_FACTOR: float = 1.5  # the trip's median distance to its fixes over the error model's
     INTEGRITY_MAX_REJECTED_SHARE: float = 0.25  # of the trip's fixes rejected by the smoother
+    # aligned poses: their median distance to the fixes is the GNSS bias itself; 3 x the
+    # Rayleigh median is 3.5 sigma, a chi-square(2) tail of 2e-3, like one window's limit
+    INTEGRITY_ALIGNED_MEDIAN_FACTOR: float = 3.0
     INTEGRITY_REPAIR_YAW_FACTOR: float = 30.0  # repair: the odometry yaw drift sigma times this
     INTEGRITY_REPAIR_XY_FACTOR: float = 4.0  # repair: the odometry distance sigma times this
     INTEGRITY_ANCHOR_YAW_FACTOR: float = 300.0  # fallback: odometry sigmas times this (GNSS-anchored)

@@ -185,3 +185,28 @@ def test_a_trip_the_repair_cannot_fix_is_marked_degraded_and_anchored_to_its_gns
     assert "the repair failed too" in quality.reason and quality.reason.endswith("kept")
     # of the three solves, the one kept is the least far from the trip's GNSS
     assert quality.median_offset_m <= _median_offset(smoothed_plain(t, gnss, status, std, course, odom, stiff), gnss)
+
+
+def test_aligned_poses_within_the_gnss_error_model_are_kept_and_a_bad_shift_is_reverted():
+    """Aligned poses at the truth are off the fixes by the GNSS bias (here 2.5 sigma, all along
+    the trip): kept. Aligned poses moved 12 m by a wrong registration: the single-trip poses
+    come back, with the reason."""
+    from types import SimpleNamespace
+
+    from csr_core.geo import LocalFrame
+    from csr_core.single_trip.integrity import check_aligned_poses
+
+    rng = np.random.default_rng(21)
+    t, true, _, _, status, std, _ = _loop_trip(16, 0.0)
+    frame = LocalFrame(48.0, 11.0)
+    gnss = true[:, :2] + np.array([1.77, -1.77]) + rng.normal(scale=0.1, size=(len(t), 2))  # |bias| = 2.5 sigma
+    trip = SimpleNamespace(fix_status=status, gnss_std_m=std, has_fix=np.ones(len(t), bool), timestamps_s=t,
+                           gnss_lonlat_deg=frame.to_lonlat(gnss))
+    single = true.copy()
+    single[:, :2] = gnss  # the single-trip poses follow the fixes
+    kept, reason = check_aligned_poses(trip, single, true, frame, DEFAULT)
+    assert reason is None and kept is true
+    wrong = true.copy()
+    wrong[:, 0] += 12.0
+    kept, reason = check_aligned_poses(trip, single, wrong, frame, DEFAULT)
+    assert kept is single and reason is not None and "single-trip poses kept" in reason
