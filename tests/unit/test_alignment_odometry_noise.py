@@ -7,6 +7,8 @@ import pytest
 
 from csr_core.alignment.odometry_noise import chain_sigmas, yaw_random_walk_rad_per_sqrt_s
 
+pytestmark = pytest.mark.unit
+
 
 def _odometry(yaw_rw_rad_per_sqrt_s: float, seed: int, n: int = 3000, rate_hz: float = 10.0):
     """A drive at 12 m/s: straight, a 60 m-radius bend entered and left over two seconds each,

@@ -6,6 +6,8 @@ import pytest
 
 from csr_core.bench.single_trip import render_section, world_summary
 
+pytestmark = pytest.mark.unit
+
 
 def _result(world: str, seed: int, correctness: float, *, true_poses: bool = False, profile: str = "standard",
             rpe: float = 0.02, jump_err: float = float("nan")) -> dict:

@@ -6,6 +6,8 @@ import pytest
 
 from csr_core.bench.validator import pooled, render_section
 
+pytestmark = pytest.mark.unit
+
 
 def _fleet(spec: str, instances: int, wrong: int, flagged: int, caught: int, per_flag: dict | None = None) -> dict:
     v = {"instances": instances, "wrong": wrong, "flagged": flagged,

@@ -16,6 +16,8 @@ from csr_core.tiling import reframe_poses
 from csr_core.types import Trip
 from tests.unit.test_single_trip_gnss_course import _weaving_trip
 
+pytestmark = pytest.mark.unit
+
 
 def test_a_grid_heading_points_where_true_north_points_in_the_plane():
     frame = LocalFrame(origin_lat=49.0, origin_lon=8.4)

@@ -10,6 +10,8 @@ from scipy.spatial import cKDTree
 
 from csr_core.single_trip.compiled import checks, growth, observations, polyline, profile, search
 
+pytestmark = pytest.mark.unit
+
 SEEDS = (0, 1, 2)
 
 

@@ -9,6 +9,8 @@ from csr_core.single_trip.params import DEFAULT
 from csr_core.single_trip.tracking import TYPE_CODES, Pieces, Track
 from csr_core.types import DividerStyle, ElementType, PerceivedElement
 
+pytestmark = pytest.mark.unit
+
 K = DEFAULT.TRACK_RESAMPLE_POINTS
 FRAMES_PER_DASH = 6
 

@@ -12,6 +12,8 @@ from csr_core.single_trip.params import DEFAULT
 from csr_core.single_trip.pose_graph import _heading_yaw, integrate_increments, smooth_poses
 from csr_core.types import GnssStatus
 
+pytestmark = pytest.mark.unit
+
 
 def _speeds(n: int, rng: np.random.Generator) -> np.ndarray:
     """5-20 m/s, changing slowly."""
