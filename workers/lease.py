@@ -32,7 +32,7 @@ def renew_lease(session_factory: sessionmaker[Session], job_id: str, lease_s: fl
         result = session.execute(
             update(Job).where(Job.id == job_id, Job.state == "running").values(lease_expires_at=lease_until(lease_s))
         )
-    return bool(result.rowcount)  # type: ignore[attr-defined]
+    return bool(result.rowcount)
 
 
 class LeaseHeartbeat:
