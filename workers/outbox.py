@@ -12,8 +12,8 @@ Each round also recovers what a broker outage loses:
   persistence, or flushed, has lost both. A round that finds it missing marks every queued job as
   not dispatched, so the same round sends them all again, then sets the key. With persistence the
   key survives with the messages and nothing is re-sent. A message sent twice (several relays
-  noticing the loss at once, or one sent just before the check) runs once: the tasks are
-  idempotent. ``CSR_REDISPATCH_AFTER_S`` stays as the backstop for a message lost otherwise.
+  noticing the loss at once, or one sent just before the check) is harmless: a job's result is
+  written once (``workers.jobs``). ``CSR_REDISPATCH_AFTER_S`` stays as the backstop for a message lost otherwise.
 """
 
 from __future__ import annotations
