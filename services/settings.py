@@ -66,6 +66,11 @@ class Settings(BaseSettings):
     redispatch_after_s: float = Field(
         3600.0, gt=0, description="re-send a queued job whose message may be lost"
     )
+    job_lease_s: float = Field(
+        60.0, gt=0,
+        description="a running job's lease: its runner renews it every third of this while it works; the outbox "
+        "relay queues a job again once its lease has run out (its worker or its broker message is gone)",
+    )
     poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
     worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
     sqlite_busy_timeout_s: float = Field(

@@ -68,7 +68,8 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "worker_send_task_events": True,  # for Flower
         "task_send_sent_event": True,
         "worker_hijack_root_logger": False,
-        # a late-ack task cannot be acknowledged over a lost connection: Redis re-delivers it anyway
+        # a late-ack task cannot be acknowledged over a lost connection: Redis re-delivers it when it
+        # kept its data; when it did not, the job's lease runs out and the outbox relay sends it again
         "worker_cancel_long_running_tasks_on_connection_loss": True,
     }
 

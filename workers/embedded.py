@@ -87,7 +87,7 @@ class EmbeddedRunner(BackgroundLoop):
                 session.execute(
                     update(Job)
                     .where(Job.id == job_id, Job.state == "running")
-                    .values(state="queued", dispatched_at=None)
+                    .values(state="queued", dispatched_at=None, lease_expires_at=None)
                 )
         except OperationalError:
             log.warning("job %s stays running until the next start", job_id)

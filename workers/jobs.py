@@ -1,9 +1,10 @@
 """What each job does, for both runners (Celery tasks and the in-process pool).
 
-A job takes its id, re-reads its state from the database and writes its result in one
-transaction that also marks it done; a job already done is not run again, so a re-delivered
-or duplicated message never counts twice. A bad input fails the job (recorded on it); a
-database outage (``OperationalError``) propagates so that the runner retries the job.
+A job takes its id, re-reads its state from the database, holds a lease while it runs
+(``workers.lease``) and writes its result in one transaction that also marks it done; a job
+already done is not run again, so a re-delivered or duplicated message never counts twice. A
+bad input fails the job (recorded on it); a database outage (``OperationalError``) propagates so
+that the runner retries the job.
 
 - ``ingest_trip``: decode the stored upload (csr_core), compute the GNSS track, its length and
   the tiles owning its frames (by smoothed position), run single-trip reconstruction (``csr_core.single_trip``) in the trip's
@@ -41,6 +42,7 @@ from services.reconstructions import row_values
 from services.settings import Settings
 from services.tile_frames import parse_tile
 from workers import tile_jobs
+from workers.lease import LeaseHeartbeat, lease_until
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +71,15 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
             return job.state
         job.state, job.attempts, job.started_at = "running", job.attempts + 1, utcnow()
         job.dispatched_at = job.dispatched_at or job.started_at
+        job.lease_expires_at = lease_until(settings.job_lease_s, now=job.started_at)
         kind, subject, attempt = job.kind, job.subject, job.attempts
+    with LeaseHeartbeat(session_factory, job_id, settings.job_lease_s):
+        return _run_started(session_factory, settings, job_id, kind, subject, attempt)
+
+
+def _run_started(session_factory: sessionmaker[Session], settings: Settings, job_id: str, kind: str,
+                 subject: str, attempt: int) -> str:
+    """The work of a job marked running, to its final state."""
     started = time.perf_counter()
     try:
         if kind == "ingest_trip":
@@ -114,6 +124,7 @@ def requeue_job(session_factory: sessionmaker[Session], job_id: str, exc: BaseEx
         if job is None or job.state != "running":
             return job.state if job else "missing"
         job.state, job.dispatched_at, job.error = "queued", None, f"retrying: {exc}"
+        job.lease_expires_at = None
         if not attempt_counts:
             job.attempts = max(job.attempts - 1, 0)
     return "queued"
@@ -129,6 +140,7 @@ def mark_job_failed(
         if job is None or job.state in ("done", "failed"):
             return job.state if job else "missing"
         job.state, job.error, job.finished_at = "failed", f"{type(exc).__name__}: {exc}", utcnow()
+        job.lease_expires_at = None
         if started is not None:
             job.duration_s = time.perf_counter() - started
         elif job.started_at is not None:
@@ -150,7 +162,7 @@ def _finish(session_factory: sessionmaker[Session], job_id: str, started: float,
             # another delivery of the same message finished first: write nothing
             return job.state if job else "missing"
         persist(session)
-        job.state, job.error, job.finished_at = "done", None, utcnow()
+        job.state, job.error, job.finished_at, job.lease_expires_at = "done", None, utcnow(), None
         job.duration_s = time.perf_counter() - started
     return "done"
 

@@ -183,7 +183,9 @@ class DirtyTile(Base):
 
 class Job(Base):
     """Job state, and the transactional outbox: a row with ``dispatched_at`` NULL is not yet handed
-    to a runner (Celery or the in-process pool)."""
+    to a runner (Celery or the in-process pool). A running job holds a lease until
+    ``lease_expires_at``, renewed by its runner while it works (``workers.lease``); a running job
+    whose lease ran out, or that has none, is no longer worked on."""
 
     __tablename__ = "jobs"
     __table_args__ = (
@@ -204,6 +206,7 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     duration_s: Mapped[float | None] = mapped_column(Float)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
 
 
 class TripTileAlignment(Base):

@@ -8,7 +8,7 @@ import hmac
 import secrets
 import uuid
 from collections.abc import Mapping, Sequence
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from typing import Any, cast
 
 from sqlalchemy import ColumnElement, CursorResult, case, delete, func, or_, select, update
@@ -230,14 +230,19 @@ def trips_to_reprocess(session: Session, *, missing_version: str | None = None) 
 
 def schedule_reprocess(session: Session, *, trip_pks: Sequence[str]) -> list[Job]:
     """An ingest job (the outbox row) for each trip that has no ingest job queued or running
-    yet: it recomputes the trip from its kept upload."""
-    busy = set(
-        session.scalars(
-            select(Job.subject).where(
-                Job.kind == "ingest_trip", Job.subject.in_(trip_pks), Job.state.in_(("queued", "running"))
-            )
-        )
-    )
+    yet: it recomputes the trip from its kept upload. A running ingest job whose lease ran out
+    does not count: it is recorded as failed and superseded by the new job."""
+    now = utcnow()
+    pending = session.scalars(
+        select(Job)
+        .where(Job.kind == "ingest_trip", Job.subject.in_(trip_pks), Job.state.in_(("queued", "running")))
+        .with_for_update()
+    ).all()
+    stuck = [job for job in pending if lease_has_expired(job, now=now)]
+    busy = {job.subject for job in pending} - {job.subject for job in stuck}
+    for job in stuck:
+        if job.subject not in busy:
+            supersede_stuck_job(job, now=now)
     return [
         add_job(session, kind="ingest_trip", subject=pk) for pk in dict.fromkeys(trip_pks) if pk not in busy
     ]
@@ -287,8 +292,58 @@ def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetim
 def reset_running_jobs(session: Session) -> int:
     """Embedded start-up: jobs left running by a previous process of this deployment run again."""
     return cast(CursorResult, session.execute(
-        update(Job).where(Job.state == "running").values(state="queued", dispatched_at=None)
+        update(Job).where(Job.state == "running").values(state="queued", dispatched_at=None, lease_expires_at=None)
     )).rowcount
+
+
+def _aware(moment: datetime) -> datetime:
+    """SQLite gives back naive datetimes; every stored time is UTC."""
+    return moment if moment.tzinfo else moment.replace(tzinfo=UTC)
+
+
+def lease_expired_clause(now: datetime) -> ColumnElement[bool]:
+    """SQL: a running job whose lease ran out before ``now``, or that has none."""
+    return (Job.state == "running") & (Job.lease_expires_at.is_(None) | (Job.lease_expires_at < now))
+
+
+def lease_has_expired(job: Job, *, now: datetime) -> bool:
+    """:func:`lease_expired_clause` on a loaded row."""
+    return job.state == "running" and (job.lease_expires_at is None or _aware(job.lease_expires_at) < now)
+
+
+def requeue_expired_leases(session: Session, *, now: datetime) -> list[str]:
+    """Queue again, as outbox rows, the running jobs whose lease ran out before ``now``: their
+    runner stopped renewing it (a worker killed, a task cancelled when the broker went away), so
+    nothing works on them, and their broker message may be lost too. Their attempts stay
+    counted; a re-run is idempotent like any re-delivery. Rows locked elsewhere (a job finishing
+    now) are skipped. Returns the ids."""
+    ids = list(session.scalars(
+        select(Job.id).where(lease_expired_clause(now)).with_for_update(skip_locked=True)
+    ))
+    if ids:
+        session.execute(
+            update(Job)
+            .where(Job.id.in_(ids), lease_expired_clause(now))
+            .values(state="queued", dispatched_at=None, lease_expires_at=None,
+                    error="lease expired: queued again")
+            .execution_options(synchronize_session=False)  # rows loaded here may hold naive SQLite times
+        )
+    return ids
+
+
+def forget_dispatches(session: Session) -> int:
+    """Mark every queued job as not yet dispatched (the broker lost its messages): the outbox
+    sends them again. Returns how many."""
+    return session.execute(
+        update(Job).where(Job.state == "queued", Job.dispatched_at.is_not(None)).values(dispatched_at=None)
+    ).rowcount
+
+
+def supersede_stuck_job(job: Job, *, now: datetime) -> None:
+    """Record a running job whose lease ran out as failed, to be replaced by a new job (an admin
+    retry, a reprocess); a late finish of its old run then writes nothing."""
+    job.state, job.finished_at, job.lease_expires_at = "failed", now, None
+    job.error = "lease expired: superseded by a new job"
 
 
 def job_summary(session: Session) -> dict[str, int]:

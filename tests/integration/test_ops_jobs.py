@@ -4,7 +4,7 @@ runs again: in-process pool on the embedded default, a Celery worker on the dist
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from sqlalchemy.orm import Session
@@ -172,3 +172,34 @@ def test_retry_failed_tile_job_moves_the_dirty_tile_to_the_new_job(deployment: D
             if final["state"] == "done"
             else (dirty is not None and dirty.job_id == retry["id"])
         )
+
+
+def test_retry_a_running_job_whose_lease_ran_out(make_isolated) -> None:
+    """A job left ``running`` with no worker renewing its lease is retried (202): it is recorded as
+    failed and a new job processes the trip. A running job with a live lease is not (409). On the
+    embedded default, where no relay re-queues expired leases, the stuck job stays for the call
+    (the distributed relay queues such a job again by itself: tests/integration/test_broker_loss.py)."""
+    deployment = make_isolated("embedded")
+    trip_pk = deployment.upload(moving_trip()).json()["id"]
+    deployment.wait_idle()
+    stuck_id = _ingest_job(deployment, trip_pk)["id"]
+    now = datetime.now(UTC)
+    with Session(deployment.engine) as session, session.begin():
+        job = session.get(Job, stuck_id)
+        job.state, job.lease_expires_at = "running", now - timedelta(seconds=1)
+        session.add(Job(id=f"live-{stuck_id}", kind="ingest_trip", queue="ingest", subject=f"live-{trip_pk}",
+                        state="running", attempts=1, created_at=now, dispatched_at=now, started_at=now,
+                        lease_expires_at=now + timedelta(hours=1)))
+    with deployment.admin() as http:
+        live = http.post(f"/v1/jobs/live-{stuck_id}/retry")
+        assert live.status_code == 409 and live.json()["error"] == "not_failed"
+        with Session(deployment.engine) as session, session.begin():
+            session.delete(session.get(Job, f"live-{stuck_id}"))
+        answer = http.post(f"/v1/jobs/{stuck_id}/retry")
+        assert answer.status_code == 202, answer.text
+        old = http.get(f"/v1/jobs/{stuck_id}").json()
+        assert old["state"] == "failed" and "lease expired" in old["error"]
+        assert old["retried_by"] == answer.json()["id"]
+    failed_before = deployment.summary()["failed"]
+    assert _final(deployment, answer.json()["id"])["state"] == "done"
+    assert deployment.wait_idle()["failed"] == failed_before  # the stuck job counts as retried, not failed

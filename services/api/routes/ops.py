@@ -14,13 +14,19 @@ router = APIRouter(tags=["ops"])
 
 @router.get("/healthz")
 def healthz(ctx: Ctx) -> JSONResponse:
+    """200 ``{"status", "database", "jobs"}``; 503 when the database is unreachable. The distributed
+    deployment adds ``"broker": "ok" | "unreachable"``: without it the status is ``degraded``, still
+    200, since uploads are accepted and their jobs wait in the outbox until the broker is back."""
     try:
         with ctx.read_session_factory() as session:
             session.execute(text("SELECT 1"))
     except Exception as exc:
         return JSONResponse({"status": "error", "database": str(exc)}, status_code=503)
-    deployment = "embedded" if ctx.settings.embedded_jobs else "distributed"
-    return JSONResponse({"status": "ok", "database": ctx.engine.dialect.name, "jobs": deployment})
+    if ctx.settings.embedded_jobs:
+        return JSONResponse({"status": "ok", "database": ctx.engine.dialect.name, "jobs": "embedded"})
+    broker = "ok" if ctx.runner.broker_reachable() else "unreachable"
+    return JSONResponse({"status": "ok" if broker == "ok" else "degraded", "database": ctx.engine.dialect.name,
+                         "jobs": "distributed", "broker": broker})
 
 
 @router.get("/metrics")

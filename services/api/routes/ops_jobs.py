@@ -8,6 +8,8 @@ as the record of what went wrong (its error, attempts and duration); ``run_job``
 refuses a job already ``failed`` so that a stale or duplicated message never runs it twice; and the
 Celery task id is the job id, so a fresh id is a fresh message on both runners. The failed job is
 linked forward by ``retried_by`` in the listings (the newer job of the same kind and subject).
+A running job whose lease ran out (``workers.lease``: no worker renews it) is first recorded as
+failed, then retried the same way; a late finish of its old run writes nothing.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ def job_json(job: Job, *, retried_by: str | None = None) -> dict[str, Any]:
         "started_at": _iso(job.started_at),
         "finished_at": _iso(job.finished_at),
         "duration_s": job.duration_s,
+        "lease_expires_at": _iso(job.lease_expires_at),
         "retried_by": retried_by,
     }
 
@@ -160,14 +163,18 @@ def dirty_tiles(
 
 @router.post("/jobs/{job_id}/retry", status_code=202)
 def retry_job(job_id: str, _: Admin, ctx: Ctx, session: SessionDep) -> JSONResponse:
-    """Queue a failed job again, as a new job of the same kind and subject (see the module doc).
+    """Queue a failed job again, as a new job of the same kind and subject (see the module doc). A
+    running job whose lease ran out (no worker renews it) is recorded as failed and retried alike.
     409 when the job did not fail, or when a newer job for the same subject exists already."""
     with session.begin():
         failed = repo.get_job(session, job_id=job_id, for_update=True)
         if failed is None:
             raise ApiError(404, "not_found", f"no job {job_id!r}", location="id")
+        if repo.lease_has_expired(failed, now=utcnow()):
+            repo.supersede_stuck_job(failed, now=utcnow())
         if failed.state != "failed":
-            raise ApiError(409, "not_failed", f"job {job_id} is {failed.state}: only a failed job is retried")
+            raise ApiError(409, "not_failed", f"job {job_id} is {failed.state}: only a failed job, or a running "
+                           "one whose lease ran out, is retried")
         newer = session.scalars(
             select(Job.id)
             .where(Job.kind == failed.kind, Job.subject == failed.subject, Job.created_at > failed.created_at)
