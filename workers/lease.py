@@ -11,8 +11,9 @@ import logging
 import threading
 from datetime import datetime, timedelta
 from types import TracebackType
+from typing import cast
 
-from sqlalchemy import update
+from sqlalchemy import CursorResult, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import Job, utcnow
@@ -29,9 +30,9 @@ def lease_until(lease_s: float, *, now: datetime | None = None) -> datetime:
 def renew_lease(session_factory: sessionmaker[Session], job_id: str, lease_s: float) -> bool:
     """Extend a running job's lease; False when the job no longer runs (it ended, or was queued again)."""
     with session_factory.begin() as session:
-        result = session.execute(
+        result = cast(CursorResult, session.execute(
             update(Job).where(Job.id == job_id, Job.state == "running").values(lease_expires_at=lease_until(lease_s))
-        )
+        ))
     return bool(result.rowcount)
 
 

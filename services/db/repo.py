@@ -334,9 +334,9 @@ def requeue_expired_leases(session: Session, *, now: datetime) -> list[str]:
 def forget_dispatches(session: Session) -> int:
     """Mark every queued job as not yet dispatched (the broker lost its messages): the outbox
     sends them again. Returns how many."""
-    return session.execute(
+    return cast(CursorResult, session.execute(
         update(Job).where(Job.state == "queued", Job.dispatched_at.is_not(None)).values(dispatched_at=None)
-    ).rowcount
+    )).rowcount
 
 
 def supersede_stuck_job(job: Job, *, now: datetime) -> None:

@@ -186,6 +186,7 @@ def test_retry_a_running_job_whose_lease_ran_out(make_isolated) -> None:
     now = datetime.now(UTC)
     with Session(deployment.engine) as session, session.begin():
         job = session.get(Job, stuck_id)
+        assert job is not None
         job.state, job.lease_expires_at = "running", now - timedelta(seconds=1)
         session.add(Job(id=f"live-{stuck_id}", kind="ingest_trip", queue="ingest", subject=f"live-{trip_pk}",
                         state="running", attempts=1, created_at=now, dispatched_at=now, started_at=now,
