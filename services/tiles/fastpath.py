@@ -39,7 +39,7 @@ from sqlalchemy.orm import configure_mappers
 
 from services.db import repo
 from services.tiles import render, signals, store
-from services.tiles.http import CORS_HEADERS, LIVE_CACHE_CONTROL, PINNED_CACHE_CONTROL, caches
+from services.tiles.http import CORS_HEADERS, cache_control, caches
 from services.tiles.mercator import MAX_ZOOM, valid_tile
 
 log = logging.getLogger(__name__)
@@ -165,7 +165,15 @@ class TileFastPath:
                     if len(self._live) > MAX_LIVE_ENTRIES:
                         self._live.clear()
                     self._live[(kind, z, x, y)] = (etag, time.monotonic() + LIVE_TTL_S, generation)
-        await _respond(send, kind, etag, body, pinned=pinned, not_modified=not_modified)
+        await _respond(
+            send,
+            kind,
+            etag,
+            body,
+            pinned=pinned,
+            public_map=ctx.settings.public_map,
+            not_modified=not_modified,
+        )
         return True
 
     async def _accepted(self, ctx: Any, authorization: str) -> bool:
@@ -258,13 +266,20 @@ def _render(
 
 
 async def _respond(
-    send: Send, kind: str, etag: str, body: bytes | None, *, pinned: int | None, not_modified: bool
+    send: Send,
+    kind: str,
+    etag: str,
+    body: bytes | None,
+    *,
+    pinned: int | None,
+    public_map: bool,
+    not_modified: bool,
 ) -> None:
     """The headers and body ``http.tile_response`` gives (Starlette's ``Response``)."""
     headers = [
         *_CORS,
         (b"etag", etag.encode()),
-        (b"cache-control", (PINNED_CACHE_CONTROL if pinned is not None else LIVE_CACHE_CONTROL).encode()),
+        (b"cache-control", cache_control(pinned=pinned is not None, public_map=public_map).encode()),
     ]
     if pinned is not None:
         headers.append((b"x-map-version", str(pinned).encode()))
