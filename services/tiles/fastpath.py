@@ -37,6 +37,7 @@ from typing import Any
 import anyio.to_thread
 from sqlalchemy.orm import configure_mappers
 
+from services.api.errors import DATABASE_ERRORS, database_error, error_response
 from services.db import repo
 from services.tiles import render, signals, store
 from services.tiles.http import CORS_HEADERS, cache_control, caches
@@ -85,7 +86,15 @@ class TileFastPath:
             await self.app(scope, receive, send)
             return
         match = _PATH.fullmatch(scope["path"])
-        if match is None or not await self._answer(scope, send, match):
+        if match is None:
+            await self.app(scope, receive, send)
+            return
+        try:
+            answered = await self._answer(scope, send, match)
+        except DATABASE_ERRORS as exc:  # the route would answer the same 503
+            await error_response(database_error(exc))(scope, receive, send)
+            return
+        if not answered:
             await self.app(scope, receive, send)
 
     def _lifespan_send(self, send: Send) -> Send:
