@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import re
 import types
-from typing import Any, Union, get_args, get_origin
+from typing import Annotated, Any, Union, get_args, get_origin
 
 from fastapi import Request
 from fastapi.dependencies.models import Dependant
+from pydantic import Field, StringConstraints
 
 from services.api.errors import ApiError
 from services.tiles.http import check_tile
@@ -25,6 +26,19 @@ from services.tiles.http import check_tile
 DB_INT_MIN, DB_INT_MAX = -(2**31), 2**31 - 1
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _INTEGER = re.compile(r"[+-]?[0-9]+")
+
+# The same rules for the ids and integers of request bodies (pydantic field types)
+DbInt = Annotated[int, Field(ge=DB_INT_MIN, le=DB_INT_MAX)]
+IdText = Annotated[str, StringConstraints(pattern=r"^[^\x00-\x1f\x7f]*$", max_length=200)]
+NoteText = Annotated[str, StringConstraints(pattern=r"^[^\x00]*$", max_length=2000)]
+
+
+def fits_db_int(value: int) -> bool:
+    return DB_INT_MIN <= value <= DB_INT_MAX
+
+
+def has_control_characters(text: str) -> bool:
+    return _CONTROL.search(text) is not None
 
 
 def invalid(location: str, why: str) -> ApiError:
@@ -70,7 +84,7 @@ def check_int(location: str, raw: str) -> int | None:
     if not _INTEGER.fullmatch(raw.strip()):
         return None
     value = int(raw)
-    if not DB_INT_MIN <= value <= DB_INT_MAX:
+    if not fits_db_int(value):
         raise invalid(location, f"must be between {DB_INT_MIN} and {DB_INT_MAX}, not {raw}")
     return value
 
@@ -81,7 +95,7 @@ def check_request_params(request: Request) -> None:
     ints: dict[str, int] = {}
     for where, name, raw in _values(request):
         location = f"{where}.{name}"
-        if _CONTROL.search(raw):
+        if has_control_characters(raw):
             raise invalid(location, "control characters (such as NUL) are not allowed")
         if (where, name) in int_parameters:
             value = check_int(location, raw)

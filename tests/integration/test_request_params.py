@@ -3,6 +3,9 @@ both deployments (an integer past the 32-bit columns, a tile outside its zoom, a
 
 from __future__ import annotations
 
+import base64
+
+import orjson
 import pytest
 
 from tests.integration.conftest import Deployment
@@ -33,6 +36,39 @@ NUL = [
     ("POST", "/v1/jobs/%00/retry", "path.job_id"),
     ("POST", "/v1/corrections/a%00b/undo", "path.correction_id"),
 ]
+
+
+
+
+def cursor(key: list) -> str:
+    return base64.urlsafe_b64encode(orjson.dumps(key)).decode().rstrip("=")
+
+
+# (method, URL, JSON body, location): the same rules inside cursors and request bodies
+INSIDE = [
+    ("GET", f"/v1/tiles/16/1/1/match-pairs?cursor={cursor([0.5, chr(0)])}", None, "query.cursor"),
+    ("GET", f"/v1/tiles/16/1/1/match-pairs?cursor={cursor([0.5, 2**40])}", None, "query.cursor"),
+    ("POST", "/v1/tiles/16/1/1/corrections", {"kind": "reject_pair", "pair_id": "a\u0000b"}, "body.pair_id"),
+    (
+        "POST",
+        "/v1/tiles/16/1/1/corrections",
+        {"kind": "add_pair", "trip_i": "a\u0000", "frames_i": [0, 1], "frames_j": [0, 1]},
+        "body.trip_i",
+    ),
+    ("POST", "/v1/tiles/16/1/1/corrections", {"kind": "reject_pair", "pair_id": "p", "note": "\u0000"}, "body.note"),
+    ("POST", "/v1/tiles/16/1/1/rollback", {"version": 2**40}, "body.version"),
+    ("POST", "/v1/tiles/16/1/1/versions/1/approve", {"expected_latest": 2**40}, "body.expected_latest"),
+]
+
+
+@pytest.mark.parametrize("method,url,body,location", INSIDE, ids=[c[3] + "-" + c[1][:40] for c in INSIDE])
+def test_cursors_and_bodies_follow_the_same_rules(
+    deployment: Deployment, method: str, url: str, body: dict | None, location: str
+) -> None:
+    with deployment.admin() as http:
+        response = http.request(method, url, json=body)
+    assert response.status_code == 422, response.text
+    assert response.json()["location"] == location
 
 
 @pytest.mark.parametrize("method,url,location", OUT_OF_RANGE + NUL, ids=[c[1] for c in OUT_OF_RANGE + NUL])

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session, defer
 from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
+from services.api.params import DbInt
 from services.db import versions as vs
 from services.db.models import TileVersion
 from services.tiles.http import CORS_HEADERS, cache_control, check_tile
@@ -140,12 +141,12 @@ def changes(
 
 
 class RollbackBody(BaseModel):
-    version: int = Field(ge=1, description="the tile version to publish again")
-    expected_latest: int | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    version: DbInt = Field(ge=1, description="the tile version to publish again")
+    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
 
 
 class ApproveBody(BaseModel):
-    expected_latest: int | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
 
 
 def _write(action, session: Session, **kwargs) -> JSONResponse:
