@@ -7,6 +7,9 @@ route:
 - a control character (NUL included) in any path or query value: 422 naming the parameter;
 - an integer parameter outside the 32-bit range of the database's integer columns: 422 naming it;
 - a tile address (``z``, ``x``, ``y`` in the path) outside 0..MAX_ZOOM, 0..2^z-1: 422 naming it.
+
+Request bodies use the field types :data:`DbInt`, :data:`IdText` and :data:`NoteText` for the same
+rules; page cursors check their keys with :func:`fits_db_int` and :func:`has_control_characters`.
 """
 
 from __future__ import annotations
