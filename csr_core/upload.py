@@ -10,7 +10,9 @@ be finite and ``t`` strictly increasing.
 
 from __future__ import annotations
 
+import math
 import re
+from datetime import date
 from typing import Annotated, Any, Literal, NotRequired, cast
 
 import numpy as np
@@ -24,12 +26,13 @@ from csr_core.types import DividerStyle, ElementType, GnssStatus, PerceivedEleme
 SCHEMA_VERSION = "1.0"
 _CONFIG = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
-# RFC 3339 date-time (JSON Schema "format": "date-time").
+# RFC 3339 date-time (JSON Schema "format": "date-time"); at most 9 fraction digits keep it
+# within the 40 characters the trips table stores. ``\Z``: no trailing newline.
 _RFC3339 = re.compile(
-    r"^\d{4}-\d{2}-\d{2}[Tt]\d{2}:\d{2}:\d{2}(\.\d+)?([Zz]|[+-]\d{2}:\d{2})$"
+    r"(?P<year>[0-9]{4})-(?P<month>[0-9]{2})-(?P<day>[0-9]{2})[Tt]"
+    r"(?P<hour>[0-9]{2}):(?P<minute>[0-9]{2}):(?P<second>[0-9]{2})(\.[0-9]{1,9})?"
+    r"([Zz]|[+-](?P<offset_hour>[0-9]{2}):(?P<offset_minute>[0-9]{2}))\Z"
 )
-
-Finite = Annotated[float, Ge(-1e300)]
 
 
 @with_config(_CONFIG)
@@ -95,6 +98,12 @@ def _error_from_pydantic(exc: ValidationError) -> UploadError:
     kind = err["type"]
     if kind == "json_invalid":
         return UploadError(f"malformed JSON: {err['msg']}", location=path, reason="json")
+    if loc == ("schema_version",) and kind != "missing":
+        return UploadError(
+            f"schema_version: unknown schema version ({err['msg']}); this server accepts {SCHEMA_VERSION!r}",
+            location="schema_version",
+            reason="version",
+        )
     if kind == "finite_number":
         return UploadError(f"{path or 'value'}: number must be finite", location=path, reason="non_finite")
     where = f"{path}: " if path else ""
@@ -114,11 +123,47 @@ def _check_version(doc_head: Any) -> None:
             )
 
 
+def is_rfc3339_date_time(text: str) -> bool:
+    """Whether ``text`` is an RFC 3339 ``date-time``: the grammar and a real calendar date, hours
+    0-23, minutes 0-59, seconds 0-60 (a leap second), an offset of at most 23:59."""
+    match = _RFC3339.match(text)
+    if match is None:
+        return False
+    part = {k: int(v) for k, v in match.groupdict(default="0").items()}
+    try:
+        date(part["year"], part["month"], part["day"])
+    except ValueError:
+        return False
+    return (part["hour"] <= 23 and part["minute"] <= 59 and part["second"] <= 60
+            and part["offset_hour"] <= 23 and part["offset_minute"] <= 59)
+
+
+def first_non_finite(value: Any, path: str) -> str | None:
+    """The JSON path of the first NaN or infinite number in a parsed JSON value, or ``None``."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path
+    if isinstance(value, dict):
+        items: Any = ((f"{path}.{key}", item) for key, item in value.items())
+    elif isinstance(value, list):
+        items = ((f"{path}[{i}]", item) for i, item in enumerate(value))
+    else:
+        return None
+    for item_path, item in items:
+        found = first_non_finite(item, item_path)
+        if found is not None:
+            return found
+    return None
+
+
 def _check_semantics(doc: dict[str, Any]) -> None:
-    if not _RFC3339.match(doc["started_at"]):
+    if not is_rfc3339_date_time(doc["started_at"]):
         raise UploadError(
-            "started_at: not an RFC 3339 date-time", location="started_at", reason="schema"
+            f"started_at: {doc['started_at']!r} is not an RFC 3339 date-time", location="started_at", reason="schema"
         )
+    # the typed fields reject non-finite numbers while parsing; the free metadata is checked here
+    non_finite = first_non_finite(doc.get("sensor_setup", {}), "sensor_setup")
+    if non_finite is not None:
+        raise UploadError(f"{non_finite}: number must be finite", location=non_finite, reason="non_finite")
     times = np.fromiter((f["t"] for f in doc["frames"]), float, len(doc["frames"]))
     bad = np.flatnonzero(np.diff(times) <= 0)
     if bad.size:
@@ -139,10 +184,7 @@ def validate_upload_json(body: bytes | bytearray | str) -> dict[str, Any]:
     try:
         doc = cast(dict[str, Any], _ADAPTER.validate_json(body))
     except ValidationError as exc:
-        error = _error_from_pydantic(exc)
-        if error.reason == "schema" and error.location.startswith("schema_version"):
-            error.reason = "version"
-        raise error from None
+        raise _error_from_pydantic(exc) from None
     _check_version(doc)
     _check_semantics(doc)
     return doc

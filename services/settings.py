@@ -77,6 +77,11 @@ class Settings(BaseSettings):
         60.0, gt=0,
         description="embedded default: how long a write waits for SQLite's write lock before the API answers 503",
     )
+    public_map: bool = Field(
+        False,
+        description="tiles, map and versions are sent Cache-Control: public (shared caches may keep them); "
+        "unset: private (only the caller's own cache)",
+    )
     test_merge_delay_s: float = Field(
         0.0, ge=0, description="TEST ONLY: sleep in the first attempt of a merge job, before it writes"
     )

@@ -8,11 +8,12 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
 from services.api.metrics import Metrics
+from services.api.params import check_request_params
 from services.api.routes import (
     corrections,
     export,
@@ -85,7 +86,8 @@ def create_app(settings: Settings) -> FastAPI:
         finally:
             stop_context(app.state.ctx)
 
-    app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan)
+    # every route's path and query parameters pass one check first (services.api.params)
+    app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan, dependencies=[Depends(check_request_params)])
     install_error_handlers(app)
     for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web, ops_jobs,
                    trip_geometry, held_back):

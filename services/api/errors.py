@@ -5,7 +5,8 @@ from __future__ import annotations
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from csr_core.errors import UploadError
@@ -16,6 +17,13 @@ UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_orde
 DATABASE_RETRY_AFTER_S = 5
 # SQLite's messages for a lock still taken when its busy timeout ran out
 _SQLITE_BUSY = ("database is locked", "database table is locked", "database is busy")
+# A database that is busy, unreachable or lost its connection: 503, never 500
+DATABASE_ERRORS: tuple[type[Exception], ...] = (
+    OperationalError,
+    InterfaceError,
+    DisconnectionError,
+    PoolTimeoutError,
+)
 
 
 class ApiError(Exception):
@@ -36,10 +44,11 @@ def as_api_error(exc: UploadError | ApiError) -> ApiError:
     return ApiError(UPLOAD_ERROR_STATUS.get(exc.reason, 422), exc.reason, exc.message, location=exc.location)
 
 
-def database_error(exc: OperationalError) -> ApiError:
+def database_error(exc: Exception) -> ApiError:
     """503 for a database that did not answer in time: SQLite's write lock still taken after its
     busy timeout (the service's bounded wait and retry), or a database that cannot be reached."""
-    detail = str(exc.orig) if exc.orig is not None else str(exc)
+    orig = exc.orig if isinstance(exc, DBAPIError) else None
+    detail = str(orig) if orig is not None else str(exc)
     busy = any(m in detail for m in _SQLITE_BUSY)
     return ApiError(
         503,
@@ -51,30 +60,36 @@ def database_error(exc: OperationalError) -> ApiError:
     )
 
 
-def _json(error: ApiError) -> JSONResponse:
+def error_response(error: ApiError) -> JSONResponse:
     return JSONResponse(error.as_dict(), status_code=error.status, headers=error.headers)
 
 
 def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api_error(_: Request, exc: ApiError) -> JSONResponse:
-        return _json(exc)
+        return error_response(exc)
 
     @app.exception_handler(UploadError)
     async def _upload_error(_: Request, exc: UploadError) -> JSONResponse:
-        return _json(as_api_error(exc))
+        return error_response(as_api_error(exc))
 
-    @app.exception_handler(OperationalError)
-    async def _database_error(_: Request, exc: OperationalError) -> JSONResponse:
-        return _json(database_error(exc))
+    async def _database_error(_: Request, exc: Exception) -> JSONResponse:
+        return error_response(database_error(exc))
+
+    for error_type in DATABASE_ERRORS:
+        app.add_exception_handler(error_type, _database_error)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
-        return _json(ApiError(exc.status_code, code, str(exc.detail), headers=getattr(exc, "headers", None)))
+        return error_response(
+            ApiError(exc.status_code, code, str(exc.detail), headers=getattr(exc, "headers", None))
+        )
 
     @app.exception_handler(RequestValidationError)
     async def _request_invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
         first = exc.errors()[0] if exc.errors() else {"loc": (), "msg": "invalid request"}
         location = ".".join(str(p) for p in first.get("loc", ()))
-        return _json(ApiError(422, "invalid_request", f"{location}: {first.get('msg')}", location=location))
+        return error_response(
+            ApiError(422, "invalid_request", f"{location}: {first.get('msg')}", location=location)
+        )

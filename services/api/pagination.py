@@ -23,6 +23,7 @@ from fastapi.responses import Response
 from sqlalchemy import ColumnExpressionArgument, Select, tuple_
 
 from services.api.errors import ApiError
+from services.api.params import fits_db_int, has_control_characters
 
 DEFAULT_LIMIT = 1000  # a page holds all of the busiest tile seen (259 pairs): clients that do not page keep working
 MAX_LIMIT = 5000
@@ -55,10 +56,19 @@ def decode_cursor(cursor: str, types: Sequence[type]) -> tuple[Any, ...]:
     for value, kind in zip(key, types, strict=True):
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
-        if not isinstance(value, kind) or isinstance(value, bool):
+        if not isinstance(value, kind) or isinstance(value, bool) or not _storable(value):
             raise _bad_cursor("not a cursor of this listing")
         out.append(value)
     return tuple(out)
+
+
+def _storable(value: Any) -> bool:
+    """Whether both databases can compare ``value`` with a column (a sort key's type)."""
+    if isinstance(value, int):
+        return fits_db_int(value)
+    if isinstance(value, str):
+        return not has_control_characters(value)
+    return True
 
 
 def _bad_cursor(why: str) -> ApiError:

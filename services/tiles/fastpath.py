@@ -37,9 +37,10 @@ from typing import Any
 import anyio.to_thread
 from sqlalchemy.orm import configure_mappers
 
+from services.api.errors import DATABASE_ERRORS, database_error, error_response
 from services.db import repo
 from services.tiles import render, signals, store
-from services.tiles.http import CORS_HEADERS, LIVE_CACHE_CONTROL, PINNED_CACHE_CONTROL, caches
+from services.tiles.http import CORS_HEADERS, cache_control, caches
 from services.tiles.mercator import MAX_ZOOM, valid_tile
 
 log = logging.getLogger(__name__)
@@ -85,7 +86,15 @@ class TileFastPath:
             await self.app(scope, receive, send)
             return
         match = _PATH.fullmatch(scope["path"])
-        if match is None or not await self._answer(scope, send, match):
+        if match is None:
+            await self.app(scope, receive, send)
+            return
+        try:
+            answered = await self._answer(scope, send, match)
+        except DATABASE_ERRORS as exc:  # the route would answer the same 503
+            await error_response(database_error(exc))(scope, receive, send)
+            return
+        if not answered:
             await self.app(scope, receive, send)
 
     def _lifespan_send(self, send: Send) -> Send:
@@ -166,7 +175,15 @@ class TileFastPath:
                         self._live.clear()
                     self._live[(kind, z, x, y)] = (etag, time.monotonic() + LIVE_TTL_S, generation)
         assert etag is not None
-        await _respond(send, kind, etag, body, pinned=pinned, not_modified=not_modified)
+        await _respond(
+            send,
+            kind,
+            etag,
+            body,
+            pinned=pinned,
+            public_map=ctx.settings.public_map,
+            not_modified=not_modified,
+        )
         return True
 
     async def _accepted(self, ctx: Any, authorization: str) -> bool:
@@ -259,13 +276,20 @@ def _render(
 
 
 async def _respond(
-    send: Send, kind: str, etag: str, body: bytes | None, *, pinned: int | None, not_modified: bool
+    send: Send,
+    kind: str,
+    etag: str,
+    body: bytes | None,
+    *,
+    pinned: int | None,
+    public_map: bool,
+    not_modified: bool,
 ) -> None:
     """The headers and body ``http.tile_response`` gives (Starlette's ``Response``)."""
     headers = [
         *_CORS,
         (b"etag", etag.encode()),
-        (b"cache-control", (PINNED_CACHE_CONTROL if pinned is not None else LIVE_CACHE_CONTROL).encode()),
+        (b"cache-control", cache_control(pinned=pinned is not None, public_map=public_map).encode()),
     ]
     if pinned is not None:
         headers.append((b"x-map-version", str(pinned).encode()))

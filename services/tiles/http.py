@@ -14,8 +14,9 @@ from services.db import versions as vs
 from services.tiles.mercator import MAX_ZOOM
 from services.tiles.render import TileCache
 
-LIVE_CACHE_CONTROL = "public, max-age=30"
-PINNED_CACHE_CONTROL = "public, max-age=31536000, immutable"
+# How long a cache may keep a live answer, and a pinned one (a map version never changes).
+LIVE_MAX_AGE = "max-age=30"
+PINNED_MAX_AGE = "max-age=31536000, immutable"
 CORS_HEADERS = {
     "Access-Control-Allow-Origin": "*",
     "Access-Control-Expose-Headers": "ETag, X-Map-Version",
@@ -37,6 +38,12 @@ class HasApp(Protocol):
 
     @property
     def app(self) -> Any: ...
+
+
+def cache_control(*, pinned: bool, public_map: bool) -> str:
+    """``Cache-Control`` of a map answer: ``private`` (only the caller's own cache keeps it: the
+    answer needs a key) unless the map is public (``CSR_PUBLIC_MAP``)."""
+    return f"{'public' if public_map else 'private'}, {PINNED_MAX_AGE if pinned else LIVE_MAX_AGE}"
 
 
 def caches(request: HasApp) -> tuple[TileCache, TileCache]:
@@ -118,13 +125,14 @@ def tile_response(
     etag: str,
     media_type: str,
     pinned: bool,
+    public_map: bool,
     not_modified: bool,
     map_version: int | None,
 ) -> Response:
     headers = {
         **CORS_HEADERS,
         "ETag": etag,
-        "Cache-Control": PINNED_CACHE_CONTROL if pinned else LIVE_CACHE_CONTROL,
+        "Cache-Control": cache_control(pinned=pinned, public_map=public_map),
     }
     if map_version is not None:
         headers["X-Map-Version"] = str(map_version)

@@ -262,7 +262,7 @@ def test_etag_304_cors_and_a_new_version_changes_the_etag(tiled: Tiled):
         first = http.get(url)
         etag = first.headers["etag"]
         assert first.status_code == 200 and etag.startswith('"') and not etag.startswith("W/")
-        assert first.headers["cache-control"] == "public, max-age=30"
+        assert first.headers["cache-control"] == "private, max-age=30"  # keyed data: no shared cache
         assert first.headers["access-control-allow-origin"] == "*"
         assert "ETag" in first.headers["access-control-expose-headers"]
         again = http.get(url)
@@ -294,7 +294,7 @@ def test_pinned_tiles_are_immutable(tiled: Tiled):
     with tiled.http() as http:
         before = http.get(url, params={"v": pinned_version})
         assert before.status_code == 200
-        assert before.headers["cache-control"] == "public, max-age=31536000, immutable"
+        assert before.headers["cache-control"] == "private, max-age=31536000, immutable"
         assert before.headers["x-map-version"] == str(pinned_version)
         tiled.write(tile, road(tile, shift=0.1))
         after = http.get(url, params={"v": pinned_version})

@@ -70,8 +70,15 @@ def test_trips_in_bbox(deployment: Deployment, trip: dict) -> None:
             answer = http.get("/v1/trips", params={"bbox": bad})
             assert answer.status_code == 422 and answer.json()["location"] == "bbox", bad
         assert http.get("/v1/trips").status_code == 422
-    with deployment.client(keys["vehicle"]) as vehicle:
-        assert vehicle.get("/v1/trips", params={"bbox": around}).status_code == 403
+    with deployment.client(keys["vehicle"]) as vehicle:  # a vehicle lists its own trips only
+        own = vehicle.get("/v1/trips", params={"bbox": around})
+        assert own.status_code == 200, own.text
+        assert trip["pk"] in [t["id"] for t in own.json()["trips"]]
+        assert {t["vehicle_id"] for t in own.json()["trips"]} == {"veh-geom"}
+    with deployment.client(keys["other"]) as other:
+        listed = other.get("/v1/trips", params={"bbox": around})
+        assert listed.status_code == 200, listed.text
+        assert all(t["vehicle_id"] == "veh-other" for t in listed.json()["trips"])
 
 
 def test_track_geojson_raw_then_aligned(deployment: Deployment, trip: dict) -> None:

@@ -147,3 +147,59 @@ def test_parsed_documents_validate_the_same():
     with pytest.raises(UploadError) as caught:
         validate_upload(doc)
     assert caught.value.location == "frames[1].gnss.lat"
+
+
+def test_missing_schema_version_is_a_schema_violation():
+    doc = copy.deepcopy(EXAMPLE)
+    del doc["schema_version"]
+    with pytest.raises(UploadError) as caught:
+        validate_upload_json(json.dumps(doc).encode())
+    assert (caught.value.reason, caught.value.location) == ("schema", "schema_version")
+
+
+@pytest.mark.parametrize("version", [1.0, None, "2.0"])
+def test_a_schema_version_other_than_the_known_one_is_version(version):
+    doc = copy.deepcopy(EXAMPLE)
+    doc["schema_version"] = version
+    with pytest.raises(UploadError) as caught:
+        validate_upload_json(json.dumps(doc).encode())
+    assert (caught.value.reason, caught.value.location) == ("version", "schema_version")
+
+
+@pytest.mark.parametrize("literal", ["NaN", "1e999", "-Infinity"])
+def test_non_finite_numbers_in_sensor_setup_are_rejected_with_their_path(literal):
+    doc = copy.deepcopy(EXAMPLE)
+    doc["sensor_setup"] = {"model": "m", "ranges": [1.0, {"max_m": "HERE"}]}
+    body = json.dumps(doc).replace('"HERE"', literal).encode()
+    with pytest.raises(UploadError) as caught:
+        validate_upload_json(body)
+    assert (caught.value.reason, caught.value.location) == ("non_finite", "sensor_setup.ranges[1].max_m")
+
+
+@pytest.mark.parametrize(
+    "started_at",
+    [
+        "2026-99-99T99:99:99Z",
+        "2026-02-30T08:00:00Z",
+        "2026-01-01T25:61:61Z",
+        "2026-01-01T08:00:00Z\n",
+        "2026-01-01T08:00:00+24:00",
+        "2026-01-01T08:00:00.1234567890Z",
+        "2026-01-0\u0661T08:00:00Z",
+    ],
+)
+def test_started_at_must_be_an_rfc3339_date_time(started_at):
+    doc = copy.deepcopy(EXAMPLE)
+    doc["started_at"] = started_at
+    with pytest.raises(UploadError) as caught:
+        validate_upload_json(json.dumps(doc).encode())
+    assert (caught.value.reason, caught.value.location) == ("schema", "started_at")
+
+
+@pytest.mark.parametrize(
+    "started_at", ["2024-02-29T00:00:00Z", "2026-12-31T23:59:60Z", "2026-01-01t08:00:00.5+01:30"]
+)
+def test_rfc3339_date_times_are_accepted(started_at):
+    doc = copy.deepcopy(EXAMPLE)
+    doc["started_at"] = started_at
+    assert validate_upload_json(json.dumps(doc).encode())["started_at"] == started_at

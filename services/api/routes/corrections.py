@@ -27,6 +27,7 @@ from sqlalchemy import Text, cast, select
 from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
+from services.api.params import IdText, NoteText
 from services.db import repo
 from services.db.models import Correction, MatchPair, Trip, TripTile, utcnow
 from services.tile_frames import record_sides, sides_of, tile_frame
@@ -44,13 +45,13 @@ class CorrectionRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kind: Literal["reject_pair", "add_pair"]
-    pair_id: str | None = None
-    trip_i: str | None = None
+    pair_id: IdText | None = None
+    trip_i: IdText | None = None
     frames_i: Frames | None = None
-    trip_j: str | None = None
+    trip_j: IdText | None = None
     frames_j: Frames | None = None
     offset_xyyaw: Annotated[list[float], Field(min_length=3, max_length=3)] | None = None
-    note: str | None = Field(None, max_length=2000)
+    note: NoteText | None = None
 
     @model_validator(mode="after")
     def _fields_of_kind(self) -> CorrectionRequest:

@@ -21,11 +21,11 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from services.api.deps import Reader, ReadSessionDep
+from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.api.errors import ApiError
 from services.api.routes.versions import version_or_404
 from services.db import versions as vs
-from services.tiles.http import CORS_HEADERS, LIVE_CACHE_CONTROL, PINNED_CACHE_CONTROL, check_tile
+from services.tiles.http import CORS_HEADERS, cache_control, check_tile
 from services.tiles.render import feature_collection, feature_json
 
 router = APIRouter(prefix="/v1", tags=["versions"])
@@ -40,6 +40,7 @@ HELD_BACK_STATUS = "held_back"  # each feature's ``status``: not in the publishe
 )
 def held_back_lines(
     _: Reader,
+    ctx: Ctx,
     session: ReadSessionDep,
     z: int,
     x: int,
@@ -73,5 +74,5 @@ def held_back_lines(
             map_version=row.id,
         )
     # a pinned version never changes; the latest does when the tile is merged again
-    cache = PINNED_CACHE_CONTROL if version is not None else LIVE_CACHE_CONTROL
+    cache = cache_control(pinned=version is not None, public_map=ctx.settings.public_map)
     return Response(body, media_type="application/geo+json", headers={**CORS_HEADERS, "Cache-Control": cache})

@@ -8,12 +8,11 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from services.api.deps import Reader, ReadSessionDep
+from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.db import versions as vs
 from services.tiles.http import (
     CORS_HEADERS,
-    LIVE_CACHE_CONTROL,
-    PINNED_CACHE_CONTROL,
+    cache_control,
     check_map_version,
     parse_bbox,
 )
@@ -25,6 +24,7 @@ router = APIRouter(prefix="/v1", tags=["map"])
 @router.get("/map", response_class=Response, responses={200: {"content": {"application/geo+json": {}}}})
 def get_map(
     _: Reader,
+    ctx: Ctx,
     session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
     version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
@@ -40,7 +40,7 @@ def get_map(
     body = feature_collection([feature_json(f) for f in features], map_version=map_version, bbox=list(box))
     headers = {
         **CORS_HEADERS,
-        "Cache-Control": PINNED_CACHE_CONTROL if pinned is not None else LIVE_CACHE_CONTROL,
+        "Cache-Control": cache_control(pinned=pinned is not None, public_map=ctx.settings.public_map),
     }
     headers["X-Map-Version"] = str(map_version)
     return Response(body, media_type="application/geo+json", headers=headers)

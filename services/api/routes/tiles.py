@@ -18,8 +18,8 @@ from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.tiles import render
 from services.tiles.http import (
     CORS_HEADERS,
-    LIVE_CACHE_CONTROL,
     PREFLIGHT_HEADERS,
+    cache_control,
     caches,
     check_map_version,
     check_tile,
@@ -66,6 +66,7 @@ def _tile(
         etag=tile.etag,
         media_type=tile.media_type,
         pinned=map_version is not None,
+        public_map=ctx.settings.public_map,
         not_modified=not_modified,
         map_version=map_version,
     )
@@ -118,7 +119,13 @@ def tile_json(_: Reader, request: Request, ctx: Ctx, session: ReadSessionDep) ->
     base = str(request.base_url).rstrip("/")
     with session.begin():
         doc = render.tilejson(session, base_url=base, tile_zoom=ctx.settings.tile_zoom)
-    return JSONResponse(doc, headers={**CORS_HEADERS, "Cache-Control": LIVE_CACHE_CONTROL})
+    return JSONResponse(
+        doc,
+        headers={
+            **CORS_HEADERS,
+            "Cache-Control": cache_control(pinned=False, public_map=ctx.settings.public_map),
+        },
+    )
 
 
 @router.options("/tiles/{rest:path}", include_in_schema=False)

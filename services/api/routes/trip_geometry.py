@@ -19,7 +19,7 @@ import shapely
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import select
 
-from services.api.deps import AnyRole, Ctx, Reader, ReadSessionDep
+from services.api.deps import AnyRole, Ctx, ReadSessionDep
 from services.api.errors import ApiError
 from services.api.routes.trips import _iso_utc
 from services.auth import may_read_trip
@@ -81,26 +81,24 @@ def trip_summary(trip: Trip) -> dict[str, Any]:
 
 @router.get("")
 def trips_in_bbox(
-    _: Reader,
+    caller: AnyRole,
     ctx: Ctx,
     session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat")],
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 100,
 ) -> dict[str, Any]:
-    """Trips whose raw GNSS track touches the bbox, newest first (``truncated`` when over ``limit``)."""
+    """Trips whose raw GNSS track touches the bbox, newest first (``truncated`` when over ``limit``);
+    a vehicle key sees its own trips only."""
     west, south, east, north = parse_bbox(bbox)
     zoom = ctx.settings.tile_zoom
     x0, y0 = _tile_xy(west, north, zoom)
     x1, y1 = _tile_xy(east, south, zoom)
-    candidates = list(
-        dict.fromkeys(
-            session.scalars(
-                select(TripTile.trip_pk)
-                .where(TripTile.z == zoom, TripTile.x.between(x0, x1), TripTile.y.between(y0, y1))
-                .limit(MAX_CANDIDATES)
-            )
-        )
+    query = select(TripTile.trip_pk).where(
+        TripTile.z == zoom, TripTile.x.between(x0, x1), TripTile.y.between(y0, y1)
     )
+    if caller.role == "vehicle":
+        query = query.join(Trip, Trip.id == TripTile.trip_pk).where(Trip.vehicle_id == caller.vehicle_id)
+    candidates = list(dict.fromkeys(session.scalars(query.limit(MAX_CANDIDATES))))
     box = shapely.box(west, south, east, north)
     found: list[Trip] = []
     for start in range(0, len(candidates), 500):

@@ -11,12 +11,13 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session, defer
 
-from services.api.deps import Admin, Reader, ReadSessionDep, SessionDep
+from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
 from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
+from services.api.params import DbInt
 from services.db import versions as vs
 from services.db.models import TileVersion
-from services.tiles.http import CORS_HEADERS, check_tile
+from services.tiles.http import CORS_HEADERS, cache_control, check_tile
 from services.tiles.render import feature_collection, feature_json
 
 router = APIRouter(prefix="/v1", tags=["versions"])
@@ -66,6 +67,7 @@ def tile_history(_: Reader, request: Request, session: ReadSessionDep, z: int, x
 )
 def tile_version_geojson(
     _: Reader,
+    ctx: Ctx,
     session: ReadSessionDep,
     z: int,
     x: int,
@@ -91,7 +93,7 @@ def tile_version_geojson(
     return Response(
         body,
         media_type="application/geo+json",
-        headers={**CORS_HEADERS, "Cache-Control": "public, max-age=31536000, immutable"},
+        headers={**CORS_HEADERS, "Cache-Control": cache_control(pinned=True, public_map=ctx.settings.public_map)},
     )
 
 
@@ -139,12 +141,12 @@ def changes(
 
 
 class RollbackBody(BaseModel):
-    version: int = Field(ge=1, description="the tile version to publish again")
-    expected_latest: int | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    version: DbInt = Field(ge=1, description="the tile version to publish again")
+    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
 
 
 class ApproveBody(BaseModel):
-    expected_latest: int | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
 
 
 def _write(action, session: Session, **kwargs) -> JSONResponse:
