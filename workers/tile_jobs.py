@@ -185,6 +185,7 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     result = AlignTileResult(frame, full=full)
     if not recons:
         return result
+    human_corrected = any(len(c) for c in constraints)
     polygon = tile_polygon_xy(z, x, y, frame)
     pieces: list[TripReconstruction] = []
     piece_of: dict[str, tuple[str, int, np.ndarray]] = {}  # piece key -> trip pk, start, signed distances
@@ -204,10 +205,13 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
         poses, weights, residuals, moved, failed = piece_outcome(piece, alignment, signed, settings.tile_halo_m)
         if failed is None and weights.any():
             # a piece the alignment moved farther from its own GNSS than its error model allows
-            # keeps its single-trip poses and has no say on the trip's (like an unaligned one)
+            # keeps its single-trip poses and has no say on the trip's (like an unaligned one);
+            # under the map team's corrections the aligned poses stand, and the finding is recorded
             kept, why = check_aligned_poses(piece.trip, piece.poses_xyyaw_world, poses, frame, SINGLE_TRIP_DEFAULT,
                                             float(piece.diagnostics.get("gnss_latency_s", 0.0)), piece.gnss_inlier)
-            if why is not None:
+            if why is not None and human_corrected:
+                reverted[pk] = why.replace("single-trip poses kept", "kept under the map team's corrections")
+            elif why is not None:
                 reverted[pk] = why
                 poses, weights = kept, np.zeros_like(weights)
                 moved = reposition_instances(piece.instances, piece.poses_xyyaw_world, poses)
