@@ -106,15 +106,20 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     if not recons:
         raise ReconstructionError("no trip could be reconstructed: " + "; ".join(failed.values()))
     poses_by_key = {r.trip.key: r.poses_xyyaw_world for r in recons}
-    degraded = {r.trip.key: r.diagnostics["quality"]["reason"] for r in recons
-                if r.diagnostics.get("quality", {}).get("verdict") == "degraded"}
+    degraded = {
+        r.trip.key: r.diagnostics["quality"]["reason"]
+        for r in recons
+        if r.diagnostics.get("quality", {}).get("verdict") == "degraded"
+    }
 
     # 2.-5. split, associate, optimize (coarse, Eq. 3-12) and refine (fine): multi-trip alignment
     alignment = None
     unaligned: dict[str, str] = {}
     reverted: dict[str, str] = {}
     if params.coarse or params.fine:
-        alignment = align_trips(recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine))
+        alignment = align_trips(
+            recons, params=replace(ALIGNMENT_DEFAULT, coarse=params.coarse, fine=params.fine)
+        )
         poses_by_key, failed_alignment, unaligned = poses_after_alignment(recons, alignment)
         failed.update(failed_alignment)
         # a trip the alignment moved farther from its own GNSS than its error model allows
@@ -155,8 +160,9 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     )
 
 
-def poses_after_alignment(recons: Sequence[TripReconstruction], alignment: AlignmentResult
-                          ) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+def poses_after_alignment(
+    recons: Sequence[TripReconstruction], alignment: AlignmentResult
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
     """Each trip's world_T_vehicle poses once ``alignment`` ran over ``recons``: the aligned ones;
     a trip that shares no road with any other (``NO_OVERLAP``) keeps its single-trip poses.
     Returns (poses by trip key, failed trips with the reason, trips left unaligned with the reason)."""
@@ -172,8 +178,9 @@ def poses_after_alignment(recons: Sequence[TripReconstruction], alignment: Align
     return poses_by_key, failed, unaligned
 
 
-def check_aligned_poses(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],
-                        frame: LocalFrame) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def check_aligned_poses(
+    recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray], frame: LocalFrame
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Each aligned trip through ``integrity.check_aligned_poses``: a trip the alignment moved
     farther from its own GNSS than its error model allows keeps its single-trip poses. Returns
     the poses and the reverted trips with the reason."""
@@ -183,26 +190,35 @@ def check_aligned_poses(recons: Sequence[TripReconstruction], poses_by_key: dict
         key = r.trip.key
         if key not in out or out[key] is r.poses_xyyaw_world:
             continue
-        out[key], reason = check_aligned_poses_of_trip(r.trip, r.poses_xyyaw_world, out[key], frame,
-                                                       SINGLE_TRIP_DEFAULT,
-                                                       float(r.diagnostics.get("gnss_latency_s", 0.0)),
-                                                       r.gnss_inlier)
+        out[key], reason = check_aligned_poses_of_trip(
+            r.trip,
+            r.poses_xyyaw_world,
+            out[key],
+            frame,
+            SINGLE_TRIP_DEFAULT,
+            float(r.diagnostics.get("gnss_latency_s", 0.0)),
+            r.gnss_inlier,
+        )
         if reason is not None:
             reverted[key] = reason
             log.warning("trip %s: %s", key, reason)
     return out, reverted
 
 
-def fuse_trips(recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray],
-               match_pairs: Sequence = ()) -> TopologyResult:
+def fuse_trips(
+    recons: Sequence[TripReconstruction], poses_by_key: dict[str, np.ndarray], match_pairs: Sequence = ()
+) -> TopologyResult:
     """Paper III-E: the instances of every trip in ``poses_by_key``, moved from their single-trip
     poses to these, matched and fused into the road structure (``generate_topology``) with the
     alignment's ``match_pairs`` for the validator."""
     placed = [r for r in recons if r.trip.key in poses_by_key]
-    instances = {r.trip.key: reposition_instances(r.instances, r.poses_xyyaw_world, poses_by_key[r.trip.key])
-                 for r in placed}
+    instances = {
+        r.trip.key: reposition_instances(r.instances, r.poses_xyyaw_world, poses_by_key[r.trip.key])
+        for r in placed
+    }
     return generate_topology(
-        instances, {r.trip.key: r.noise for r in placed},
+        instances,
+        {r.trip.key: r.noise for r in placed},
         trip_times={r.trip.key: r.trip.started_at for r in placed},
         match_pairs=match_pairs,
         paths_xy_per_trip={k: p[:, :2] for k, p in poses_by_key.items()},

@@ -241,7 +241,9 @@ def _poses_csv_bytes(timestamps_s: np.ndarray, lonlat_deg: np.ndarray, heading_d
     return ("\n".join(lines) + "\n").encode()
 
 
-def map_features_to_geojson(features: Sequence[MapFeature], frame: LocalFrame, extra: dict | None = None) -> dict:
+def map_features_to_geojson(
+    features: Sequence[MapFeature], frame: LocalFrame, extra: dict | None = None
+) -> dict:
     """Map features (world plane of ``frame``) -> GeoJSON FeatureCollection like ``GET /v1/map``;
     ``extra`` is added to every feature's properties."""
     out: list[dict] = []
@@ -294,9 +296,7 @@ def write_reconstruction(
         if poses.shape != (trip.n_frames, 3):
             raise ValueError(f"{trip.key}: poses shape {poses.shape} != ({trip.n_frames}, 3)")
         lonlat = frame.to_lonlat(poses[:, :2])
-        body = _poses_csv_bytes(
-            trip.timestamps_s, lonlat, frame.heading_deg(poses[:, 2], lonlat)
-        )
+        body = _poses_csv_bytes(trip.timestamps_s, lonlat, frame.heading_deg(poses[:, 2], lonlat))
         (poses_dir / f"{trip.key}.csv").write_bytes(body)
         written.append(trip.key)
     geojson = map_features_to_geojson(recon.map_features, frame)

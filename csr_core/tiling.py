@@ -33,12 +33,14 @@ def tile_polygon_xy(z: int, x: int, y: int, frame: LocalFrame) -> shapely.Polygo
     sampled so that the projection's curvature is kept."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
     t = np.linspace(0.0, 1.0, 9)
-    ring = np.concatenate([
-        np.column_stack([west + (east - west) * t, np.full_like(t, south)]),
-        np.column_stack([np.full_like(t, east), south + (north - south) * t]),
-        np.column_stack([east - (east - west) * t, np.full_like(t, north)]),
-        np.column_stack([np.full_like(t, west), north - (north - south) * t]),
-    ])
+    ring = np.concatenate(
+        [
+            np.column_stack([west + (east - west) * t, np.full_like(t, south)]),
+            np.column_stack([np.full_like(t, east), south + (north - south) * t]),
+            np.column_stack([east - (east - west) * t, np.full_like(t, north)]),
+            np.column_stack([np.full_like(t, west), north - (north - south) * t]),
+        ]
+    )
     return shapely.Polygon(frame.to_local(ring))
 
 
@@ -57,7 +59,9 @@ def owned_tiles(poses_xyyaw: np.ndarray, frame: LocalFrame, zoom: int) -> list[t
     return tiles_touched(frame.to_lonlat(np.asarray(poses_xyyaw, float)[:, :2]), zoom=zoom)
 
 
-def owned_frame_counts(poses_xyyaw: np.ndarray, frame: LocalFrame, zoom: int) -> dict[tuple[int, int, int], int]:
+def owned_frame_counts(
+    poses_xyyaw: np.ndarray, frame: LocalFrame, zoom: int
+) -> dict[tuple[int, int, int], int]:
     """``{(z, x, y): frames}``: how many frames each tile owns (sorted by tile); a tile job's cost
     grows with the frames it aligns, so the scheduler reads it from this."""
     tiles, counts = np.unique(frame_tiles(poses_xyyaw, frame, zoom), axis=0, return_counts=True)
@@ -71,7 +75,9 @@ def signed_distance_m(points_xy: np.ndarray, polygon: shapely.Polygon) -> np.nda
     return np.where(shapely.contains(polygon, pts), d, -d)
 
 
-def piece_runs(signed_m: np.ndarray, halo_m: float, min_frames: int = MIN_PIECE_FRAMES) -> list[tuple[int, int]]:
+def piece_runs(
+    signed_m: np.ndarray, halo_m: float, min_frames: int = MIN_PIECE_FRAMES
+) -> list[tuple[int, int]]:
     """``[(start, stop), ...]``: the runs of frames within ``halo_m`` of the tile that contain at
     least one frame inside it and have ``min_frames`` frames or more."""
     near = signed_m > -halo_m
@@ -98,7 +104,9 @@ def crop_trip(trip: Trip, start: int, stop: int, *, suffix: str) -> Trip:
     )
 
 
-def crop_reconstruction(recon: TripReconstruction, start: int, stop: int, *, suffix: str) -> TripReconstruction:
+def crop_reconstruction(
+    recon: TripReconstruction, start: int, stop: int, *, suffix: str
+) -> TripReconstruction:
     """A piece of a trip: its frames ``[start, stop)``, keyframes and instances re-indexed, the
     instances seen in those frames cut to the frames' box (grown by ``INSTANCE_MARGIN_M``)."""
     poses = recon.poses_xyyaw_world[start:stop]
@@ -110,7 +118,9 @@ def crop_reconstruction(recon: TripReconstruction, start: int, stop: int, *, suf
         first, last = max(inst.first_frame, start) - start, min(inst.last_frame, stop - 1) - start
         for points in _clip_to_box(inst, lo, hi):
             instances.append(replace(inst, points_xy_world=points, first_frame=first, last_frame=last))
-    keyframes = recon.keyframe_indices[(recon.keyframe_indices >= start) & (recon.keyframe_indices < stop)] - start
+    keyframes = (
+        recon.keyframe_indices[(recon.keyframe_indices >= start) & (recon.keyframe_indices < stop)] - start
+    )
     if len(keyframes) == 0 or keyframes[0] != 0:
         keyframes = np.concatenate([[0], keyframes]).astype(recon.keyframe_indices.dtype)
     return replace(
@@ -121,8 +131,9 @@ def crop_reconstruction(recon: TripReconstruction, start: int, stop: int, *, suf
         keyframe_indices=keyframes,
         instances=tuple(instances),
         gnss_inlier=recon.gnss_inlier[start:stop] if recon.gnss_inlier is not None else None,
-        white_poses_xyyaw_world=(recon.white_poses_xyyaw_world[start:stop]
-                                 if recon.white_poses_xyyaw_world is not None else None),
+        white_poses_xyyaw_world=(
+            recon.white_poses_xyyaw_world[start:stop] if recon.white_poses_xyyaw_world is not None else None
+        ),
     )
 
 
@@ -166,10 +177,14 @@ def reframe_reconstruction(recon: TripReconstruction, src: LocalFrame, dst: Loca
     return replace(
         recon,
         poses_xyyaw_world=reframe_poses(recon.poses_xyyaw_world, src, dst),
-        white_poses_xyyaw_world=(None if recon.white_poses_xyyaw_world is None
-                                 else reframe_poses(recon.white_poses_xyyaw_world, src, dst)),
-        instances=tuple(replace(i, points_xy_world=reframe_points(i.points_xy_world, src, dst))
-                        for i in recon.instances),
+        white_poses_xyyaw_world=(
+            None
+            if recon.white_poses_xyyaw_world is None
+            else reframe_poses(recon.white_poses_xyyaw_world, src, dst)
+        ),
+        instances=tuple(
+            replace(i, points_xy_world=reframe_points(i.points_xy_world, src, dst)) for i in recon.instances
+        ),
     )
 
 
@@ -179,8 +194,9 @@ def blend_weight(signed_m: np.ndarray, halo_m: float) -> np.ndarray:
     return np.clip(0.5 + np.asarray(signed_m, float) / (2.0 * halo_m), 0.0, 1.0)
 
 
-def assemble_poses(fallback_xyyaw: np.ndarray, contributions: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def assemble_poses(
+    fallback_xyyaw: np.ndarray, contributions: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray]:
     """A trip's final poses from the tiles that aligned its frames.
 
     ``contributions``: ``(frame_indices (F,), poses_xyyaw (F, 3), weights (F,))`` per tile, all in
@@ -196,8 +212,13 @@ def assemble_poses(fallback_xyyaw: np.ndarray, contributions: list[tuple[np.ndar
     for idx, poses, w in contributions:
         w = np.asarray(w, float)
         idx, poses, w = np.asarray(idx)[w > 0], np.asarray(poses)[w > 0], w[w > 0]
-        np.add.at(acc, idx, np.column_stack([w * poses[:, 0], w * poses[:, 1],
-                                             w * np.cos(poses[:, 2]), w * np.sin(poses[:, 2])]))
+        np.add.at(
+            acc,
+            idx,
+            np.column_stack(
+                [w * poses[:, 0], w * poses[:, 1], w * np.cos(poses[:, 2]), w * np.sin(poses[:, 2])]
+            ),
+        )
         np.add.at(wsum, idx, w)
     aligned = wsum > 0
     out = fallback.copy()

@@ -35,7 +35,12 @@ class ElementType(str, Enum):
         return self in (ElementType.CROSSWALK, ElementType.ROAD_MARKING)
 
 
-LINE_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+LINE_TYPES = (
+    ElementType.LANE_DIVIDER,
+    ElementType.ROAD_BOUNDARY,
+    ElementType.CENTERLINE,
+    ElementType.STOP_LINE,
+)
 POLYGON_TYPES = (ElementType.CROSSWALK, ElementType.ROAD_MARKING)
 
 
@@ -65,7 +70,9 @@ class GnssStatus(IntEnum):
 
 
 def _check_shape(name: str, array: np.ndarray, shape: tuple[int | None, ...]) -> None:
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape, strict=True)):
+    if array.ndim != len(shape) or any(
+        s is not None and s != a for s, a in zip(shape, array.shape, strict=True)
+    ):
         raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
 
 

@@ -134,8 +134,13 @@ def is_rfc3339_date_time(text: str) -> bool:
         date(part["year"], part["month"], part["day"])
     except ValueError:
         return False
-    return (part["hour"] <= 23 and part["minute"] <= 59 and part["second"] <= 60
-            and part["offset_hour"] <= 23 and part["offset_minute"] <= 59)
+    return (
+        part["hour"] <= 23
+        and part["minute"] <= 59
+        and part["second"] <= 60
+        and part["offset_hour"] <= 23
+        and part["offset_minute"] <= 59
+    )
 
 
 def first_non_finite(value: Any, path: str) -> str | None:
@@ -158,7 +163,9 @@ def first_non_finite(value: Any, path: str) -> str | None:
 def _check_semantics(doc: dict[str, Any]) -> None:
     if not is_rfc3339_date_time(doc["started_at"]):
         raise UploadError(
-            f"started_at: {doc['started_at']!r} is not an RFC 3339 date-time", location="started_at", reason="schema"
+            f"started_at: {doc['started_at']!r} is not an RFC 3339 date-time",
+            location="started_at",
+            reason="schema",
         )
     # the typed fields reject non-finite numbers while parsing; the free metadata is checked here
     non_finite = first_non_finite(doc.get("sensor_setup", {}), "sensor_setup")
@@ -226,7 +233,9 @@ def decode_trip(doc: dict[str, Any]) -> Trip:
         gnss_status=np.fromiter((GnssStatus.from_name(f["gnss"]["status"]) for f in frames), np.uint8, n),
         gnss_std_m=np.fromiter((f["gnss"].get("std_m", nan) for f in frames), float, n),
         gnss_heading_deg=np.fromiter((f["gnss"].get("heading_deg", nan) for f in frames), float, n),
-        odom_xyyaw=np.array([(f["odom"]["x"], f["odom"]["y"], f["odom"]["yaw"]) for f in frames], float).reshape(n, 3),
+        odom_xyyaw=np.array(
+            [(f["odom"]["x"], f["odom"]["y"], f["odom"]["yaw"]) for f in frames], float
+        ).reshape(n, 3),
         elements=tuple(tuple(_decode_element(e) for e in f["elements"]) for f in frames),
         sensor_setup=dict(doc.get("sensor_setup", {})),
     )
@@ -256,12 +265,14 @@ def encode_trip(trip: Trip) -> dict[str, Any]:
                 out["track_id"] = int(e.track_id)
             elements.append(out)
         x, y, yaw = trip.odom_xyyaw[i]
-        frames.append({
-            "t": float(trip.timestamps_s[i]),
-            "gnss": gnss,
-            "odom": {"x": float(x), "y": float(y), "yaw": float(yaw)},
-            "elements": elements,
-        })
+        frames.append(
+            {
+                "t": float(trip.timestamps_s[i]),
+                "gnss": gnss,
+                "odom": {"x": float(x), "y": float(y), "yaw": float(yaw)},
+                "elements": elements,
+            }
+        )
     doc: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION,
         "vehicle_id": trip.vehicle_id,

@@ -25,8 +25,10 @@ class ServiceError(RuntimeError):
 
 def _check(response: httpx.Response, *expected: int) -> httpx.Response:
     if response.status_code not in expected:
-        raise ServiceError(f"{response.request.method} {response.request.url.path}: "
-                           f"{response.status_code} {response.text[:500]}")
+        raise ServiceError(
+            f"{response.request.method} {response.request.url.path}: "
+            f"{response.status_code} {response.text[:500]}"
+        )
     return response
 
 
@@ -62,11 +64,17 @@ def _retry_after_s(response: httpx.Response) -> float:
 
 
 def client_for(base_url: str, key: str, timeout_s: float = 120.0) -> httpx.Client:
-    return httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s,
-                        transport=RetryBusy(httpx.HTTPTransport()))
+    return httpx.Client(
+        base_url=base_url,
+        headers={"Authorization": f"Bearer {key}"},
+        timeout=timeout_s,
+        transport=RetryBusy(httpx.HTTPTransport()),
+    )
 
 
-def upload_scenario(client: httpx.Client, scenario_dir: str | Path, *, progress: bool = True) -> dict[str, str]:
+def upload_scenario(
+    client: httpx.Client, scenario_dir: str | Path, *, progress: bool = True
+) -> dict[str, str]:
     """POST every trip of the scenario (file-name order, gzip as stored); ``{trip key: server id}``."""
     ids: dict[str, str] = {}
     files = list_trip_files(scenario_dir)
@@ -80,8 +88,14 @@ def upload_scenario(client: httpx.Client, scenario_dir: str | Path, *, progress:
     return ids
 
 
-def wait_until_processed(client: httpx.Client, trip_ids: dict[str, str], *, timeout_s: float = 1800.0,
-                         progress: bool = True, poll_s: float = 1.0) -> dict[str, str]:
+def wait_until_processed(
+    client: httpx.Client,
+    trip_ids: dict[str, str],
+    *,
+    timeout_s: float = 1800.0,
+    progress: bool = True,
+    poll_s: float = 1.0,
+) -> dict[str, str]:
     """Wait until every trip is ingested, then ask for processing now (``POST /v1/process``, so that
     each tile takes all its trips in one batch; repeated while tiles are dirty) and wait until every
     trip is ``aligned`` or ``failed`` and no job is queued or running; ``{key: status}``."""
@@ -90,26 +104,38 @@ def wait_until_processed(client: httpx.Client, trip_ids: dict[str, str], *, time
     statuses: dict[str, str] = {}
     try:
         while True:
-            statuses = {k: _check(client.get(f"/v1/trips/{i}"), 200).json()["status"] for k, i in trip_ids.items()}
+            statuses = {
+                k: _check(client.get(f"/v1/trips/{i}"), 200).json()["status"] for k, i in trip_ids.items()
+            }
             if "received" not in statuses.values():  # every upload ingested: its tiles are known
                 _check(client.post("/v1/process"), 202)
             done = sum(s in ("aligned", "failed") for s in statuses.values())
             bar.n = done
             bar.refresh()
             summary = _check(client.get("/v1/jobs/summary"), 200).json()
-            if done == len(trip_ids) and summary["queued"] == 0 and summary["running"] == 0 \
-                    and summary["dirty_tiles"] == 0:
+            if (
+                done == len(trip_ids)
+                and summary["queued"] == 0
+                and summary["running"] == 0
+                and summary["dirty_tiles"] == 0
+            ):
                 return statuses
             if time.monotonic() > deadline:
-                raise ServiceError(f"not processed within {timeout_s:.0f} s: {summary}, "
-                                   f"{sum(s == 'processing' for s in statuses.values())} trips processing")
+                raise ServiceError(
+                    f"not processed within {timeout_s:.0f} s: {summary}, "
+                    f"{sum(s == 'processing' for s in statuses.values())} trips processing"
+                )
             time.sleep(poll_s)
     finally:
         bar.close()
 
 
-def download_results(client: httpx.Client, trip_ids: dict[str, str], out_dir: str | Path,
-                     bbox_lonlat: tuple[float, float, float, float]) -> dict[str, int]:
+def download_results(
+    client: httpx.Client,
+    trip_ids: dict[str, str],
+    out_dir: str | Path,
+    bbox_lonlat: tuple[float, float, float, float],
+) -> dict[str, int]:
     """The service's poses of every aligned trip and the map of ``bbox`` written like ``csr
     reconstruct``'s output; counts of what was written."""
     out = Path(out_dir)
@@ -120,7 +146,9 @@ def download_results(client: httpx.Client, trip_ids: dict[str, str], out_dir: st
         if response.status_code == 409:  # failed: left out, as the contract's coverage counts it
             continue
         frames = _check(response, 200).json()["frames"]
-        rows = np.array([[f["t"], f["lat"], f["lon"], f["heading_deg"]] for f in frames], float).reshape(-1, 4)
+        rows = np.array([[f["t"], f["lat"], f["lon"], f["heading_deg"]] for f in frames], float).reshape(
+            -1, 4
+        )
         lines = [POSES_CSV_HEADER] + [f"{t!r},{lat!r},{lon!r},{h!r}" for t, lat, lon, h in rows.tolist()]
         (out / "poses" / f"{key}.csv").write_text("\n".join(lines) + "\n")
         written += 1
@@ -141,5 +169,9 @@ def scenario_bbox(scenario_dir: str | Path, margin_deg: float = 0.002) -> tuple[
         fixes = trip.gnss_lonlat_deg[trip.has_fix]
         if len(fixes):
             lo, hi = np.minimum(lo, fixes.min(axis=0)), np.maximum(hi, fixes.max(axis=0))
-    return (float(lo[0] - margin_deg), float(lo[1] - margin_deg), float(hi[0] + margin_deg),
-            float(hi[1] + margin_deg))
+    return (
+        float(lo[0] - margin_deg),
+        float(lo[1] - margin_deg),
+        float(hi[0] + margin_deg),
+        float(hi[1] + margin_deg),
+    )

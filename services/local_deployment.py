@@ -56,8 +56,16 @@ class LocalDeployment:
     def __enter__(self) -> LocalDeployment:
         self._tmp = tempfile.TemporaryDirectory(prefix="csr-local-")
         env = {k: v for k, v in os.environ.items() if not k.startswith("CSR_")}
-        env.update({"CSR_ADMIN_KEY": self.admin_key, "CSR_DATA_DIR": self._tmp.name, "CSR_QUIET_PERIOD_S": "3600",
-                    "CSR_POLL_INTERVAL_S": "0.2", "OPENBLAS_NUM_THREADS": "1", **self.extra_env})
+        env.update(
+            {
+                "CSR_ADMIN_KEY": self.admin_key,
+                "CSR_DATA_DIR": self._tmp.name,
+                "CSR_QUIET_PERIOD_S": "3600",
+                "CSR_POLL_INTERVAL_S": "0.2",
+                "OPENBLAS_NUM_THREADS": "1",
+                **self.extra_env,
+            }
+        )
         if self.kind == "distributed":
             if not (self.database_url and self.redis_url):
                 raise ValueError("a distributed deployment needs a database URL and a Redis URL")
@@ -68,14 +76,26 @@ class LocalDeployment:
         port = free_port()
         self.base_url = f"http://127.0.0.1:{port}"
         log = open(Path(self._tmp.name) / "serve.log", "wb")  # noqa: SIM115 (closed with the dir)
-        self._procs.append(subprocess.Popen([str(BIN / "csr"), "serve", "--port", str(port), "--no-access-log"],
-                                            env=env, stdout=log, stderr=subprocess.STDOUT))
+        self._procs.append(
+            subprocess.Popen(
+                [str(BIN / "csr"), "serve", "--port", str(port), "--no-access-log"],
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        )
         self._wait_healthy()
         if self.kind == "distributed":
             for k in range(self.workers):
                 wlog = open(Path(self._tmp.name) / f"worker-{k}.log", "wb")  # noqa: SIM115
-                self._procs.append(subprocess.Popen([str(BIN / "csr"), "worker", "--concurrency", "1"],
-                                                    env=env, stdout=wlog, stderr=subprocess.STDOUT))
+                self._procs.append(
+                    subprocess.Popen(
+                        [str(BIN / "csr"), "worker", "--concurrency", "1"],
+                        env=env,
+                        stdout=wlog,
+                        stderr=subprocess.STDOUT,
+                    )
+                )
             time.sleep(6)  # the workers are up before anything is measured
         return self
 
@@ -93,8 +113,9 @@ class LocalDeployment:
 
         engine = sa.create_engine(self.effective_database_url)
         with engine.connect() as conn:
-            rows = conn.execute(sa.text("SELECT kind, sum(duration_s) FROM jobs WHERE duration_s IS NOT NULL "
-                                        "GROUP BY kind")).all()
+            rows = conn.execute(
+                sa.text("SELECT kind, sum(duration_s) FROM jobs WHERE duration_s IS NOT NULL GROUP BY kind")
+            ).all()
         engine.dispose()
         return {r[0]: float(r[1]) for r in rows}
 

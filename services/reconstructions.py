@@ -37,7 +37,9 @@ def encode_arrays(recon: TripReconstruction) -> bytes:
         "gnss_inlier": np.asarray(inlier, bool).reshape(n),
     }
     if recon.white_poses_xyyaw_world is not None:
-        arrays["white_poses_xyyaw_world"] = np.asarray(recon.white_poses_xyyaw_world, np.float64).reshape(n, 3)
+        arrays["white_poses_xyyaw_world"] = np.asarray(recon.white_poses_xyyaw_world, np.float64).reshape(
+            n, 3
+        )
     buffer = io.BytesIO()
     # mypy checks the **arrays values against allow_pickle: bool too (no key is named so)
     np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]

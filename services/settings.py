@@ -47,7 +47,9 @@ class Settings(BaseSettings):
         "first), so that every seam is aligned once against a map",
     )
     publish_min_quality: float = Field(
-        0.8, ge=0, le=1,
+        0.8,
+        ge=0,
+        le=1,
         description="a merged tile version is a candidate for review, not live, when the share of its elements "
         "whose trips contradict each other exceeds 1 minus this",
     )
@@ -67,14 +69,16 @@ class Settings(BaseSettings):
         3600.0, gt=0, description="re-send a queued job whose message may be lost"
     )
     job_lease_s: float = Field(
-        60.0, gt=0,
+        60.0,
+        gt=0,
         description="a running job's lease: its runner renews it every third of this while it works; the outbox "
         "relay queues a job again once its lease has run out (its worker or its broker message is gone)",
     )
     poll_interval_s: float = Field(0.5, gt=0, description="outbox relay / embedded pool poll interval")
     worker_concurrency: int = Field(1, ge=1, description="csr worker: processes per worker")
     sqlite_busy_timeout_s: float = Field(
-        60.0, gt=0,
+        60.0,
+        gt=0,
         description="embedded default: how long a write waits for SQLite's write lock before the API answers 503",
     )
     public_map: bool = Field(

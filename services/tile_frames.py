@@ -47,5 +47,7 @@ def sides_of(trip_pk_i: str | None, trip_pk_j: str | None, record: dict[str, Any
         start = int(key.rsplit("@", 1)[1]) if "@" in key else 0
         return pk, (int(frames[0]) + start, int(frames[1]) + start)
 
-    return (side(trip_pk_i, record["trip_key_i"], record["frames_i"]),
-            side(trip_pk_j, record["trip_key_j"], record["frames_j"]))
+    return (
+        side(trip_pk_i, record["trip_key_i"], record["frames_i"]),
+        side(trip_pk_j, record["trip_key_j"], record["frames_j"]),
+    )

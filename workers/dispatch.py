@@ -63,8 +63,12 @@ class TileStates:
         if not involved:
             return cls(frozenset(), frozenset())
         pending = session.scalars(
-            select(Job.subject).where(Job.kind.in_(TILE_JOBS), Job.state.in_(("queued", "running")),
-                                      Job.subject.in_([tile_subject(*t) for t in involved])))
+            select(Job.subject).where(
+                Job.kind.in_(TILE_JOBS),
+                Job.state.in_(("queued", "running")),
+                Job.subject.in_([tile_subject(*t) for t in involved]),
+            )
+        )
         return cls(frozenset(_tiles_with_versions(session, involved)), frozenset(pending))
 
     def first_version_pending(self, tile: Tile) -> bool:
@@ -107,9 +111,14 @@ def _tiles_with_versions(session: Session, tiles: set[Tile]) -> set[Tile]:
         return set()
     zs, xs, ys = zip(*tiles, strict=True)
     rows = session.execute(
-        select(TileVersion.z, TileVersion.x, TileVersion.y).distinct()
-        .where(TileVersion.z.in_(set(zs)), TileVersion.x.between(min(xs), max(xs)),
-               TileVersion.y.between(min(ys), max(ys)))).all()
+        select(TileVersion.z, TileVersion.x, TileVersion.y)
+        .distinct()
+        .where(
+            TileVersion.z.in_(set(zs)),
+            TileVersion.x.between(min(xs), max(xs)),
+            TileVersion.y.between(min(ys), max(ys)),
+        )
+    ).all()
     return {(z, x, y) for z, x, y in rows} & tiles
 
 
@@ -122,9 +131,14 @@ def frames_to_align(session: Session, tiles: Iterable[Tile]) -> dict[Tile, int]:
     zs, xs, ys = zip(*tiles, strict=True)
     rows = session.execute(
         select(TripTile.z, TripTile.x, TripTile.y, func.sum(func.coalesce(TripTile.frames, 1)))
-        .where(TripTile.processed_job_id.is_(None), TripTile.z.in_(set(zs)),
-               TripTile.x.between(min(xs), max(xs)), TripTile.y.between(min(ys), max(ys)))
-        .group_by(TripTile.z, TripTile.x, TripTile.y)).all()
+        .where(
+            TripTile.processed_job_id.is_(None),
+            TripTile.z.in_(set(zs)),
+            TripTile.x.between(min(xs), max(xs)),
+            TripTile.y.between(min(ys), max(ys)),
+        )
+        .group_by(TripTile.z, TripTile.x, TripTile.y)
+    ).all()
     return {(z, x, y): int(n) for z, x, y, n in rows if (z, x, y) in tiles}
 
 
@@ -154,8 +168,9 @@ def plan_dispatch(session: Session, jobs: Sequence[Job], *, checkerboard: bool) 
     return sorted(out, key=_dispatch_order)
 
 
-def take_dispatchable(session: Session, *, limit: int, redispatch_before: datetime | None,
-                      checkerboard: bool, page: int = 200) -> list[Dispatch]:
+def take_dispatchable(
+    session: Session, *, limit: int, redispatch_before: datetime | None, checkerboard: bool, page: int = 200
+) -> list[Dispatch]:
     """Up to ``limit`` outbox rows to dispatch now, in order (:func:`plan_dispatch`). Reads the
     outbox page by page until it has enough, so that held-back rows never hide the jobs they
     wait for (a merge queued behind them). The rows read stay locked until the session ends."""

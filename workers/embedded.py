@@ -58,8 +58,13 @@ class EmbeddedRunner(BackgroundLoop):
         if free <= 0:  # a job's end wakes this loop again
             return
         with self.session_factory.begin() as session:
-            plan = dispatch.take_dispatchable(session, limit=free, redispatch_before=None,
-                                              checkerboard=self.settings.tile_checkerboard, page=BATCH)
+            plan = dispatch.take_dispatchable(
+                session,
+                limit=free,
+                redispatch_before=None,
+                checkerboard=self.settings.tile_checkerboard,
+                page=BATCH,
+            )
             now = utcnow()
             for d in plan:
                 d.job.dispatched_at = now

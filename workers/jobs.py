@@ -77,8 +77,14 @@ def run_job(session_factory: sessionmaker[Session], settings: Settings, job_id: 
         return _run_started(session_factory, settings, job_id, kind, subject, attempt)
 
 
-def _run_started(session_factory: sessionmaker[Session], settings: Settings, job_id: str, kind: str,
-                 subject: str, attempt: int) -> str:
+def _run_started(
+    session_factory: sessionmaker[Session],
+    settings: Settings,
+    job_id: str,
+    kind: str,
+    subject: str,
+    attempt: int,
+) -> str:
     """The work of a job marked running, to its final state."""
     started = time.perf_counter()
     try:
@@ -90,20 +96,32 @@ def _run_started(session_factory: sessionmaker[Session], settings: Settings, job
         if kind == "align_tile":
             z, x, y = parse_tile(subject)
             aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y)
-            return _finish(session_factory, job_id, started,
-                           lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
+            return _finish(
+                session_factory,
+                job_id,
+                started,
+                lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned),
+            )
         if kind == "correct_tile":  # the map team's corrections: re-align the whole tile with them
             z, x, y = parse_tile(subject)
             aligned = tile_jobs.compute_align_tile(session_factory, settings, z, x, y, full=True)
-            return _finish(session_factory, job_id, started,
-                           lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned))
+            return _finish(
+                session_factory,
+                job_id,
+                started,
+                lambda s: tile_jobs.persist_align_tile(s, settings, job_id, z, x, y, aligned),
+            )
         if kind == "merge_tile":
             z, x, y = parse_tile(subject)
             merged = tile_jobs.compute_merge_tile(session_factory, settings, z, x, y)
             if settings.test_merge_delay_s and attempt == 1:
                 time.sleep(settings.test_merge_delay_s)
-            return _finish(session_factory, job_id, started,
-                           lambda s: tile_jobs.persist_merge_tile(s, job_id, z, x, y, merged))
+            return _finish(
+                session_factory,
+                job_id,
+                started,
+                lambda s: tile_jobs.persist_merge_tile(s, job_id, z, x, y, merged),
+            )
         raise JobFailed(f"unknown job kind {kind!r}")
     except OperationalError:  # the database is unreachable: transient, the runner retries the job
         raise
@@ -115,8 +133,9 @@ def _run_started(session_factory: sessionmaker[Session], settings: Settings, job
         return mark_job_failed(session_factory, job_id, exc, started=started)
 
 
-def requeue_job(session_factory: sessionmaker[Session], job_id: str, exc: BaseException,
-                attempt_counts: bool = True) -> str:
+def requeue_job(
+    session_factory: sessionmaker[Session], job_id: str, exc: BaseException, attempt_counts: bool = True
+) -> str:
     """Queue a running job again (the outbox hands it to a runner anew); ``attempt_counts``
     False: it did no work (it waits for another job), its attempt is given back."""
     with session_factory.begin() as session:

@@ -30,9 +30,14 @@ def lease_until(lease_s: float, *, now: datetime | None = None) -> datetime:
 def renew_lease(session_factory: sessionmaker[Session], job_id: str, lease_s: float) -> bool:
     """Extend a running job's lease; False when the job no longer runs (it ended, or was queued again)."""
     with session_factory.begin() as session:
-        result = cast(CursorResult, session.execute(
-            update(Job).where(Job.id == job_id, Job.state == "running").values(lease_expires_at=lease_until(lease_s))
-        ))
+        result = cast(
+            CursorResult,
+            session.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == "running")
+                .values(lease_expires_at=lease_until(lease_s))
+            ),
+        )
     return bool(result.rowcount)
 
 
@@ -51,8 +56,9 @@ class LeaseHeartbeat:
         self._thread.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
 

@@ -44,7 +44,10 @@ TASK_OF_KIND = {
 
 
 def relay_once(
-    session_factory: sessionmaker[Session], celery_app: Celery, *, redispatch_after_s: float,
+    session_factory: sessionmaker[Session],
+    celery_app: Celery,
+    *,
+    redispatch_after_s: float,
     checkerboard: bool = True,
 ) -> int:
     """Publish up to ``BATCH`` outbox rows, each with its priority (``workers.dispatch``: held-back
@@ -53,14 +56,21 @@ def relay_once(
     sent, error = 0, None
     with session_factory.begin() as session:
         plan = dispatch.take_dispatchable(
-            session, limit=BATCH, redispatch_before=utcnow() - timedelta(seconds=redispatch_after_s),
+            session,
+            limit=BATCH,
+            redispatch_before=utcnow() - timedelta(seconds=redispatch_after_s),
             checkerboard=checkerboard,
         )
         for d in plan:
             job = d.job
             try:
-                celery_app.send_task(TASK_OF_KIND[job.kind], args=[job.id], queue=job.queue, task_id=job.id,
-                                     priority=d.priority)
+                celery_app.send_task(
+                    TASK_OF_KIND[job.kind],
+                    args=[job.id],
+                    queue=job.queue,
+                    task_id=job.id,
+                    priority=d.priority,
+                )
             except Exception as exc:  # broker down: keep what was sent, the rest stays in the outbox
                 error = exc
                 break
@@ -122,7 +132,9 @@ class OutboxRelay(BackgroundLoop):
         try:
             resend_if_broker_lost_messages(self.session_factory, self.broker)
             sent = relay_once(
-                self.session_factory, self.celery_app, redispatch_after_s=self.settings.redispatch_after_s,
+                self.session_factory,
+                self.celery_app,
+                redispatch_after_s=self.settings.redispatch_after_s,
                 checkerboard=self.settings.tile_checkerboard,
             )
         except Exception as exc:

@@ -34,8 +34,12 @@ def _publish_follow_ups(rt) -> None:
     alignment; otherwise they wait for the outbox relay's next round and then for a free worker.
     A broker error leaves them to the relay."""
     try:
-        relay_once(rt.session_factory, app, redispatch_after_s=rt.settings.redispatch_after_s,
-                   checkerboard=rt.settings.tile_checkerboard)
+        relay_once(
+            rt.session_factory,
+            app,
+            redispatch_after_s=rt.settings.redispatch_after_s,
+            checkerboard=rt.settings.tile_checkerboard,
+        )
     except Exception:  # the relay sends them
         log.warning("could not publish the jobs that followed; the outbox relay will", exc_info=True)
 

@@ -158,8 +158,9 @@ class AlignTileResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def compute_align_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int,
-                       *, full: bool = False) -> AlignTileResult:
+def compute_align_tile(
+    session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int, *, full: bool = False
+) -> AlignTileResult:
     """``full``: re-align every trip of the tile with the map team's corrections (a ``correct_tile``
     job), against the neighbouring tiles' map only (the tile's own map is what is being redone)."""
     frame = tile_frame(z, x, y)
@@ -202,13 +203,22 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
     reverted: dict[str, str] = {}
     for piece in pieces:
         pk, start, signed = piece_of[piece.trip.key]
-        poses, weights, residuals, moved, failed = piece_outcome(piece, alignment, signed, settings.tile_halo_m)
+        poses, weights, residuals, moved, failed = piece_outcome(
+            piece, alignment, signed, settings.tile_halo_m
+        )
         if failed is None and weights.any():
             # a piece the alignment moved farther from its own GNSS than its error model allows
             # keeps its single-trip poses and has no say on the trip's (like an unaligned one);
             # under the map team's corrections the aligned poses stand, and the finding is recorded
-            kept, why = check_aligned_poses(piece.trip, piece.poses_xyyaw_world, poses, frame, SINGLE_TRIP_DEFAULT,
-                                            float(piece.diagnostics.get("gnss_latency_s", 0.0)), piece.gnss_inlier)
+            kept, why = check_aligned_poses(
+                piece.trip,
+                piece.poses_xyyaw_world,
+                poses,
+                frame,
+                SINGLE_TRIP_DEFAULT,
+                float(piece.diagnostics.get("gnss_latency_s", 0.0)),
+                piece.gnss_inlier,
+            )
             if why is not None and human_corrected:
                 reverted[pk] = why.replace("single-trip poses kept", "kept under the map team's corrections")
             elif why is not None:
@@ -221,33 +231,55 @@ def compute_align_tile(session_factory: sessionmaker[Session], settings: Setting
             continue  # only a short run here: its frames follow the neighbouring tiles' alignment
         n = [len(p[1]) for p in parts]
         reasons = [p[5] for p in parts if p[5]]
-        result.trips.append(TripAlignment(
-            trip_pk=pk,
-            frame_indices=np.concatenate([np.arange(p[0], p[0] + k) for p, k in zip(parts, n, strict=True)]),
-            poses_xyyaw=np.concatenate([p[1] for p in parts]),
-            weights=np.concatenate([p[2] for p in parts]),
-            residuals_m=np.concatenate([np.asarray(p[3], float) for p in parts]),
-            instances=[instance_json(i) for p in parts for i in p[4]],
-            noise=_plain_json(noise_json(recons[pk].noise)),
-            # only when no piece here could be aligned; a failed piece among aligned ones just has
-            # no weight (its frames follow the aligned ones: ``assemble_poses``)
-            failed_reason="; ".join(reasons) if len(reasons) == len(parts) else None,
-        ))
+        result.trips.append(
+            TripAlignment(
+                trip_pk=pk,
+                frame_indices=np.concatenate(
+                    [np.arange(p[0], p[0] + k) for p, k in zip(parts, n, strict=True)]
+                ),
+                poses_xyyaw=np.concatenate([p[1] for p in parts]),
+                weights=np.concatenate([p[2] for p in parts]),
+                residuals_m=np.concatenate([np.asarray(p[3], float) for p in parts]),
+                instances=[instance_json(i) for p in parts for i in p[4]],
+                noise=_plain_json(noise_json(recons[pk].noise)),
+                # only when no piece here could be aligned; a failed piece among aligned ones just has
+                # no weight (its frames follow the aligned ones: ``assemble_poses``)
+                failed_reason="; ".join(reasons) if len(reasons) == len(parts) else None,
+            )
+        )
         if reasons and len(reasons) < len(parts):
-            log.info("tile %d/%d/%d: trip %s: %d of %d pieces not aligned (%s)", z, x, y, pk, len(reasons),
-                     len(parts), reasons[0])
+            log.info(
+                "tile %d/%d/%d: trip %s: %d of %d pieces not aligned (%s)",
+                z,
+                x,
+                y,
+                pk,
+                len(reasons),
+                len(parts),
+                reasons[0],
+            )
     for rec in alignment.match_pairs:
         if not rec.pose_graph_inlier:
             continue
         record = _plain_json(asdict(rec))
         trip_i = piece_of.get(rec.trip_key_i, (None,))[0]
         trip_j = piece_of.get(rec.trip_key_j, (None,))[0]
-        result.match_pairs.append({"trip_pk_i": trip_i, "trip_pk_j": trip_j, "confidence": float(rec.confidence),
-                                   "residual_rms_m": float(rec.residual_rms_m), "record": record})
-    result.diagnostics = {"pieces": len(pieces), "prior_features": len(prior.features) if prior else 0,
-                          "alignment_reverted": reverted,
-                          "bias_messages": sum(len(m) for m in messages.values()),
-                          "timings": alignment.diagnostics.get("timings", {})}
+        result.match_pairs.append(
+            {
+                "trip_pk_i": trip_i,
+                "trip_pk_j": trip_j,
+                "confidence": float(rec.confidence),
+                "residual_rms_m": float(rec.residual_rms_m),
+                "record": record,
+            }
+        )
+    result.diagnostics = {
+        "pieces": len(pieces),
+        "prior_features": len(prior.features) if prior else 0,
+        "alignment_reverted": reverted,
+        "bias_messages": sum(len(m) for m in messages.values()),
+        "timings": alignment.diagnostics.get("timings", {}),
+    }
     return result
 
 
@@ -280,9 +312,12 @@ def piece_outcome(piece: TripReconstruction, alignment: AlignmentResult, signed_
     return poses, weights, residuals, moved, failed
 
 
-def _align(pieces: Sequence[TripReconstruction], prior: PriorMap | None,
-           corrections: MatchCorrections | None = None,
-           bias_messages: dict[str, list[GnssBiasMessage]] | None = None) -> AlignmentResult:
+def _align(
+    pieces: Sequence[TripReconstruction],
+    prior: PriorMap | None,
+    corrections: MatchCorrections | None = None,
+    bias_messages: dict[str, list[GnssBiasMessage]] | None = None,
+) -> AlignmentResult:
     if not pieces:
         return AlignmentResult({}, {}, (), {})
     try:
@@ -316,8 +351,9 @@ def reconstruction_from_row(row: TripReconstructionRecord, trip) -> TripReconstr
     )
 
 
-def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z: int, x: int, y: int,
-                     frame: LocalFrame) -> dict[str, list[GnssBiasMessage]]:
+def bias_messages_of(
+    session: Session, recons: dict[str, TripReconstruction], z: int, x: int, y: int, frame: LocalFrame
+) -> dict[str, list[GnssBiasMessage]]:
     """What the other tiles that aligned these trips found of each one's GNSS bias (by trip pk):
     one message per trip and tile, from the tile's aligned poses against the trip's single-trip
     poses (``recons``, in ``frame``) weighted by the tile's blend weights, and the number of trips
@@ -327,16 +363,26 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
     on five 10 x 1 km fleets, rural ATE 1.42 -> 1.46 m and highway 1.38 -> 1.42 m with them)."""
     if not recons:
         return {}
-    tiles = set(session.execute(select(TripTileAlignment.z, TripTileAlignment.x, TripTileAlignment.y).where(
-        TripTileAlignment.trip_pk.in_(list(recons)), TripTileAlignment.failed_reason.is_(None))).all())
+    tiles = set(
+        session.execute(
+            select(TripTileAlignment.z, TripTileAlignment.x, TripTileAlignment.y).where(
+                TripTileAlignment.trip_pk.in_(list(recons)), TripTileAlignment.failed_reason.is_(None)
+            )
+        ).all()
+    )
     tiles.discard((z, x, y))
     out: dict[str, list[GnssBiasMessage]] = {}
     for tz, tx, ty in sorted(tuple(t) for t in tiles):
         # every trip the tile aligned, each decoded once: the count of trips it tied together
         # (any weight) and the messages of the trips asked about
-        rows = session.scalars(select(TripTileAlignment).where(
-            TripTileAlignment.z == tz, TripTileAlignment.x == tx, TripTileAlignment.y == ty,
-            TripTileAlignment.failed_reason.is_(None))).all()
+        rows = session.scalars(
+            select(TripTileAlignment).where(
+                TripTileAlignment.z == tz,
+                TripTileAlignment.x == tx,
+                TripTileAlignment.y == ty,
+                TripTileAlignment.failed_reason.is_(None),
+            )
+        ).all()
         decoded = [(r, decode_arrays(r.arrays)) for r in rows]
         n_tied = sum(1 for _, arrays in decoded if arrays["weights"].any())
         for r, arrays in decoded:
@@ -347,22 +393,31 @@ def bias_messages_of(session: Session, recons: dict[str, TripReconstruction], z:
             aligned = reframe_poses(arrays["poses_xyyaw"], LocalFrame(r.origin_lat, r.origin_lon), frame)
             # the bias is the shift from the poses e^g holds the trip's sub-maps at
             prior = gnss_prior_poses_xyyaw(recon, ALIGNMENT_DEFAULT.gnss_prior_from_white_solve)
-            msg = bias_message(recon.trip.timestamps_s[idx], prior[idx, :2], aligned[:, :2],
-                               arrays["weights"], n_tied, ALIGNMENT_DEFAULT)
+            msg = bias_message(
+                recon.trip.timestamps_s[idx],
+                prior[idx, :2],
+                aligned[:, :2],
+                arrays["weights"],
+                n_tied,
+                ALIGNMENT_DEFAULT,
+            )
             if msg is not None:
                 out.setdefault(r.trip_pk, []).append(msg)
     return out
 
 
-def _prior_map(session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float,
-               exclude_own: bool = False) -> PriorMap | None:
+def _prior_map(
+    session: Session, z: int, x: int, y: int, frame: LocalFrame, halo_m: float, exclude_own: bool = False
+) -> PriorMap | None:
     """The live map of the tile and its halo (neighbouring tiles' features near the edge);
     ``exclude_own``: the neighbours' only."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
     lat = np.radians((south + north) / 2)
     dlat = halo_m / 111_320.0
     dlon = halo_m / (111_320.0 * max(np.cos(lat), 1e-6))
-    features = versions.features_in_bbox(session, bbox_lonlat=(west - dlon, south - dlat, east + dlon, north + dlat))
+    features = versions.features_in_bbox(
+        session, bbox_lonlat=(west - dlon, south - dlat, east + dlon, north + dlat)
+    )
     if exclude_own:
         features = [f for f in features if not f.feature_id.startswith(f"{z}-{x}-{y}-")]
     mapped = [f for f in (_to_map_feature(v, frame) for v in features) if f is not None]
@@ -377,20 +432,35 @@ def _to_map_feature(v: versions.VersionFeature, frame: LocalFrame) -> MapFeature
         coords = coords[:-1]
     if len(coords) < 2:
         return None
-    return MapFeature(etype, frame.to_local(coords), DividerStyle(v.style) if v.style else None, v.feature_id,
-                      dict(v.properties))
+    return MapFeature(
+        etype,
+        frame.to_local(coords),
+        DividerStyle(v.style) if v.style else None,
+        v.feature_id,
+        dict(v.properties),
+    )
 
 
-def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int, x: int, y: int,
-                       result: AlignTileResult) -> None:
+def persist_align_tile(
+    session: Session, settings: Settings, job_id: str, z: int, x: int, y: int, result: AlignTileResult
+) -> None:
     now = utcnow()
     for ta in result.trips:
         values = {
-            "job_id": job_id, "origin_lat": result.frame.origin_lat, "origin_lon": result.frame.origin_lon,
-            "arrays": _npz(frame_indices=ta.frame_indices.astype(np.int32), poses_xyyaw=ta.poses_xyyaw,
-                           weights=ta.weights.astype(np.float32), residuals_m=ta.residuals_m.astype(np.float32)),
-            "instances": ta.instances, "noise": ta.noise, "failed_reason": ta.failed_reason,
-            "merged_version_id": None, "created_at": now,
+            "job_id": job_id,
+            "origin_lat": result.frame.origin_lat,
+            "origin_lon": result.frame.origin_lon,
+            "arrays": _npz(
+                frame_indices=ta.frame_indices.astype(np.int32),
+                poses_xyyaw=ta.poses_xyyaw,
+                weights=ta.weights.astype(np.float32),
+                residuals_m=ta.residuals_m.astype(np.float32),
+            ),
+            "instances": ta.instances,
+            "noise": ta.noise,
+            "failed_reason": ta.failed_reason,
+            "merged_version_id": None,
+            "created_at": now,
         }
         row = session.get(TripTileAlignment, (ta.trip_pk, z, x, y))
         if row is None:
@@ -398,18 +468,39 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         else:
             for k, v in values.items():
                 setattr(row, k, v)
-    _record_alignment_quality(session, z, x, y, [ta.trip_pk for ta in result.trips],
-                              result.diagnostics.get("alignment_reverted", {}))
+    _record_alignment_quality(
+        session,
+        z,
+        x,
+        y,
+        [ta.trip_pk for ta in result.trips],
+        result.diagnostics.get("alignment_reverted", {}),
+    )
     if result.full:  # the tile was re-aligned as a whole: its earlier pairs no longer hold
-        session.execute(update(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
-                                                MatchPair.job_id != job_id,
-                                                MatchPair.status.in_(("active", "added"))).values(status="superseded"))
+        session.execute(
+            update(MatchPair)
+            .where(
+                MatchPair.z == z,
+                MatchPair.x == x,
+                MatchPair.y == y,
+                MatchPair.job_id != job_id,
+                MatchPair.status.in_(("active", "added")),
+            )
+            .values(status="superseded")
+        )
     for mp in result.match_pairs:
         status = "added" if mp["record"].get("human") else "active"
-        session.add(MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status=status, created_at=now, **mp))
+        session.add(
+            MatchPair(id=repo.new_id(), z=z, x=x, y=y, job_id=job_id, status=status, created_at=now, **mp)
+        )
     # the trips this job takes: only they can become complete now
-    taken = set(session.scalars(select(TripTile.trip_pk).where(
-        TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None))))
+    taken = set(
+        session.scalars(
+            select(TripTile.trip_pk).where(
+                TripTile.z == z, TripTile.x == x, TripTile.y == y, TripTile.processed_job_id.is_(None)
+            )
+        )
+    )
     taken |= {ta.trip_pk for ta in result.trips}
     session.execute(
         update(TripTile)
@@ -427,8 +518,9 @@ def persist_align_tile(session: Session, settings: Settings, job_id: str, z: int
         finish_trip_if_complete(session, pk, job_id)
 
 
-def _record_alignment_quality(session: Session, z: int, x: int, y: int, trip_pks: Sequence[str],
-                              reverted: dict[str, str]) -> None:
+def _record_alignment_quality(
+    session: Session, z: int, x: int, y: int, trip_pks: Sequence[str], reverted: dict[str, str]
+) -> None:
     """Each trip's ``alignment_quality`` (``GET /v1/trips/{id}``'s ``quality.alignment``): by tile,
     why this tile kept the trip's single-trip poses (``integrity.check_aligned_poses``); the
     tile's entry cleared when it aligned the trip cleanly this time."""
@@ -436,8 +528,11 @@ def _record_alignment_quality(session: Session, z: int, x: int, y: int, trip_pks
         return
     tile = f"{z}/{x}/{y}"
     r = TripReconstructionRecord
-    rows = session.scalars(select(r).where(r.trip_pk.in_(list(trip_pks)), r.algorithm_version == ALGORITHM_VERSION)
-                           .with_for_update()).all()
+    rows = session.scalars(
+        select(r)
+        .where(r.trip_pk.in_(list(trip_pks)), r.algorithm_version == ALGORITHM_VERSION)
+        .with_for_update()
+    ).all()
     for row in rows:
         diagnostics = dict(row.diagnostics or {})
         by_tile = dict(diagnostics.get("alignment_quality") or {})
@@ -457,11 +552,15 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
     # FOR NO KEY UPDATE: serialises the finishers of one trip but not the KEY SHARE locks that the
     # foreign keys of other jobs' rows take on it (FOR UPDATE deadlocked two tile jobs that had
     # each written a row of the other's trip)
-    trip = session.scalars(select(Trip).where(Trip.id == trip_pk).with_for_update(key_share=True)).one_or_none()
+    trip = session.scalars(
+        select(Trip).where(Trip.id == trip_pk).with_for_update(key_share=True)
+    ).one_or_none()
     if trip is None or trip.status not in ("processing", "aligned"):
         return False
     pending = session.scalar(
-        select(TripTile.trip_pk).where(TripTile.trip_pk == trip_pk, TripTile.processed_job_id.is_(None)).limit(1)
+        select(TripTile.trip_pk)
+        .where(TripTile.trip_pk == trip_pk, TripTile.processed_job_id.is_(None))
+        .limit(1)
     )
     if pending is not None:
         return False
@@ -501,12 +600,17 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
 
 # --- corrections ----------------------------------------------------------------------------------
 
-def corrections_of_tile(session: Session, z: int, x: int, y: int
-                        ) -> tuple[list[tuple[Side, Side]], list[tuple[Side, Side, tuple | None]]]:
+
+def corrections_of_tile(
+    session: Session, z: int, x: int, y: int
+) -> tuple[list[tuple[Side, Side]], list[tuple[Side, Side, tuple | None]]]:
     """The tile's corrections in force (not undone) as rejected and added pairs of trip frames."""
     rejected, added = [], []
-    rows = session.scalars(select(Correction).where(Correction.z == z, Correction.x == x, Correction.y == y,
-                                                    Correction.undone_at.is_(None)).order_by(Correction.created_at))
+    rows = session.scalars(
+        select(Correction)
+        .where(Correction.z == z, Correction.x == x, Correction.y == y, Correction.undone_at.is_(None))
+        .order_by(Correction.created_at)
+    )
     for c in rows:
         p = c.payload
         if c.kind == "reject_pair":
@@ -517,8 +621,9 @@ def corrections_of_tile(session: Session, z: int, x: int, y: int
     return rejected, added
 
 
-def piece_constraints(constraints, piece_of: dict[str, tuple[str, int, np.ndarray]],
-                      n_frames: dict[str, int]) -> MatchCorrections | None:
+def piece_constraints(
+    constraints, piece_of: dict[str, tuple[str, int, np.ndarray]], n_frames: dict[str, int]
+) -> MatchCorrections | None:
     """Stored corrections (trip frames) -> constraints on this job's pieces (piece keys and frames)."""
     rejected, added = constraints
     if not rejected and not added:
@@ -535,9 +640,15 @@ def piece_constraints(constraints, piece_of: dict[str, tuple[str, int, np.ndarra
                 out.append((key, (lo, hi)))
         return out
 
-    rej = tuple(PairConstraint(ki, fi, kj, fj) for si, sj in rejected for ki, fi in sides(si) for kj, fj in sides(sj))
-    add = tuple(PairConstraint(ki, fi, kj, fj, off) for si, sj, off in added
-                for ki, fi in sides(si)[:1] for kj, fj in sides(sj)[:1])
+    rej = tuple(
+        PairConstraint(ki, fi, kj, fj) for si, sj in rejected for ki, fi in sides(si) for kj, fj in sides(sj)
+    )
+    add = tuple(
+        PairConstraint(ki, fi, kj, fj, off)
+        for si, sj, off in added
+        for ki, fi in sides(si)[:1]
+        for kj, fj in sides(sj)[:1]
+    )
     return MatchCorrections(rej, add)
 
 
@@ -558,26 +669,41 @@ class MergeTileResult:
     reason: str = "merge"
 
 
-def compute_merge_tile(session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int
-                       ) -> MergeTileResult:
+def compute_merge_tile(
+    session_factory: sessionmaker[Session], settings: Settings, z: int, x: int, y: int
+) -> MergeTileResult:
     frame = tile_frame(z, x, y)
     with read_only(session_factory)() as session:
         latest = versions.latest_version(session, z=z, x=x, y=y)
         expected = latest.version if latest is not None else None
         state = _load_state(latest)
-        stmt = select(TripTileAlignment).where(TripTileAlignment.z == z, TripTileAlignment.x == x,
-                                               TripTileAlignment.y == y)
+        stmt = select(TripTileAlignment).where(
+            TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y
+        )
         if state is not None:  # incremental: only what is new is read
             stmt = stmt.where(TripTileAlignment.merged_version_id.is_(None))
         rows = session.scalars(stmt.order_by(TripTileAlignment.created_at)).all()
-        started = dict(session.execute(select(Trip.id, Trip.started_at).where(
-            Trip.id.in_([r.trip_pk for r in rows]))).all()) if rows else {}
+        started = (
+            dict(
+                session.execute(
+                    select(Trip.id, Trip.started_at).where(Trip.id.in_([r.trip_pk for r in rows]))
+                ).all()
+            )
+            if rows
+            else {}
+        )
         new = [r for r in rows if r.merged_version_id is None]
         everything: Sequence[TripTileAlignment] = list(rows)
         inputs_new = {r.trip_pk: _alignment_inputs(r, frame) for r in new}
         inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything} if state is None else {}
-        pairs = session.scalars(select(MatchPair).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y,
-                                                        MatchPair.status.in_(("active", "added")))).all()
+        pairs = session.scalars(
+            select(MatchPair).where(
+                MatchPair.z == z,
+                MatchPair.x == x,
+                MatchPair.y == y,
+                MatchPair.status.in_(("active", "added")),
+            )
+        ).all()
         match_pairs = [p.record for p in pairs]
         applied = pending_corrections(session, z, x, y)
     if not new:
@@ -590,33 +716,52 @@ def compute_merge_tile(session_factory: sessionmaker[Session], settings: Setting
     paths = {pk: v[2] for pk, v in inputs_new.items()}
     times = {pk: started.get(pk, "") for pk in inputs_new}
     records = [_PairView(r) for r in match_pairs]
-    known = set() if state is None else ({m.trip_key for mem in state.members.values() for m in mem}
-                                         | set(state.trip_points))
+    known = (
+        set()
+        if state is None
+        else ({m.trip_key for mem in state.members.values() for m in mem} | set(state.trip_points))
+    )
     if state is not None and not (set(instances) & known):
-        topology = update_topology(state, instances, noise, trip_times=times, match_pairs=records,
-                                   paths_xy_per_trip=paths)
+        topology = update_topology(
+            state, instances, noise, trip_times=times, match_pairs=records, paths_xy_per_trip=paths
+        )
     else:  # the first version, or trips re-aligned: rebuild from every aligned trip, ids continue
         if state is not None:
             with read_only(session_factory)() as session:
-                everything = session.scalars(select(TripTileAlignment).where(
-                    TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y)).all()
+                everything = session.scalars(
+                    select(TripTileAlignment).where(
+                        TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y
+                    )
+                ).all()
                 inputs_all = {r.trip_pk: _alignment_inputs(r, frame) for r in everything}
-                started = dict(session.execute(select(Trip.id, Trip.started_at).where(
-                    Trip.id.in_(list(inputs_all)))).all())
-        topology = generate_topology({pk: v[0] for pk, v in inputs_all.items()},
-                                     {pk: v[1] for pk, v in inputs_all.items()}, previous=state,
-                                     trip_times={pk: started.get(pk, "") for pk in inputs_all},
-                                     match_pairs=records, paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()})
+                started = dict(
+                    session.execute(
+                        select(Trip.id, Trip.started_at).where(Trip.id.in_(list(inputs_all)))
+                    ).all()
+                )
+        topology = generate_topology(
+            {pk: v[0] for pk, v in inputs_all.items()},
+            {pk: v[1] for pk, v in inputs_all.items()},
+            previous=state,
+            trip_times={pk: started.get(pk, "") for pk in inputs_all},
+            match_pairs=records,
+            paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()},
+        )
     with session_factory() as session:
-        degraded = degraded_trips(session, {t for f in topology.features for t in f.properties.get("trips", ())})
+        degraded = degraded_trips(
+            session, {t for f in topology.features for t in f.properties.get("trips", ())}
+        )
     if degraded:  # features of degraded trips flagged; those only they support held back (like ghosts)
         kept, held = hold_back_degraded(topology.features, topology.suppressed, degraded)
         topology = replace(topology, features=kept, suppressed=held)
     features = clip_to_tile(topology.features, frame, z, x, y)
     with read_only(session_factory)() as session:
         seams = check_seams(session, features, frame, z, x, y)
-    quality = {**tile_quality(features), "seams": seams,
-               "held_back": held_back_counts(clip_to_tile(topology.suppressed, frame, z, x, y))}
+    quality = {
+        **tile_quality(features),
+        "seams": seams,
+        "held_back": held_back_counts(clip_to_tile(topology.suppressed, frame, z, x, y)),
+    }
     return MergeTileResult(
         expected_latest=expected,
         features=features,
@@ -636,8 +781,11 @@ def degraded_trips(session: Session, trip_pks: set[str]) -> set[str]:
     if not trip_pks:
         return set()
     r = TripReconstructionRecord
-    rows = session.execute(select(r.trip_pk, r.diagnostics).where(
-        r.trip_pk.in_(sorted(trip_pks)), r.algorithm_version == ALGORITHM_VERSION)).all()
+    rows = session.execute(
+        select(r.trip_pk, r.diagnostics).where(
+            r.trip_pk.in_(sorted(trip_pks)), r.algorithm_version == ALGORITHM_VERSION
+        )
+    ).all()
     return {pk for pk, diag in rows if ((diag or {}).get("quality") or {}).get("verdict") == "degraded"}
 
 
@@ -653,7 +801,9 @@ def _alignment_inputs(row: TripTileAlignment, frame: LocalFrame):
     src = LocalFrame(row.origin_lat, row.origin_lon)
     instances = [instance_from_json(i) for i in row.instances]
     if src != frame:
-        instances = [replace(i, points_xy_world=reframe_points(i.points_xy_world, src, frame)) for i in instances]
+        instances = [
+            replace(i, points_xy_world=reframe_points(i.points_xy_world, src, frame)) for i in instances
+        ]
     poses = reframe_poses(arrays["poses_xyyaw"], src, frame)
     return instances, noise_from_json(row.noise), poses[:, :2]
 
@@ -664,13 +814,18 @@ def _load_state(latest: TileVersion | None) -> TopologyResult | None:
     try:
         tag, _frame, topology = pickle.loads(zlib.decompress(latest.state))
     except Exception:  # an unreadable or older state: rebuild
-        log.warning("tile version %s: topology state unreadable (the next merge rebuilds the topology)", latest.id, exc_info=True)
+        log.warning(
+            "tile version %s: topology state unreadable (the next merge rebuilds the topology)",
+            latest.id,
+            exc_info=True,
+        )
         return None
     return topology if tag == TOPOLOGY_STATE_VERSION else None
 
 
-def clip_to_tile(features: Sequence[MapFeature], frame: LocalFrame, z: int, x: int, y: int
-                 ) -> list[versions.VersionFeature]:
+def clip_to_tile(
+    features: Sequence[MapFeature], frame: LocalFrame, z: int, x: int, y: int
+) -> list[versions.VersionFeature]:
     """The tile's part of each feature, in lon/lat; ids ``<z>-<x>-<y>-<topology id>``. A polygon
     belongs to the tile holding its centroid (never cut); a line is cut at the tile's edges."""
     west, south, east, north = tile_bounds_lonlat(z, x, y)
@@ -694,7 +849,9 @@ def clip_to_tile(features: Sequence[MapFeature], frame: LocalFrame, z: int, x: i
         clipped = shapely.clip_by_rect(shapely.LineString(lonlat), west, south, east, north)
         parts = [g for g in getattr(clipped, "geoms", [clipped]) if not g.is_empty and g.length > 0]
         for k, part in enumerate(sorted(parts, key=lambda g: -g.length)):
-            out.append(versions.VersionFeature(fid if k == 0 else f"{fid}.{k}", f.type.value, style, props, part))
+            out.append(
+                versions.VersionFeature(fid if k == 0 else f"{fid}.{k}", f.type.value, style, props, part)
+            )
     return out
 
 
@@ -702,8 +859,9 @@ SEAM_FLOOR_M = 0.10  # two tiles' halves of an element may differ this much what
 SEAM_SEARCH_M = 2.0  # beyond this the neighbour has no half of this element (it ends at the edge)
 
 
-def check_seams(session: Session, features: list[versions.VersionFeature], frame: LocalFrame, z: int, x: int,
-                y: int) -> dict[str, Any]:
+def check_seams(
+    session: Session, features: list[versions.VersionFeature], frame: LocalFrame, z: int, x: int, y: int
+) -> dict[str, Any]:
     """Where a line crosses the tile's edge, its neighbour's half must continue it: the gap between the
     two ends on the edge within ``max(SEAM_FLOOR_M, 3 sigma)`` (sigma: both halves' uncertainty).
     Flags ``seam_gap`` on the features that break it; returns the gaps' statistics."""
@@ -714,16 +872,23 @@ def check_seams(session: Session, features: list[versions.VersionFeature], frame
         if f.geometry.geom_type != "LineString":
             return []
         coords = np.asarray(f.geometry.coords)[:, :2]
-        return [p for p in (coords[0], coords[-1])
-                if min(abs(p[0] - west), abs(p[0] - east), abs(p[1] - south), abs(p[1] - north)) < eps]
+        return [
+            p
+            for p in (coords[0], coords[-1])
+            if min(abs(p[0] - west), abs(p[0] - east), abs(p[1] - south), abs(p[1] - north)) < eps
+        ]
 
     mine = [(f, p) for f in features for p in edge_ends(f)]
     if not mine:
         return {"checked": 0}
     margin = 1e-4  # ~10 m: the neighbours' elements touching this tile's edges
-    others = [f for f in versions.features_in_bbox(session, bbox_lonlat=(west - margin, south - margin,
-                                                                         east + margin, north + margin))
-              if not f.feature_id.startswith(f"{z}-{x}-{y}-")]
+    others = [
+        f
+        for f in versions.features_in_bbox(
+            session, bbox_lonlat=(west - margin, south - margin, east + margin, north + margin)
+        )
+        if not f.feature_id.startswith(f"{z}-{x}-{y}-")
+    ]
     theirs = [(f, p) for f in others for p in edge_ends(f)]
     gaps = []
     for f, p in mine:
@@ -735,8 +900,10 @@ def check_seams(session: Session, features: list[versions.VersionFeature], frame
         k = int(np.argmin(dist))
         if dist[k] > SEAM_SEARCH_M:
             continue
-        sigma = np.hypot(float(f.properties.get("uncertainty_m") or 0.0),
-                         float(candidates[k][0].properties.get("uncertainty_m") or 0.0))
+        sigma = np.hypot(
+            float(f.properties.get("uncertainty_m") or 0.0),
+            float(candidates[k][0].properties.get("uncertainty_m") or 0.0),
+        )
         gaps.append(float(dist[k]))
         if dist[k] > max(SEAM_FLOOR_M, 3.0 * sigma):
             flags = sorted(set(f.properties.get("flags") or []) | {"seam_gap"})
@@ -744,9 +911,13 @@ def check_seams(session: Session, features: list[versions.VersionFeature], frame
     if not gaps:
         return {"checked": 0}
     g = np.asarray(gaps)
-    return {"checked": len(g), "median_gap_m": round(float(np.median(g)), 4),
-            "p95_gap_m": round(float(np.percentile(g, 95)), 4), "max_gap_m": round(float(g.max()), 4),
-            "flagged": int(sum(1 for f, _ in mine if "seam_gap" in (f.properties.get("flags") or [])))}
+    return {
+        "checked": len(g),
+        "median_gap_m": round(float(np.median(g)), 4),
+        "p95_gap_m": round(float(np.percentile(g, 95)), 4),
+        "max_gap_m": round(float(g.max()), 4),
+        "flagged": int(sum(1 for f, _ in mine if "seam_gap" in (f.properties.get("flags") or []))),
+    }
 
 
 def tile_quality(features: Sequence[versions.VersionFeature]) -> dict[str, Any]:
@@ -786,21 +957,39 @@ def held_back_features(version: TileVersion) -> list[versions.VersionFeature] | 
     return clip_to_tile(topology.suppressed, frame, version.z, version.x, version.y)
 
 
-def persist_merge_tile(session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult) -> None:
+def persist_merge_tile(
+    session: Session, job_id: str, z: int, x: int, y: int, result: MergeTileResult
+) -> None:
     if result.nothing_to_do:
         return
     try:
         version = versions.write_tile_version(
-            session, z=z, x=x, y=y, features=result.features, reason=result.reason, job_id=job_id,
-            trips=result.trips, corrections=result.corrections, quality=result.quality, origin_lat=result.frame.origin_lat,
-            origin_lon=result.frame.origin_lon, state=result.state, publish=result.publish,
-            expected_latest=result.expected_latest)
+            session,
+            z=z,
+            x=x,
+            y=y,
+            features=result.features,
+            reason=result.reason,
+            job_id=job_id,
+            trips=result.trips,
+            corrections=result.corrections,
+            quality=result.quality,
+            origin_lat=result.frame.origin_lat,
+            origin_lon=result.frame.origin_lon,
+            state=result.state,
+            publish=result.publish,
+            expected_latest=result.expected_latest,
+        )
     except versions.VersionConflict as exc:
         raise RetryJob(str(exc)) from exc
     session.execute(
         update(TripTileAlignment)
-        .where(TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y,
-               TripTileAlignment.trip_pk.in_(result.trips))
+        .where(
+            TripTileAlignment.z == z,
+            TripTileAlignment.x == x,
+            TripTileAlignment.y == y,
+            TripTileAlignment.trip_pk.in_(result.trips),
+        )
         .values(merged_version_id=version.id)
     )
     for entry in result.corrections:
@@ -817,12 +1006,23 @@ def pending_corrections(session: Session, z: int, x: int, y: int) -> list[str]:
     """The tile's corrections applied or undone by a re-alignment but not yet in a version:
     ``"<id>"`` applied, ``"<id>:undo"`` undone."""
     out = []
-    done = set(session.scalars(select(Job.id).where(Job.kind == "correct_tile", Job.subject == f"{z}/{x}/{y}",
-                                                    Job.state == "done")))
-    for c in session.scalars(select(Correction).where(Correction.z == z, Correction.x == x, Correction.y == y)):
+    done = set(
+        session.scalars(
+            select(Job.id).where(
+                Job.kind == "correct_tile", Job.subject == f"{z}/{x}/{y}", Job.state == "done"
+            )
+        )
+    )
+    for c in session.scalars(
+        select(Correction).where(Correction.z == z, Correction.x == x, Correction.y == y)
+    ):
         if c.undone_at is None and c.result_version_id is None and c.job_id in done:
             out.append(c.id)
-        elif c.undone_at is not None and "undo_version_id" not in c.payload and c.payload.get("undo_job_id") in done:
+        elif (
+            c.undone_at is not None
+            and "undo_version_id" not in c.payload
+            and c.payload.get("undo_job_id") in done
+        ):
             out.append(f"{c.id}:undo")
     return sorted(out)
 

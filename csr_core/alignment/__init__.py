@@ -38,8 +38,18 @@ from csr_core.types import MapFeature, TripReconstruction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AlignmentParams", "DEFAULT", "AlignmentResult", "GnssBiasMessage", "MatchCorrections", "MatchPairRecord",
-           "PairConstraint", "PriorMap", "align_trips", "bias_message"]
+__all__ = [
+    "AlignmentParams",
+    "DEFAULT",
+    "AlignmentResult",
+    "GnssBiasMessage",
+    "MatchCorrections",
+    "MatchPairRecord",
+    "PairConstraint",
+    "PriorMap",
+    "align_trips",
+    "bias_message",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,11 +98,14 @@ class AlignmentResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None = None,
-                params: AlignmentParams = DEFAULT, corrections: MatchCorrections | None = None,
-                inspect_matches: Callable[[list[PairMatch], list[Submap]], list[PairMatch]] | None = None,
-                bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
-                ) -> AlignmentResult:
+def align_trips(
+    trips: Sequence[TripReconstruction],
+    prior_map: PriorMap | None = None,
+    params: AlignmentParams = DEFAULT,
+    corrections: MatchCorrections | None = None,
+    inspect_matches: Callable[[list[PairMatch], list[Submap]], list[PairMatch]] | None = None,
+    bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
+) -> AlignmentResult:
     """Coarse-to-fine multi-trip alignment (Fig. 3), against ``prior_map`` when given, with the
     map team's ``corrections`` of the sub-map association when given, and with what other
     alignments (a neighbouring tile's) learnt of the trips' GNSS biases when given
@@ -103,8 +116,9 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     if not trips:
         raise AlignmentFailed("no trips to align", reason="empty")
     if prior_map is not None:
-        params = replace(params, prior_map_sigma_xy_m=prior_map.sigma_xy_m,
-                         prior_map_sigma_yaw_rad=prior_map.sigma_yaw_rad)
+        params = replace(
+            params, prior_map_sigma_xy_m=prior_map.sigma_xy_m, prior_map_sigma_yaw_rad=prior_map.sigma_yaw_rad
+        )
         # 0. the part of the pre-built map these trips can touch, duplicates removed
         prior_map = replace(prior_map, features=reduce_prior_map(prior_map.features, trips, params))
     timings: dict[str, float] = {}
@@ -113,8 +127,11 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
     poses = {t.trip.key: t.poses_xyyaw_world.copy() for t in trips}
     # dash-end sightings (along-road landmarks of the coarse and the fine stage), read once
     dets = [detections(t) for t in trips]
-    dashes = ([dash_ends(t, dets=d) for t, d in zip(trips, dets, strict=True)]
-              if (params.landmarks and params.coarse) or params.fine_dashes else None)
+    dashes = (
+        [dash_ends(t, dets=d) for t, d in zip(trips, dets, strict=True)]
+        if (params.landmarks and params.coarse) or params.fine_dashes
+        else None
+    )
     submaps: list[Submap] = []
     matches: list[PairMatch] = []
     pairs: list[tuple[int, int]] = []
@@ -140,36 +157,58 @@ def align_trips(trips: Sequence[TripReconstruction], prior_map: PriorMap | None 
             matches = inspect_matches(matches, submaps)
         graph = optimize_submap_poses(trips, submaps, matches, params, bias_messages=bias_messages)
         inlier = graph.registration_inlier
-        prior_shifts = [float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
-                        for s in submaps if s.is_prior]
+        prior_shifts = [
+            float(np.linalg.norm(graph.poses_xyyaw[s.submap_id][:2] - s.world_T_submap[:2]))
+            for s in submaps
+            if s.is_prior
+        ]
         scale_correction = {trips[k].trip.key: v for k, v in graph.odom_scale_correction.items()}
         own_error = own_gnss_error_m(trips, submaps, graph.own_gnss_gain, {s for p in pairs for s in p})
         # 4. sub-map poses -> pose of every frame
         for k, t in enumerate(trips):
-            poses[t.trip.key] = frame_poses_from_submaps(t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw)
+            poses[t.trip.key] = frame_poses_from_submaps(
+                t, [s for s in submaps if s.trip_index == k], graph.poses_xyyaw
+            )
         timings["pose_graph_s"] = time.perf_counter() - clock - sum(timings.values())
     fps = [frame_points(t, d) for t, d in zip(trips, dets, strict=True)]
     if params.fine:
         # 5. fine alignment: the same flow with single-frame perception as the primitive
-        poses = refine_frames(trips, fps, poses, prior_map.features if prior_map else (), noise, params, dashes)
+        poses = refine_frames(
+            trips, fps, poses, prior_map.features if prior_map else (), noise, params, dashes
+        )
         timings["fine_s"] = time.perf_counter() - clock - sum(timings.values())
     # 6. per-frame residuals, failed trips, and the match pairs kept for validation
     residuals = frame_residuals(trips, fps, poses, prior_map.features if prior_map else (), noise, params)
-    failed = _failed_trips(trips, submaps, pairs, matches, inlier, prior_map is not None) if params.coarse else {}
+    failed = (
+        _failed_trips(trips, submaps, pairs, matches, inlier, prior_map is not None) if params.coarse else {}
+    )
     for k, err in own_error.items():  # held by nothing but its own GNSS: not an alignment
-        if params.mark_unobservable and err.rms_m > params.max_own_gnss_error_m and trips[k].trip.key not in failed:
+        if (
+            params.mark_unobservable
+            and err.rms_m > params.max_own_gnss_error_m
+            and trips[k].trip.key not in failed
+        ):
             failed[trips[k].trip.key] = unobservable_reason(err, params.max_own_gnss_error_m)
     records = tuple(_record(m, submaps, trips, bool(ok)) for m, ok in zip(matches, inlier, strict=False))
     timings["total_s"] = time.perf_counter() - clock
     return AlignmentResult(
-        {k: v for k, v in poses.items() if k not in failed}, failed, records, residuals,
-        {"timings": timings, "n_submaps": len(submaps), "n_candidate_pairs": len(pairs),
-         "candidate_pairs": pairs, "eq3_passed": trace["eq3_passed"],
-         "n_matches": len(matches), "n_pose_graph_inliers": int(inlier.sum()),
-         "prior_patch_shifts_m": prior_shifts,
-         "odom_scale_correction": scale_correction,
-         "own_gnss_error_m": {trips[k].trip.key: e for k, e in own_error.items()},
-         "unaligned_poses": {k: poses[k] for k in failed}},
+        {k: v for k, v in poses.items() if k not in failed},
+        failed,
+        records,
+        residuals,
+        {
+            "timings": timings,
+            "n_submaps": len(submaps),
+            "n_candidate_pairs": len(pairs),
+            "candidate_pairs": pairs,
+            "eq3_passed": trace["eq3_passed"],
+            "n_matches": len(matches),
+            "n_pose_graph_inliers": int(inlier.sum()),
+            "prior_patch_shifts_m": prior_shifts,
+            "odom_scale_correction": scale_correction,
+            "own_gnss_error_m": {trips[k].trip.key: e for k, e in own_error.items()},
+            "unaligned_poses": {k: poses[k] for k in failed},
+        },
     )
 
 
@@ -186,19 +225,32 @@ def _failed_trips(trips, submaps, pairs, matches, inlier, has_prior) -> dict[str
         if not overlapping:
             failed[t.trip.key] = "no_overlap: no other trip or map area shares this trip's road"
         elif not any(s in registered for s in overlapping):
-            failed[t.trip.key] = (f"no_consistent_match: none of {len(overlapping)} overlapping sub-maps "
-                                  "passed topology, matching and consistency checks")
+            failed[t.trip.key] = (
+                f"no_consistent_match: none of {len(overlapping)} overlapping sub-maps "
+                "passed topology, matching and consistency checks"
+            )
     return failed
 
 
-def _record(m: PairMatch, submaps: Sequence[Submap], trips: Sequence[TripReconstruction], ok: bool) -> MatchPairRecord:
+def _record(
+    m: PairMatch, submaps: Sequence[Submap], trips: Sequence[TripReconstruction], ok: bool
+) -> MatchPairRecord:
     si, sj = submaps[m.i], submaps[m.j]
     key = lambda s: "<prior>" if s.is_prior else trips[s.trip_index].trip.key  # noqa: E731
     rel = m.relative_pose(si.world_T_submap, sj.world_T_submap)
     return MatchPairRecord(
-        m.i, m.j, key(si), key(sj), (si.first_frame, si.last_frame), (sj.first_frame, sj.last_frame),
+        m.i,
+        m.j,
+        key(si),
+        key(sj),
+        (si.first_frame, si.last_frame),
+        (sj.first_frame, sj.last_frame),
         (float(m.centre_xy_world[0]), float(m.centre_xy_world[1])),
         cast(tuple[float, float, float], tuple(float(v) for v in rel)),
-        m.confidence, m.residual_rms_m, m.instance_matches, tuple(float(c) for c in m.match_confidences), ok,
+        m.confidence,
+        m.residual_rms_m,
+        m.instance_matches,
+        tuple(float(c) for c in m.match_confidences),
+        ok,
         m.human,
     )

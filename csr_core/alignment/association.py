@@ -74,13 +74,16 @@ class PairMatch:
         return ad.T @ self.information_local @ ad
 
 
-def element_set(submap: Submap, centre_xy_world: np.ndarray, world_T_submap: np.ndarray | None = None) -> ElementSet:
+def element_set(
+    submap: Submap, centre_xy_world: np.ndarray, world_T_submap: np.ndarray | None = None
+) -> ElementSet:
     pts = submap.element_points_world(world_T_submap)
     return ElementSet(tuple(e.type for e in submap.elements), tuple(p - centre_xy_world for p in pts))
 
 
-def landmark_pairs(si: Submap, sj: Submap, centre_xy_world: np.ndarray, noise: NoiseScales,
-                   params: AlignmentParams) -> LandmarkSets | None:
+def landmark_pairs(
+    si: Submap, sj: Submap, centre_xy_world: np.ndarray, noise: NoiseScales, params: AlignmentParams
+) -> LandmarkSets | None:
     """Both sub-maps' dash-end landmarks in the circle's local frame, with the sigma of each
     (one sighting's along sigma over the square root of its sightings, at most 4 counted: the
     sightings share the trip's local pose error)."""
@@ -88,8 +91,15 @@ def landmark_pairs(si: Submap, sj: Submap, centre_xy_world: np.ndarray, noise: N
         return None
     (pa, ua), (pb, ub) = si.landmarks_world(), sj.landmarks_world()
     sig = lambda n: noise.dash_end_sigma_m / np.sqrt(np.minimum(n, 4))  # noqa: E731
-    return LandmarkSets(pa - centre_xy_world, ua, sig(si.landmark_counts), pb - centre_xy_world, ub,
-                        sig(sj.landmark_counts), params.landmark_gate_max_m)
+    return LandmarkSets(
+        pa - centre_xy_world,
+        ua,
+        sig(si.landmark_counts),
+        pb - centre_xy_world,
+        ub,
+        sig(sj.landmark_counts),
+        params.landmark_gate_max_m,
+    )
 
 
 def _point_sigma(noise: NoiseScales) -> float:
@@ -97,8 +107,9 @@ def _point_sigma(noise: NoiseScales) -> float:
     return float(np.sqrt(2.0) * np.sqrt(np.mean(np.square(lat))))
 
 
-def _element_distances(submap: Submap, circle: Circle, elements: ElementSet,
-                       cache: dict[tuple[int, int], np.ndarray] | None) -> np.ndarray:
+def _element_distances(
+    submap: Submap, circle: Circle, elements: ElementSet, cache: dict[tuple[int, int], np.ndarray] | None
+) -> np.ndarray:
     if cache is None:
         return element_distances(elements)
     key = (submap.submap_id, circle.circle_id)
@@ -107,10 +118,16 @@ def _element_distances(submap: Submap, circle: Circle, elements: ElementSet,
     return cache[key]
 
 
-def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, params: AlignmentParams,
-               forced_matches: Sequence[tuple[int, int]] | None = None,
-               initial_xyyaw: np.ndarray | None = None,
-               distance_cache: dict[tuple[int, int], np.ndarray] | None = None) -> PairMatch | None:
+def match_pair(
+    si: Submap,
+    sj: Submap,
+    circle: Circle,
+    noise: NoiseScales,
+    params: AlignmentParams,
+    forced_matches: Sequence[tuple[int, int]] | None = None,
+    initial_xyyaw: np.ndarray | None = None,
+    distance_cache: dict[tuple[int, int], np.ndarray] | None = None,
+) -> PairMatch | None:
     """Step 2 for one pair: pre-align by the road boundaries, match elements (Eq. 4-6, RRWM),
     register by GNC-TLS, confidence by Eq. 7. ``forced_matches`` skips the matching (Step 3
     re-registration). None when the pair cannot be registered. ``distance_cache``: element
@@ -141,24 +158,49 @@ def match_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, param
     if len(matches) < params.min_matched_elements:
         return None
     closed = [e.closed for e in si.elements]
-    reg = register_elements(a, b, matches, _point_sigma(noise), params, closed, initial,
-                            landmark_pairs(si, sj, circle.centre_xy_world, noise, params))
+    reg = register_elements(
+        a,
+        b,
+        matches,
+        _point_sigma(noise),
+        params,
+        closed,
+        initial,
+        landmark_pairs(si, sj, circle.centre_xy_world, noise, params),
+    )
     if reg is None or reg.residual_rms_m > params.max_registration_rms_k * _point_sigma(noise):
         return None
     kept = [m for m, ok in zip(matches, reg.element_inlier, strict=False) if ok]
     b_aligned = ElementSet(b.types, tuple(se2.transform_points(reg.delta_xyyaw, p) for p in b.points))
     conf = match_confidence(a, b_aligned, kept, noise, params, target_distances=e_a)
     return PairMatch(
-        si.submap_id, sj.submap_id, si.trip_index, sj.trip_index, circle.circle_id,
-        circle.centre_xy_world.copy(), reg.delta_xyyaw, reg.information_xyyaw, tuple(kept),
+        si.submap_id,
+        sj.submap_id,
+        si.trip_index,
+        sj.trip_index,
+        circle.circle_id,
+        circle.centre_xy_world.copy(),
+        reg.delta_xyyaw,
+        reg.information_xyyaw,
+        tuple(kept),
         tuple((si.elements[k].instance_index, sj.elements[kp].instance_index) for k, kp in kept),
-        conf, float(np.mean(conf)), reg.residual_rms_m, float(objective), prior_sensitivity=reg.prior_sensitivity,
+        conf,
+        float(np.mean(conf)),
+        reg.residual_rms_m,
+        float(objective),
+        prior_sensitivity=reg.prior_sensitivity,
     )
 
 
-def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Sequence[tuple[int, int]],
-              trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
-              trace: dict | None = None) -> list[PairMatch]:
+def associate(
+    submaps: Sequence[Submap],
+    circles: Sequence[Circle],
+    pairs: Sequence[tuple[int, int]],
+    trips: Sequence[TripReconstruction],
+    noise: NoiseScales,
+    params: AlignmentParams,
+    trace: dict | None = None,
+) -> list[PairMatch]:
     """Algorithm 1: the optimal data association D* over all candidate pairs. ``trace``
     (diagnostics) receives ``eq3_passed``: Step 1's outcome per candidate pair."""
     from csr_core.alignment.inter_trip import inter_trip_consistency
@@ -172,15 +214,26 @@ def associate(submaps: Sequence[Submap], circles: Sequence[Circle], pairs: Seque
         trace["eq3_passed"] = np.asarray(keep, bool)
     # 3-4: multi-order graph matching (Eq. 4-6), GNC relative pose, confidence (Eq. 7)
     distances: dict[tuple[int, int], np.ndarray] = {}
-    matched = [m for i, j in candidates
-               if (m := match_pair(submaps[i], submaps[j], circles[submaps[i].circle_id], noise, params,
-                                   distance_cache=distances)) is not None]
+    matched = [
+        m
+        for i, j in candidates
+        if (
+            m := match_pair(
+                submaps[i], submaps[j], circles[submaps[i].circle_id], noise, params, distance_cache=distances
+            )
+        )
+        is not None
+    ]
     # 5: intra-trip temporal consistency (Eq. 8)
     matched = temporal_consistency(matched, submaps, circles, noise, params)
     # 6: inter-trip consistency: maximum clique of consistent pairs
     inliers = inter_trip_consistency(matched, params)
-    log.debug("association: %d candidate pairs, %d after Eq. 3, %d matched, %d consistent",
-              len(pairs), len(candidates), len(matched), len(inliers))
+    log.debug(
+        "association: %d candidate pairs, %d after Eq. 3, %d matched, %d consistent",
+        len(pairs),
+        len(candidates),
+        len(matched),
+        len(inliers),
+    )
     # 7: D*
     return inliers
-

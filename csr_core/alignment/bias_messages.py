@@ -49,8 +49,14 @@ class GnssBiasMessage:
     variance_m2: float
 
 
-def bias_message(timestamps_s: np.ndarray, smoothed_xy: np.ndarray, aligned_xy: np.ndarray, weights: np.ndarray,
-                 n_trips: int, params: AlignmentParams) -> GnssBiasMessage | None:
+def bias_message(
+    timestamps_s: np.ndarray,
+    smoothed_xy: np.ndarray,
+    aligned_xy: np.ndarray,
+    weights: np.ndarray,
+    n_trips: int,
+    params: AlignmentParams,
+) -> GnssBiasMessage | None:
     """The message of one trip's alignment in one tile: ``smoothed_xy`` and ``aligned_xy`` (F, 2)
     the trip's single-trip and aligned positions of the tile's frames, ``weights`` (F,) how much
     the tile's alignment counts for each (its blend weights), ``n_trips`` the trips the tile
@@ -65,9 +71,14 @@ def bias_message(timestamps_s: np.ndarray, smoothed_xy: np.ndarray, aligned_xy: 
     return GnssBiasMessage(t, (float(bias[0]), float(bias[1])), float(variance))
 
 
-def add_bias_messages(g: gtsam.NonlinearFactorGraph, trip: TripReconstruction, group: Sequence[Submap],
-                      weights: Mapping[int, float], messages: Sequence[GnssBiasMessage],
-                      params: AlignmentParams) -> list[int]:
+def add_bias_messages(
+    g: gtsam.NonlinearFactorGraph,
+    trip: TripReconstruction,
+    group: Sequence[Submap],
+    weights: Mapping[int, float],
+    messages: Sequence[GnssBiasMessage],
+    params: AlignmentParams,
+) -> list[int]:
     """Each message as a prior on the bias ``B(i)`` of the trip's sub-map nearest in time (``group``:
     the trip's sub-maps, their biases already in ``g``); returns the indices of the factors added.
 
@@ -88,7 +99,11 @@ def add_bias_messages(g: gtsam.NonlinearFactorGraph, trip: TripReconstruction, g
         sigma_i2 = params.gnss_bias_share * params.gnss_sigma_base_xy_m**2 / weights[s.submap_id]
         sigma = np.sqrt(msg.variance_m2 + (1.0 - phi**2) * sigma_i2) / phi
         added.append(g.size())
-        g.add(gtsam.PriorFactorPose2(
-            B(s.submap_id), gtsam.Pose2(msg.bias_xy_m[0] / phi, msg.bias_xy_m[1] / phi, 0.0),
-            gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma, sigma, _BIAS_YAW_SIGMA_RAD]))))
+        g.add(
+            gtsam.PriorFactorPose2(
+                B(s.submap_id),
+                gtsam.Pose2(msg.bias_xy_m[0] / phi, msg.bias_xy_m[1] / phi, 0.0),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma, sigma, _BIAS_YAW_SIGMA_RAD])),
+            )
+        )
     return added

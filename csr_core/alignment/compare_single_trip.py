@@ -44,8 +44,9 @@ class VariantScore:
     aligned_ate_m: float  # contract ATE of the aligned poses
 
 
-def score_variant(scenario: Path, cache: Path | None, single_trip: SingleTripParams,
-                  alignment: AlignmentParams) -> VariantScore:
+def score_variant(
+    scenario: Path, cache: Path | None, single_trip: SingleTripParams, alignment: AlignmentParams
+) -> VariantScore:
     frame, recons = single_trip_results(scenario, cache, single_trip)
     truth = true_poses(scenario, frame, [r.trip.key for r in recons])
     own = [ate_rmse_m({r.trip.key: r.poses_xyyaw_world}, {r.trip.key: truth[r.trip.key]}) for r in recons]
@@ -53,29 +54,48 @@ def score_variant(scenario: Path, cache: Path | None, single_trip: SingleTripPar
     return VariantScore(float(np.mean(own)), ate_rmse_m(result.poses_xyyaw_world, truth))
 
 
-def compare(scenarios: Sequence[Path], changed: SingleTripParams, cache: Path | None = None,
-            alignment: AlignmentParams = ALIGNMENT_DEFAULT,
-            progress: Callable[[str], None] | None = None) -> list[tuple[str, VariantScore, VariantScore]]:
+def compare(
+    scenarios: Sequence[Path],
+    changed: SingleTripParams,
+    cache: Path | None = None,
+    alignment: AlignmentParams = ALIGNMENT_DEFAULT,
+    progress: Callable[[str], None] | None = None,
+) -> list[tuple[str, VariantScore, VariantScore]]:
     """``(scenario name, default stage's scores, changed stage's scores)`` per scenario;
     ``progress`` hears one line per scenario done."""
     rows = []
     for k, s in enumerate(scenarios, 1):
-        rows.append((s.name, score_variant(s, cache, SINGLE_TRIP_DEFAULT, alignment),
-                     score_variant(s, cache, changed, alignment)))
+        rows.append(
+            (
+                s.name,
+                score_variant(s, cache, SINGLE_TRIP_DEFAULT, alignment),
+                score_variant(s, cache, changed, alignment),
+            )
+        )
         if progress:
-            progress(f"{k}/{len(scenarios)} {s.name}: aligned {rows[-1][1].aligned_ate_m:.4f} / "
-                     f"{rows[-1][2].aligned_ate_m:.4f} m")
+            progress(
+                f"{k}/{len(scenarios)} {s.name}: aligned {rows[-1][1].aligned_ate_m:.4f} / "
+                f"{rows[-1][2].aligned_ate_m:.4f} m"
+            )
     return rows
 
 
 def table(rows: Sequence[tuple[str, VariantScore, VariantScore]]) -> str:
     lines = ["| scenario | trip-aligned a / b [m] | aligned a / b [m] |", "| --- | --- | --- |"]
     for name, a, b in rows:
-        lines.append(f"| {name} | {a.trip_aligned_ate_m:.4f} / {b.trip_aligned_ate_m:.4f} "
-                     f"| {a.aligned_ate_m:.4f} / {b.aligned_ate_m:.4f} |")
+        lines.append(
+            f"| {name} | {a.trip_aligned_ate_m:.4f} / {b.trip_aligned_ate_m:.4f} "
+            f"| {a.aligned_ate_m:.4f} / {b.aligned_ate_m:.4f} |"
+        )
     if rows:
-        mean = [np.mean([getattr(r[k], f) for r in rows]) for f in ("trip_aligned_ate_m", "aligned_ate_m") for k in (1, 2)]
-        lines.append(f"| mean of {len(rows)} | {mean[0]:.4f} / {mean[1]:.4f} | {mean[2]:.4f} / {mean[3]:.4f} |")
+        mean = [
+            np.mean([getattr(r[k], f) for r in rows])
+            for f in ("trip_aligned_ate_m", "aligned_ate_m")
+            for k in (1, 2)
+        ]
+        lines.append(
+            f"| mean of {len(rows)} | {mean[0]:.4f} / {mean[1]:.4f} | {mean[2]:.4f} / {mean[3]:.4f} |"
+        )
     return "\n".join(lines)
 
 
@@ -84,13 +104,27 @@ def _to_stderr(line: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m csr_core.alignment.compare_single_trip", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m csr_core.alignment.compare_single_trip",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("scenarios", type=Path, nargs="+", help="scenario folders (trips/, truth/)")
-    ap.add_argument("--single-trip-param", action="append", default=[], metavar="NAME=VALUE", required=True,
-                    help="a SingleTripParams field to change for variant b (repeatable)")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="an AlignmentParams field to change for both variants (repeatable)")
+    ap.add_argument(
+        "--single-trip-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        required=True,
+        help="a SingleTripParams field to change for variant b (repeatable)",
+    )
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="an AlignmentParams field to change for both variants (repeatable)",
+    )
     ap.add_argument("--cache", type=Path, help="folder for cached single-trip results")
     args = ap.parse_args(argv)
     try:

@@ -51,36 +51,62 @@ class MatchCorrections:
 def _covers(s: Submap, key: str, frames: tuple[int, int]) -> bool:
     if key == PRIOR_KEY:
         return s.is_prior
-    return (not s.is_prior and s.trip_key == key and s.first_frame <= frames[1] and s.last_frame >= frames[0])
+    return not s.is_prior and s.trip_key == key and s.first_frame <= frames[1] and s.last_frame >= frames[0]
 
 
 def _names(m: PairMatch, submaps: Sequence[Submap], c: PairConstraint) -> bool:
     si, sj = submaps[m.i], submaps[m.j]
-    return ((_covers(si, c.trip_key_i, c.frames_i) and _covers(sj, c.trip_key_j, c.frames_j))
-            or (_covers(si, c.trip_key_j, c.frames_j) and _covers(sj, c.trip_key_i, c.frames_i)))
+    return (_covers(si, c.trip_key_i, c.frames_i) and _covers(sj, c.trip_key_j, c.frames_j)) or (
+        _covers(si, c.trip_key_j, c.frames_j) and _covers(sj, c.trip_key_i, c.frames_i)
+    )
 
 
 def _overlap(s: Submap, frames: tuple[int, int]) -> int:
     return 1 if s.is_prior else max(0, min(s.last_frame, frames[1]) - max(s.first_frame, frames[0]) + 1)
 
 
-def human_pair(si: Submap, sj: Submap, circle: Circle, noise: NoiseScales, params: AlignmentParams,
-               offset_xyyaw: tuple[float, float, float] | None) -> PairMatch | None:
+def human_pair(
+    si: Submap,
+    sj: Submap,
+    circle: Circle,
+    noise: NoiseScales,
+    params: AlignmentParams,
+    offset_xyyaw: tuple[float, float, float] | None,
+) -> PairMatch | None:
     """An added pair: registered, or as asserted; a known inlier with the human weight."""
     if offset_xyyaw is None:
         m = match_pair(si, sj, circle, noise, params)
         if m is None:
             return None
     else:
-        m = PairMatch(si.submap_id, sj.submap_id, si.trip_index, sj.trip_index, circle.circle_id,
-                      circle.centre_xy_world.copy(), np.asarray(offset_xyyaw, float), np.eye(3), (), (),
-                      np.ones(0), 1.0, 0.0, float("nan"))
+        m = PairMatch(
+            si.submap_id,
+            sj.submap_id,
+            si.trip_index,
+            sj.trip_index,
+            circle.circle_id,
+            circle.centre_xy_world.copy(),
+            np.asarray(offset_xyyaw, float),
+            np.eye(3),
+            (),
+            (),
+            np.ones(0),
+            1.0,
+            0.0,
+            float("nan"),
+        )
     info = np.diag([HUMAN_SIGMA_XY_M**-2, HUMAN_SIGMA_XY_M**-2, HUMAN_SIGMA_YAW_RAD**-2])
     return replace(m, information_local=info / params.reg_alpha, confidence=1.0, human=True)
 
 
-def apply_corrections(matches: Sequence[PairMatch], submaps: Sequence[Submap], circles: Sequence[Circle],
-                      noise: NoiseScales, params: AlignmentParams, corrections: MatchCorrections) -> list[PairMatch]:
+def apply_corrections(
+    matches: Sequence[PairMatch],
+    submaps: Sequence[Submap],
+    circles: Sequence[Circle],
+    noise: NoiseScales,
+    params: AlignmentParams,
+    corrections: MatchCorrections,
+) -> list[PairMatch]:
     """D* after the human corrections: rejected pairs out, added pairs in."""
     kept = [m for m in matches if not any(_names(m, submaps, c) for c in corrections.rejected)]
     for c in corrections.added:
@@ -89,8 +115,11 @@ def apply_corrections(matches: Sequence[PairMatch], submaps: Sequence[Submap], c
             if not _covers(si, c.trip_key_i, c.frames_i):
                 continue
             for sj in submaps:
-                if sj.circle_id != si.circle_id or sj.submap_id == si.submap_id or not _covers(sj, c.trip_key_j,
-                                                                                              c.frames_j):
+                if (
+                    sj.circle_id != si.circle_id
+                    or sj.submap_id == si.submap_id
+                    or not _covers(sj, c.trip_key_j, c.frames_j)
+                ):
                     continue
                 score = _overlap(si, c.frames_i) + _overlap(sj, c.frames_j)
                 if best is None or score > best[0]:

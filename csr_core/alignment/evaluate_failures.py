@@ -42,7 +42,9 @@ class TripScore:
     along_mean_m: float
     across_mean_m: float
     failed_reason: str | None  # None: the trip has poses (aligned, or unaligned with no_overlap)
-    unaligned_reason: str | None = None  # no_overlap: it has poses, its own smoothed ones (nothing checked them)
+    unaligned_reason: str | None = (
+        None  # no_overlap: it has poses, its own smoothed ones (nothing checked them)
+    )
 
 
 def score_trips(
@@ -65,7 +67,9 @@ def score_trips(
     for k in true_xy:
         xy = est_xy.get(k, (failed_xy or {}).get(k))
         if xy is None:
-            out.append(TripScore(k, float("nan"), float("nan"), float("nan"), failed.get(k), unaligned.get(k)))
+            out.append(
+                TripScore(k, float("nan"), float("nan"), float("nan"), failed.get(k), unaligned.get(k))
+            )
             continue
         err = apply_se2(truth_T_est, xy) - true_xy[k]
         c, s = np.cos(true_yaw[k]), np.sin(true_yaw[k])
@@ -98,7 +102,10 @@ def evaluate_output(scenario: Path, out: Path) -> list[TripScore]:
     est = read_poses_dir(out / "poses")
     report = json.loads((out / "report.json").read_text())
     return score_trips(
-        true_xy, true_yaw, {k: meta.frame.to_local(t.lonlat_deg) for k, t in est.items()}, report.get("failed", {}),
+        true_xy,
+        true_yaw,
+        {k: meta.frame.to_local(t.lonlat_deg) for k, t in est.items()},
+        report.get("failed", {}),
         unaligned=report.get("diagnostics", {}).get("unaligned", {}),
     )
 
@@ -144,8 +151,13 @@ def evaluate_in_process(
 def format_scores(scores: list[TripScore]) -> str:
     lines = [f"{'trip':<24} {'ATE m':>7} {'along':>7} {'across':>7}  status"]
     for s in scores:
-        status = (f"FAILED ({s.failed_reason})" if s.failed_reason
-                  else f"unaligned, own poses ({s.unaligned_reason.split(':')[0]})" if s.unaligned_reason else "ok")
+        status = (
+            f"FAILED ({s.failed_reason})"
+            if s.failed_reason
+            else f"unaligned, own poses ({s.unaligned_reason.split(':')[0]})"
+            if s.unaligned_reason
+            else "ok"
+        )
         flag = " <-- over bound" if not s.failed_reason and s.ate_rmse_m > ATE_BOUND_M else ""
         lines.append(
             f"{s.key:<24} {s.ate_rmse_m:7.3f} {s.along_mean_m:+7.3f} {s.across_mean_m:+7.3f}  {status}{flag}"

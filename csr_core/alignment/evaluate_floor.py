@@ -56,9 +56,12 @@ OFF_M = 0.5  # a registration further than this from the truth counts as off
 def true_poses(scenario: Path, frame, keys: Sequence[str]) -> dict[str, np.ndarray]:
     """Trip key -> true world_T_vehicle ``(N, 3)`` in ``frame`` (the pipeline's world frame)."""
     truth = read_poses_dir(scenario / "truth" / "poses")
-    return {k: np.column_stack([frame.to_local(truth[k].lonlat_deg),
-                                frame.yaw_rad(truth[k].heading_deg, truth[k].lonlat_deg)])
-            for k in keys}
+    return {
+        k: np.column_stack(
+            [frame.to_local(truth[k].lonlat_deg), frame.yaw_rad(truth[k].heading_deg, truth[k].lonlat_deg)]
+        )
+        for k in keys
+    }
 
 
 def _true_relative(m, submaps, truth: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -75,8 +78,9 @@ def with_true_registration(m, submaps, truth: Mapping[str, np.ndarray]):
     return replace(m, delta_local_xyyaw=delta)
 
 
-def align_with_matches(recons, change: Callable | None, seen: dict,
-             params: AlignmentParams = DEFAULT) -> alignment.AlignmentResult:
+def align_with_matches(
+    recons, change: Callable | None, seen: dict, params: AlignmentParams = DEFAULT
+) -> alignment.AlignmentResult:
     """``align_trips`` with the matches handed to the pose graph passed through ``change``
     (and recorded in ``seen``)."""
 
@@ -114,8 +118,9 @@ class FrameStages:
     error_m: np.ndarray  # (N,)
 
 
-def frame_stages(recons, seen: Mapping, result: alignment.AlignmentResult,
-                 truth: Mapping[str, np.ndarray]) -> FrameStages:
+def frame_stages(
+    recons, seen: Mapping, result: alignment.AlignmentResult, truth: Mapping[str, np.ndarray]
+) -> FrameStages:
     """``FrameStages`` of ``result``'s poses (``seen``: the sub-maps and matches ``_aligned`` recorded)."""
     poses = result.poses_xyyaw_world
     keys = sorted(poses)
@@ -146,14 +151,20 @@ def error_by_stage(frames: FrameStages) -> dict[str, dict]:
     out = {}
     for n, name in enumerate(STAGES):
         mine = e2[frames.stage_index == n]
-        out[name] = {"frames_share": len(mine) / len(e2),
-                     "rms_m": float(np.sqrt(np.mean(mine))) if len(mine) else float("nan"),
-                     "squared_error_share": float(np.sum(mine)) / total if total > 0 else 0.0}
+        out[name] = {
+            "frames_share": len(mine) / len(e2),
+            "rms_m": float(np.sqrt(np.mean(mine))) if len(mine) else float("nan"),
+            "squared_error_share": float(np.sum(mine)) / total if total > 0 else 0.0,
+        }
     return out
 
 
-STAGE_COLOURS = {"registered": "tab:green", "not_registered": "tab:orange", "failed_eq3": "tab:red",
-                 "no_candidate_pair": "tab:purple"}
+STAGE_COLOURS = {
+    "registered": "tab:green",
+    "not_registered": "tab:orange",
+    "failed_eq3": "tab:red",
+    "no_candidate_pair": "tab:purple",
+}
 
 
 def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") -> Path:
@@ -169,13 +180,22 @@ def plot_frame_stages(frames: FrameStages, path: str | Path, title: str = "") ->
     for n, name in enumerate(STAGES):
         m = frames.stage_index == n
         s = summary[name]
-        label = f"{name}: {100 * s['frames_share']:.0f} % of frames" + (f", RMS {s['rms_m']:.2f} m" if m.any() else "")
+        label = f"{name}: {100 * s['frames_share']:.0f} % of frames" + (
+            f", RMS {s['rms_m']:.2f} m" if m.any() else ""
+        )
         left.scatter(*frames.true_xy_world[m].T, s=2, color=STAGE_COLOURS[name], label=label, rasterized=True)
     left.legend(loc="best", markerscale=6, fontsize=9)
     left.set_title("furthest step of Algorithm 1 a frame's sub-maps reached")
     order = np.argsort(frames.error_m)  # the largest errors drawn last, on top
-    sc = right.scatter(*frames.true_xy_world[order].T, s=2, c=frames.error_m[order], cmap="viridis",
-                       vmin=0.0, vmax=max(0.5, float(np.percentile(frames.error_m, 99))), rasterized=True)
+    sc = right.scatter(
+        *frames.true_xy_world[order].T,
+        s=2,
+        c=frames.error_m[order],
+        cmap="viridis",
+        vmin=0.0,
+        vmax=max(0.5, float(np.percentile(frames.error_m, 99))),
+        rasterized=True,
+    )
     fig.colorbar(sc, ax=[left, right], label="aligned error after the global SE(2) [m]", shrink=0.8)
     right.set_title("aligned error")
     for ax in (left, right):
@@ -198,31 +218,45 @@ def ate_rmse_m(poses: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray])
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
-def evaluate(scenario: Path, cache: Path | None = None, params: AlignmentParams = DEFAULT,
-             figure: Path | None = None) -> dict:
+def evaluate(
+    scenario: Path, cache: Path | None = None, params: AlignmentParams = DEFAULT, figure: Path | None = None
+) -> dict:
     """The module docstring's figures as a dict; ``figure``: also draw ``plot_frame_stages`` there."""
     frame, recons = single_trip_results(scenario, cache)
     truth = true_poses(scenario, frame, [r.trip.key for r in recons])
     as_is: dict = {}
     real = align_with_matches(recons, None, as_is, params)
-    floor = align_with_matches(recons, lambda m, submaps: with_true_registration(m, submaps, truth), {}, params)
+    floor = align_with_matches(
+        recons, lambda m, submaps: with_true_registration(m, submaps, truth), {}, params
+    )
     off, along = 0, 0
     for m in as_is["matches"]:
         si, sj = as_is["submaps"][m.i], as_is["submaps"][m.j]
-        err = se2.between(m.relative_pose(si.world_T_submap, sj.world_T_submap), _true_relative(m, as_is["submaps"], truth))
+        err = se2.between(
+            m.relative_pose(si.world_T_submap, sj.world_T_submap), _true_relative(m, as_is["submaps"], truth)
+        )
         if np.hypot(err[0], err[1]) > OFF_M:  # in sub-map j's anchor frame: x along its heading
             off += 1
             along += int(abs(err[0]) > abs(err[1]))
     smoothed = {r.trip.key: r.poses_xyyaw_world for r in recons}
     stages = frame_stages(recons, as_is, real, truth)
-    aligned_ate = ate_rmse_m(real.poses_xyyaw_world, truth)  # the contract's metric; the stages must add up to it
+    aligned_ate = ate_rmse_m(
+        real.poses_xyyaw_world, truth
+    )  # the contract's metric; the stages must add up to it
     if figure is not None:
         plot_frame_stages(stages, figure, f"{scenario.name}: aligned ATE {aligned_ate:.3f} m")
-    return {"scenario": scenario.name, "trips": len(recons), "accepted_pairs": len(as_is["matches"]),
-            "pairs_off_m": {"bound_m": OFF_M, "off": off, "mostly_along": along},
-            "ate_rmse_m": {"smoothed": ate_rmse_m(smoothed, truth), "aligned": aligned_ate,
-                           "true_registrations": ate_rmse_m(floor.poses_xyyaw_world, truth)},
-            "error_by_stage": error_by_stage(stages)}
+    return {
+        "scenario": scenario.name,
+        "trips": len(recons),
+        "accepted_pairs": len(as_is["matches"]),
+        "pairs_off_m": {"bound_m": OFF_M, "off": off, "mostly_along": along},
+        "ate_rmse_m": {
+            "smoothed": ate_rmse_m(smoothed, truth),
+            "aligned": aligned_ate,
+            "true_registrations": ate_rmse_m(floor.poses_xyyaw_world, truth),
+        },
+        "error_by_stage": error_by_stage(stages),
+    }
 
 
 def parse_params(assignments: Sequence[str]) -> AlignmentParams:
@@ -231,14 +265,26 @@ def parse_params(assignments: Sequence[str]) -> AlignmentParams:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m csr_core.alignment.evaluate_floor", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m csr_core.alignment.evaluate_floor",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("scenario", type=Path, help="scenario folder (trips/, truth/)")
     ap.add_argument("--cache", type=Path, help="folder for cached single-trip results")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="an AlignmentParams field to change for both alignments (repeatable)")
-    ap.add_argument("--figure", type=Path, metavar="PNG",
-                    help="draw each frame by its stage and by its aligned error (plot_frame_stages)")
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="an AlignmentParams field to change for both alignments (repeatable)",
+    )
+    ap.add_argument(
+        "--figure",
+        type=Path,
+        metavar="PNG",
+        help="draw each frame by its stage and by its aligned error (plot_frame_stages)",
+    )
     args = ap.parse_args(argv)
     try:
         params = parse_params(args.param)

@@ -64,12 +64,16 @@ def _aligned_instances(trip: TripReconstruction, poses: np.ndarray, spacing_m: f
         _, idx = tree.query(pts)
         c = corr[idx]
         cos, sin = np.cos(c[:, 2]), np.sin(c[:, 2])
-        moved = np.column_stack([cos * pts[:, 0] - sin * pts[:, 1] + c[:, 0], sin * pts[:, 0] + cos * pts[:, 1] + c[:, 1]])
+        moved = np.column_stack(
+            [cos * pts[:, 0] - sin * pts[:, 1] + c[:, 0], sin * pts[:, 0] + cos * pts[:, 1] + c[:, 1]]
+        )
         out.append((inst.type, moved, inst.type.is_polygon))
     return out
 
 
-def build_segment_maps(elements_by_owner: Mapping[int, Sequence[tuple[ElementType, np.ndarray, bool]]]) -> dict:
+def build_segment_maps(
+    elements_by_owner: Mapping[int, Sequence[tuple[ElementType, np.ndarray, bool]]],
+) -> dict:
     acc: dict[ElementType, list] = {}
     for owner, elems in elements_by_owner.items():
         for etype, pts, closed in elems:
@@ -165,7 +169,9 @@ class DashEnds:
         return DashEnds(self.points_xy_vehicle[m], self.frame[m], self.direction_vehicle[m])
 
 
-def dash_ends(trip: TripReconstruction, max_dash_m: float = DASH_MAX_M, dets: Detections | None = None) -> DashEnds:
+def dash_ends(
+    trip: TripReconstruction, max_dash_m: float = DASH_MAX_M, dets: Detections | None = None
+) -> DashEnds:
     """Both ends of every short divider detection (a dash), except ends at the edge of the
     perception range (cut by the range, not painted), which is read from the trip itself."""
     d = detections(trip) if dets is None else dets
@@ -183,7 +189,11 @@ def dash_ends(trip: TripReconstruction, max_dash_m: float = DASH_MAX_M, dets: De
     ext = np.vstack([first, last])
     x_lo, x_hi = np.percentile(ext[:, 0], [0.5, 99.5])
     y_hi = np.percentile(np.abs(ext[:, 1]), 99.5)
-    inside = (P[:, 0] > x_lo + RANGE_MARGIN_M) & (P[:, 0] < x_hi - RANGE_MARGIN_M) & (np.abs(P[:, 1]) < y_hi - RANGE_MARGIN_M)
+    inside = (
+        (P[:, 0] > x_lo + RANGE_MARGIN_M)
+        & (P[:, 0] < x_hi - RANGE_MARGIN_M)
+        & (np.abs(P[:, 1]) < y_hi - RANGE_MARGIN_M)
+    )
     return DashEnds(P[inside], F[inside], U[inside])
 
 
@@ -202,7 +212,9 @@ def _canonical(direction_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Direction of the dash with a sign fixed in the world (x >= 0 half-plane), and the kind."""
     flip = (direction_world[:, 0] < 0) | ((direction_world[:, 0] == 0) & (direction_world[:, 1] < 0))
     axis = np.where(flip[:, None], -direction_world, direction_world)
-    return axis, np.where(flip, 1, -1)  # an end whose "towards the other end" points along +axis is the -1 end
+    return axis, np.where(
+        flip, 1, -1
+    )  # an end whose "towards the other end" points along +axis is the -1 end
 
 
 def _rotate(poses_xyyaw: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -224,8 +236,9 @@ def build_dash_map(dashes: Sequence[DashEnds], poses: Sequence[np.ndarray]) -> D
     return DashMap(xy, owner, kinds, trees)
 
 
-def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, dmap: DashMap,
-                        exclude_owner: int, gate_m: float):
+def associate_dash_ends(
+    points_world: np.ndarray, direction_world: np.ndarray, dmap: DashMap, exclude_owner: int, gate_m: float
+):
     """The same dash end as seen by the other trips (same kind, within ``gate_m``): foot (their
     mean, each trip weighted equally), along-dash unit normal (the residual direction), validity."""
     n = len(points_world)
@@ -256,8 +269,9 @@ def associate_dash_ends(points_world: np.ndarray, direction_world: np.ndarray, d
     return foot, normal, valid
 
 
-def associate_points(points_world: np.ndarray, types: np.ndarray, maps: Mapping, exclude_owner: int,
-                     gate_m: np.ndarray):
+def associate_points(
+    points_world: np.ndarray, types: np.ndarray, maps: Mapping, exclude_owner: int, gate_m: np.ndarray
+):
     """Nearest same-type segment of another owner (among the ``K_CANDIDATES`` nearest segment
     midpoints): foot, unit normal, signed residual and validity (gated, not beyond an end)."""
     P = len(points_world)
@@ -303,13 +317,25 @@ def _point_sigmas(types: np.ndarray, points_vehicle: np.ndarray, noise: NoiseSca
 
 def _to_world(poses_xyyaw: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
     c, s_ = np.cos(poses_xyyaw[:, 2]), np.sin(poses_xyyaw[:, 2])
-    return np.column_stack([c * points_xy[:, 0] - s_ * points_xy[:, 1] + poses_xyyaw[:, 0],
-                            s_ * points_xy[:, 0] + c * points_xy[:, 1] + poses_xyyaw[:, 1]])
+    return np.column_stack(
+        [
+            c * points_xy[:, 0] - s_ * points_xy[:, 1] + poses_xyyaw[:, 0],
+            s_ * points_xy[:, 0] + c * points_xy[:, 1] + poses_xyyaw[:, 1],
+        ]
+    )
 
 
-def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, maps: Mapping,
-                        owner: int, noise: NoiseScales, params: AlignmentParams,
-                        dashes: DashEnds | None = None, dash_map: DashMap | None = None):
+def frame_registrations(
+    fp: FramePoints,
+    poses: np.ndarray,
+    frames: np.ndarray,
+    maps: Mapping,
+    owner: int,
+    noise: NoiseScales,
+    params: AlignmentParams,
+    dashes: DashEnds | None = None,
+    dash_map: DashMap | None = None,
+):
     """Per-frame body-frame correction ``xi (F, 3)``, information ``(F, 3, 3)`` and number of
     inlier points ``(F,)`` for the keyframes ``frames`` (ascending).
 
@@ -329,8 +355,13 @@ def frame_registrations(fp: FramePoints, poses: np.ndarray, frames: np.ndarray, 
     if dashes is not None and dash_map is not None and len(dashes.frame):
         d = dashes.select(frames)
         dpose = poses[d.frame]
-        f2, n2, v2 = associate_dash_ends(_to_world(dpose, d.points_xy_vehicle), _rotate(dpose, d.direction_vehicle),
-                                         dash_map, owner, DASH_GATE_M)
+        f2, n2, v2 = associate_dash_ends(
+            _to_world(dpose, d.points_xy_vehicle),
+            _rotate(dpose, d.direction_vehicle),
+            dash_map,
+            owner,
+            DASH_GATE_M,
+        )
         pv = np.vstack([pv, d.points_xy_vehicle])
         foot, normal, valid = np.vstack([foot, f2]), np.vstack([normal, n2]), np.concatenate([valid, v2])
         sigma = np.concatenate([sigma, np.full(len(d.frame), params.fine_dash_sigma_m)])
@@ -375,9 +406,17 @@ def _keyframes(poses: np.ndarray, spacing_m: float) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
-def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, maps: Mapping, owner: int,
-                noise: NoiseScales, params: AlignmentParams, dashes: DashEnds | None = None,
-                dash_map: DashMap | None = None) -> np.ndarray:
+def refine_trip(
+    trip: TripReconstruction,
+    fp: FramePoints,
+    poses: np.ndarray,
+    maps: Mapping,
+    owner: int,
+    noise: NoiseScales,
+    params: AlignmentParams,
+    dashes: DashEnds | None = None,
+    dash_map: DashMap | None = None,
+) -> np.ndarray:
     """Frame-level pose graph of one trip: one ``Pose2`` per keyframe, chained at the *current*
     (coarse) relative poses, frame registrations as priors, a weak prior at the coarse pose.
 
@@ -399,22 +438,38 @@ def refine_trip(trip: TripReconstruction, fp: FramePoints, poses: np.ndarray, ma
     rel = se2.between(kf[:-1], kf[1:])
     d = np.hypot(rel[:, 0], rel[:, 1])
     if params.fine_chain_from_odometry:  # the heading random walk over the seconds between keyframes
-        sigmas = chain_sigmas(d, np.abs(np.diff(trip.trip.timestamps_s[frames])), trip_yaw_random_walk(trip, params),
-                              params.fine_chain_sigma_xy0_m)
+        sigmas = chain_sigmas(
+            d,
+            np.abs(np.diff(trip.trip.timestamps_s[frames])),
+            trip_yaw_random_walk(trip, params),
+            params.fine_chain_sigma_xy0_m,
+        )
         sxy, syaw = sigmas[:, 0], sigmas[:, 2]
     else:
         sxy = params.fine_chain_sigma_floor_m + params.fine_chain_sigma_per_m * d
         syaw = params.fine_chain_sigma_yaw_floor_rad + params.fine_chain_sigma_yaw_per_m * d
     for slot in range(len(frames) - 1):
-        g.add(gtsam.BetweenFactorPose2(X(slot), X(slot + 1), gtsam.Pose2(*rel[slot]),
-                                       gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[slot], sxy[slot], syaw[slot]]))))
-    weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([params.fine_prior_sigma_xy_m] * 2 + [params.fine_prior_sigma_yaw_rad]))
+        g.add(
+            gtsam.BetweenFactorPose2(
+                X(slot),
+                X(slot + 1),
+                gtsam.Pose2(*rel[slot]),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[slot], sxy[slot], syaw[slot]])),
+            )
+        )
+    weak = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([params.fine_prior_sigma_xy_m] * 2 + [params.fine_prior_sigma_yaw_rad])
+    )
     for slot in range(len(frames)):
         g.add(gtsam.PriorFactorPose2(X(slot), gtsam.Pose2(*kf[slot]), weak))
         if n_in[slot] >= params.fine_min_points:
             H = params.fine_registration_weight * 0.5 * (info[slot] + info[slot].T)
             target = se2.compose(kf[slot], xi[slot])
-            g.add(gtsam.PriorFactorPose2(X(slot), gtsam.Pose2(*target), gtsam.noiseModel.Gaussian.Information(H)))
+            g.add(
+                gtsam.PriorFactorPose2(
+                    X(slot), gtsam.Pose2(*target), gtsam.noiseModel.Gaussian.Information(H)
+                )
+            )
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(20)
     res = gtsam.utilities.extractPose2(gtsam.LevenbergMarquardtOptimizer(g, init, lm).optimize())
@@ -430,45 +485,90 @@ def spread_corrections(poses: np.ndarray, frames: np.ndarray, corrections_xyyaw:
     if len(frames) == 1:
         c = np.repeat(corrections_xyyaw, len(poses), axis=0)
     else:
-        c = np.column_stack([np.interp(s, sk, corrections_xyyaw[:, 0]), np.interp(s, sk, corrections_xyyaw[:, 1]),
-                             np.interp(s, sk, np.unwrap(corrections_xyyaw[:, 2]))])
+        c = np.column_stack(
+            [
+                np.interp(s, sk, corrections_xyyaw[:, 0]),
+                np.interp(s, sk, corrections_xyyaw[:, 1]),
+                np.interp(s, sk, np.unwrap(corrections_xyyaw[:, 2])),
+            ]
+        )
     return se2.compose(c, poses)
 
 
-def refine_frames(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
-                  prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams,
-                  dash_sightings: Sequence[DashEnds] | None = None) -> dict[str, np.ndarray]:
+def refine_frames(
+    trips: Sequence[TripReconstruction],
+    fps: Sequence[FramePoints],
+    poses: Mapping[str, np.ndarray],
+    prior_features: Sequence[MapFeature],
+    noise: NoiseScales,
+    params: AlignmentParams,
+    dash_sightings: Sequence[DashEnds] | None = None,
+) -> dict[str, np.ndarray]:
     """Fine alignment of every trip (``fps``: each trip's :func:`frame_points`; ``dash_sightings``:
     each trip's :func:`dash_ends`, computed here when not given)."""
     current = {k: np.asarray(v, float).copy() for k, v in poses.items()}
-    prior = [(f.type, resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
-              f.type.is_polygon) for f in prior_features]
+    prior = [
+        (
+            f.type,
+            resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
+            f.type.is_polygon,
+        )
+        for f in prior_features
+    ]
     if len(trips) < 2 and not prior:
         return current
     dashes = None
     if len(trips) > 1 and params.fine_dashes:
         dashes = list(dash_sightings) if dash_sightings is not None else [dash_ends(t) for t in trips]
     for _ in range(params.fine_iterations):
-        owners = {k: _aligned_instances(t, current[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
+        owners = {
+            k: _aligned_instances(t, current[t.trip.key], params.element_resample_m)
+            for k, t in enumerate(trips)
+        }
         if prior:
             owners[-1] = prior
         maps = build_segment_maps(owners)
         dash_map = build_dash_map(dashes, [current[t.trip.key] for t in trips]) if dashes else None
-        current = {t.trip.key: refine_trip(t, fps[k], current[t.trip.key], maps, k, noise, params,
-                                           dashes[k] if dashes else None, dash_map)
-                   for k, t in enumerate(trips)}
+        current = {
+            t.trip.key: refine_trip(
+                t,
+                fps[k],
+                current[t.trip.key],
+                maps,
+                k,
+                noise,
+                params,
+                dashes[k] if dashes else None,
+                dash_map,
+            )
+            for k, t in enumerate(trips)
+        }
     return current
 
 
-def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoints], poses: Mapping[str, np.ndarray],
-                    prior_features: Sequence[MapFeature], noise: NoiseScales, params: AlignmentParams) -> dict[str, np.ndarray]:
+def frame_residuals(
+    trips: Sequence[TripReconstruction],
+    fps: Sequence[FramePoints],
+    poses: Mapping[str, np.ndarray],
+    prior_features: Sequence[MapFeature],
+    noise: NoiseScales,
+    params: AlignmentParams,
+) -> dict[str, np.ndarray]:
     """Per-frame alignment residual: RMS point-to-line distance (metres) of the gated perceived
     points to the other trips' aligned elements and the prior map, evaluated on the fine
     keyframes (every ``fine_keyframe_spacing_m``) and held until the next; NaN where none."""
-    owners = {k: _aligned_instances(t, poses[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)}
+    owners = {
+        k: _aligned_instances(t, poses[t.trip.key], params.element_resample_m) for k, t in enumerate(trips)
+    }
     if prior_features:
-        owners[-1] = [(f.type, resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
-                       f.type.is_polygon) for f in prior_features]
+        owners[-1] = [
+            (
+                f.type,
+                resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
+                f.type.is_polygon,
+            )
+            for f in prior_features
+        ]
     maps = build_segment_maps(owners)
     out = {}
     for k, t in enumerate(trips):
@@ -485,6 +585,8 @@ def frame_residuals(trips: Sequence[TripReconstruction], fps: Sequence[FramePoin
             cnt = np.bincount(fp.frame[valid], minlength=n)
             res_kf = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
         # every frame takes the residual of its keyframe (the last one at or before it)
-        owner_kf = frames[np.clip(np.searchsorted(frames, np.arange(n), side="right") - 1, 0, len(frames) - 1)]
+        owner_kf = frames[
+            np.clip(np.searchsorted(frames, np.arange(n), side="right") - 1, 0, len(frames) - 1)
+        ]
         out[t.trip.key] = res_kf[owner_kf]
     return out

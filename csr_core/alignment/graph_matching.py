@@ -28,8 +28,15 @@ from csr_core.alignment.params import AlignmentParams, NoiseScales
 from csr_core.types import ElementType
 
 
-def rrwm(K: np.ndarray, n1: int, n2: int, max_iter: int = 30, sk_iter: int = 6, alpha: float = 0.2,
-         beta: float = 30.0) -> np.ndarray:
+def rrwm(
+    K: np.ndarray,
+    n1: int,
+    n2: int,
+    max_iter: int = 30,
+    sk_iter: int = 6,
+    alpha: float = 0.2,
+    beta: float = 30.0,
+) -> np.ndarray:
     """Reweighted random walks for graph matching (Cho et al. 2010), ``(n1, n2)`` soft assignment.
 
     The same iteration as ``pygmtools.rrwm`` (same K layout ``idx(i, a) = a * n1 + i``, same
@@ -85,7 +92,7 @@ def chamfer_matrix(a: ElementSet, b: ElementSet) -> np.ndarray:
     pb, sb, cb = _concat(b.points)
     D = cdist(pa, pb)
     a_to_b = np.add.reduceat(np.minimum.reduceat(D, sb, axis=1), sa, axis=0) / ca[:, None]
-    b_to_a = (np.add.reduceat(np.minimum.reduceat(D, sa, axis=0), sb, axis=1) / cb[None, :])
+    b_to_a = np.add.reduceat(np.minimum.reduceat(D, sa, axis=0), sb, axis=1) / cb[None, :]
     return np.minimum(a_to_b, b_to_a)
 
 
@@ -149,8 +156,14 @@ def edge_similarity(e_a: np.ndarray, e_b: np.ndarray, sigma_e: float) -> np.ndar
     return np.exp(-0.5 * (diff / sigma_e) ** 2)
 
 
-def eq4_objective(matches: Sequence[tuple[int, int]], s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray,
-                  sigma_e: float, params: AlignmentParams) -> float:
+def eq4_objective(
+    matches: Sequence[tuple[int, int]],
+    s_node: np.ndarray,
+    e_a: np.ndarray,
+    e_b: np.ndarray,
+    sigma_e: float,
+    params: AlignmentParams,
+) -> float:
     """Value of Eq. 4 for a set of matches ``(k, k')``."""
     n_m = len(matches)
     if n_m == 0:
@@ -165,8 +178,9 @@ def eq4_objective(matches: Sequence[tuple[int, int]], s_node: np.ndarray, e_a: n
     return params.w_count * n_m + params.w_node * node + params.w_edge * edge
 
 
-def rrwm_match(s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: float,
-               params: AlignmentParams) -> list[tuple[int, int]]:
+def rrwm_match(
+    s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: float, params: AlignmentParams
+) -> list[tuple[int, int]]:
     """Solve Eq. 4: RRWM on the affinity matrix, Hungarian, ``tau_s`` gate, greedy pruning."""
     valid = s_node >= params.tau_s
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
@@ -193,8 +207,14 @@ def rrwm_match(s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: fl
     return _prune(matches, s_node, e_a, e_b, sigma_e, params)
 
 
-def _prune(matches: list[tuple[int, int]], s_node: np.ndarray, e_a: np.ndarray, e_b: np.ndarray, sigma_e: float,
-           params: AlignmentParams) -> list[tuple[int, int]]:
+def _prune(
+    matches: list[tuple[int, int]],
+    s_node: np.ndarray,
+    e_a: np.ndarray,
+    e_b: np.ndarray,
+    sigma_e: float,
+    params: AlignmentParams,
+) -> list[tuple[int, int]]:
     """Greedy pruning: drop the match whose removal raises the Eq. 4 objective most, while one
     does. The objective without match ``q`` for all ``q`` at once, from the node terms and the
     edge-similarity matrix of the current set (``eq4_objective`` term by term)."""
@@ -223,7 +243,9 @@ def _prune(matches: list[tuple[int, int]], s_node: np.ndarray, e_a: np.ndarray, 
     return [m for m, ok in zip(matches, keep, strict=True) if ok]
 
 
-def boundary_prealignment(a: ElementSet, b: ElementSet, direction_xy: np.ndarray, max_shift_m: float) -> np.ndarray:
+def boundary_prealignment(
+    a: ElementSet, b: ElementSet, direction_xy: np.ndarray, max_shift_m: float
+) -> np.ndarray:
     """Pre-alignment by the left and right road boundaries: the lateral shift (along the normal
     of ``direction``) bringing most of ``b``'s boundaries onto ``a``'s, as a ``(2,)`` vector;
     zero when no boundary pair supports a shift within ``max_shift_m``."""

@@ -44,7 +44,9 @@ class Landmarks:
 
     @staticmethod
     def empty() -> Landmarks:
-        return Landmarks(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros(0, int), np.zeros(0, int))
+        return Landmarks(
+            np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros(0, int), np.zeros(0, int)
+        )
 
     def __len__(self) -> int:
         return len(self.points_xy)
@@ -58,15 +60,23 @@ def trip_landmarks(trip: TripReconstruction, sightings: DashEnds | None = None) 
     pose = trip.poses_xyyaw_world[d.frame]
     pts = _to_world(pose, d.points_xy_vehicle)
     c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-    u = np.column_stack([c * d.direction_vehicle[:, 0] - s * d.direction_vehicle[:, 1],
-                         s * d.direction_vehicle[:, 0] + c * d.direction_vehicle[:, 1]])
+    u = np.column_stack(
+        [
+            c * d.direction_vehicle[:, 0] - s * d.direction_vehicle[:, 1],
+            s * d.direction_vehicle[:, 0] + c * d.direction_vehicle[:, 1],
+        ]
+    )
     pairs = cKDTree(pts).query_pairs(MERGE_RADIUS_M, output_type="ndarray")
     if len(pairs):
         a, b = pairs[:, 0], pairs[:, 1]
         pairs = pairs[u[a, 0] * u[b, 0] + u[a, 1] * u[b, 1] > SAME_END_COS]
     n = len(pts)
-    adj = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])) if len(pairs) else
-                            (np.zeros(0), (np.zeros(0, int), np.zeros(0, int))), shape=(n, n))
+    adj = sparse.coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1]))
+        if len(pairs)
+        else (np.zeros(0), (np.zeros(0, int), np.zeros(0, int))),
+        shape=(n, n),
+    )
     _, label = connected_components(adj, directed=False)
     count = np.bincount(label)
     keep = np.flatnonzero(count >= MIN_SIGHTINGS)
@@ -85,12 +95,17 @@ def trip_landmarks(trip: TripReconstruction, sightings: DashEnds | None = None) 
 
 def _to_world(poses_xyyaw: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
     c, s = np.cos(poses_xyyaw[:, 2]), np.sin(poses_xyyaw[:, 2])
-    return np.column_stack([c * points_xy[:, 0] - s * points_xy[:, 1] + poses_xyyaw[:, 0],
-                            s * points_xy[:, 0] + c * points_xy[:, 1] + poses_xyyaw[:, 1]])
+    return np.column_stack(
+        [
+            c * points_xy[:, 0] - s * points_xy[:, 1] + poses_xyyaw[:, 0],
+            s * points_xy[:, 0] + c * points_xy[:, 1] + poses_xyyaw[:, 1],
+        ]
+    )
 
 
-def associate_landmarks(src_xy: np.ndarray, src_dir: np.ndarray, tgt_xy: np.ndarray, tgt_dir: np.ndarray,
-                        gate_m: float) -> tuple[np.ndarray, np.ndarray]:
+def associate_landmarks(
+    src_xy: np.ndarray, src_dir: np.ndarray, tgt_xy: np.ndarray, tgt_dir: np.ndarray, gate_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest target landmark of the same end kind (directions agree) within ``gate_m`` for
     every source landmark: ``(index into target, valid)``, both ``(Ls,)``."""
     if len(src_xy) == 0 or len(tgt_xy) == 0:

@@ -57,8 +57,12 @@ def yaw_random_walk_rad_per_sqrt_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndar
     return robust_sigma(np.diff(increments, 2)) / np.sqrt(6.0) / np.sqrt(step_s)
 
 
-def chain_sigmas(distance_m: float | np.ndarray, duration_s: float | np.ndarray, yaw_rw_rad_per_sqrt_s: float,
-                 sigma_xy0_m: float) -> np.ndarray:
+def chain_sigmas(
+    distance_m: float | np.ndarray,
+    duration_s: float | np.ndarray,
+    yaw_rw_rad_per_sqrt_s: float,
+    sigma_xy0_m: float,
+) -> np.ndarray:
     """``(sigma_x, sigma_y, sigma_yaw)`` of a link ``distance_m`` of travel and ``duration_s``
     apart (module docstring): ``(3,)`` for one link, ``(n, 3)`` for arrays of ``n``. No link is
     shorter in time than one 0.1 s odometry increment."""

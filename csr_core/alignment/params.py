@@ -25,8 +25,9 @@ TYPICAL_GNSS_SIGMA_M: dict[int, float] = {
 #: Eq. 11's M_table: weight of a fix by receiver status, the inverse variance relative to
 #: ``gnss_sigma_base_xy_m`` (1 m), so that the absolute position is the information-weighted
 #: mean of the trips' fixes; no fix weighs nothing.
-DEFAULT_GNSS_STATUS_WEIGHTS: dict[int, float] = {s: (1.0 / v) ** 2 for s, v in TYPICAL_GNSS_SIGMA_M.items()} | {
-    int(GnssStatus.NONE): 0.0}
+DEFAULT_GNSS_STATUS_WEIGHTS: dict[int, float] = {
+    s: (1.0 / v) ** 2 for s, v in TYPICAL_GNSS_SIGMA_M.items()
+} | {int(GnssStatus.NONE): 0.0}
 
 #: used when a trip reports no noise for a type (metres)
 FALLBACK_LATERAL_SIGMA_M = 0.15
@@ -100,8 +101,12 @@ class AlignmentParams:
     clique_window_m: float = 250.0  # pairs further apart are not compared
 
     # --- Eq. 9-12 pose graph ----------------------------------------------------------------
-    gnss_status_weights: Mapping[int, float] = field(default_factory=lambda: dict(DEFAULT_GNSS_STATUS_WEIGHTS))
-    gnss_deviation_weight_per_m: float = -2.0  # omega of Eq. 11 (a GNSS/odometry disagreement lowers the weight)
+    gnss_status_weights: Mapping[int, float] = field(
+        default_factory=lambda: dict(DEFAULT_GNSS_STATUS_WEIGHTS)
+    )
+    gnss_deviation_weight_per_m: float = (
+        -2.0
+    )  # omega of Eq. 11 (a GNSS/odometry disagreement lowers the weight)
     gnss_sigma_base_xy_m: float = 1.0  # Omega_g^base
     gnss_sigma_base_yaw_rad: float = 0.05
     gnss_min_weight: float = 0.02
@@ -183,7 +188,9 @@ class AlignmentParams:
     fine_chain_sigma_floor_m: float = 0.002
     fine_chain_sigma_yaw_per_m: float = 0.0002
     fine_chain_sigma_yaw_floor_rad: float = 0.0002
-    fine_registration_weight: float = 0.2  # keyframe spacing / ~10 m over which a frame's perception errors stay correlated
+    fine_registration_weight: float = (
+        0.2  # keyframe spacing / ~10 m over which a frame's perception errors stay correlated
+    )
     fine_prior_sigma_xy_m: float = 0.5  # keeps along-track where perception is degenerate
     fine_prior_sigma_yaw_rad: float = 0.02
     fine_min_points: int = 6
@@ -226,7 +233,11 @@ def noise_scales(trips: Sequence[TripReconstruction], params: AlignmentParams) -
     typical = float(np.sqrt(np.mean(np.square(lines))))
     sigma_p = params.sigma_p_k * float(np.sqrt(2 * typical**2 + bdr**2)) + params.sigma_p_floor_m
     sigma_e = max(params.sigma_e_k * np.sqrt(2.0) * typical, params.sigma_e_floor_m)
-    along = [t.noise[ElementType.LANE_DIVIDER].along_sigma_m for t in trips
-             if ElementType.LANE_DIVIDER in t.noise and np.isfinite(t.noise[ElementType.LANE_DIVIDER].along_sigma_m)]
+    along = [
+        t.noise[ElementType.LANE_DIVIDER].along_sigma_m
+        for t in trips
+        if ElementType.LANE_DIVIDER in t.noise
+        and np.isfinite(t.noise[ElementType.LANE_DIVIDER].along_sigma_m)
+    ]
     dash = float(np.sqrt(np.mean(np.square(along)))) if along else 0.5
     return NoiseScales(lat, bdr, sigma_p, float(sigma_e), dash)

@@ -95,11 +95,15 @@ def gnss_odometry_deviation_m(trip: TripReconstruction) -> np.ndarray:
     return np.concatenate([[0.0], d])
 
 
-def gnss_weight(trip: TripReconstruction, lo: int, hi: int, deviation: np.ndarray, params: AlignmentParams) -> float:
+def gnss_weight(
+    trip: TripReconstruction, lo: int, hi: int, deviation: np.ndarray, params: AlignmentParams
+) -> float:
     """Eq. 11's scalar factor over frames ``lo..hi``."""
     status = trip.trip.gnss_status[lo : hi + 1].astype(int)
     table = np.array([params.gnss_status_weights.get(int(s), 0.0) for s in range(5)])
-    w = table[np.clip(status, 0, 4)] * np.maximum(1.0 + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1], 0.0)
+    w = table[np.clip(status, 0, 4)] * np.maximum(
+        1.0 + params.gnss_deviation_weight_per_m * deviation[lo : hi + 1], 0.0
+    )
     w = np.where(status == 4, 0.0, w)
     return float(max(float(np.mean(w)), params.gnss_min_weight))
 
@@ -155,8 +159,11 @@ def registration_variance_factors(matches: Sequence[PairMatch], params: Alignmen
 
 
 def build_factor_graph(
-    trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
-    params: AlignmentParams, with_scale: bool = False,
+    trips: Sequence[TripReconstruction],
+    submaps: Sequence[Submap],
+    matches: Sequence[PairMatch],
+    params: AlignmentParams,
+    with_scale: bool = False,
     bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int], list[int], dict[int, float]]:
     """Eq. 9 as a factor graph; returns graph, initial values, the indices of the registration
@@ -173,19 +180,31 @@ def build_factor_graph(
         if s.is_prior:  # e^pre: the pre-built map holds with its own weight
             sig = np.array([params.prior_map_sigma_xy_m] * 2 + [params.prior_map_sigma_yaw_rad])
         else:  # e^g with Eq. 11
-            w = gnss_weight(trips[s.trip_index], s.first_frame, s.last_frame, deviations[s.trip_index], params)
+            w = gnss_weight(
+                trips[s.trip_index], s.first_frame, s.last_frame, deviations[s.trip_index], params
+            )
             weights[s.submap_id] = w
             sig = np.array([params.gnss_sigma_base_xy_m] * 2 + [params.gnss_sigma_base_yaw_rad]) / np.sqrt(w)
         known.append(g.size())
         if s.is_prior or params.gnss_bias_tau_s <= 0:
-            g.add(gtsam.PriorFactorPose2(S(s.submap_id), gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
-                                         gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            g.add(
+                gtsam.PriorFactorPose2(
+                    S(s.submap_id),
+                    gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
+                    gtsam.noiseModel.Diagonal.Sigmas(sig),
+                )
+            )
         else:  # e^g through the trip's bias: B^-1 S = g (B a pure shift), the independent share only
             independent = sig * np.array([np.sqrt(1.0 - params.gnss_bias_share)] * 2 + [1.0])
             init.insert(B(s.submap_id), gtsam.Pose2())
-            g.add(gtsam.BetweenFactorPose2(B(s.submap_id), S(s.submap_id),
-                                           gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
-                                           gtsam.noiseModel.Diagonal.Sigmas(independent)))
+            g.add(
+                gtsam.BetweenFactorPose2(
+                    B(s.submap_id),
+                    S(s.submap_id),
+                    gtsam.Pose2(*s.gnss_prior_pose(params.gnss_prior_from_white_solve)),
+                    gtsam.noiseModel.Diagonal.Sigmas(independent),
+                )
+            )
     # e^sm: overlapping sub-maps of one trip keep their smoothed relative pose
     chain_white = params.submap_chain_from_white_solve
     by_trip: dict[int, list[Submap]] = {}
@@ -197,8 +216,9 @@ def build_factor_graph(
         if params.gnss_bias_tau_s > 0:
             known.extend(add_gnss_bias_chain(g, trips[k], group, weights, params))
             if bias_messages and trips[k].trip.key in bias_messages:
-                known.extend(add_bias_messages(g, trips[k], group, weights, bias_messages[trips[k].trip.key],
-                                               params))
+                known.extend(
+                    add_bias_messages(g, trips[k], group, weights, bias_messages[trips[k].trip.key], params)
+                )
         travel = arclength_m(trips[k].poses_xyyaw_world[:, :2])
         t = trips[k].trip.timestamps_s
         yaw_rw = trip_yaw_random_walk(trips[k], params)
@@ -206,8 +226,12 @@ def build_factor_graph(
             rel = se2.between(a.gnss_prior_pose(chain_white), b.gnss_prior_pose(chain_white))
             d = float(travel[b.anchor_frame] - travel[a.anchor_frame])  # travelled, not straight-line
             if params.submap_chain_from_odometry:
-                sigmas = chain_sigmas(d, abs(float(t[b.anchor_frame] - t[a.anchor_frame])), yaw_rw,
-                                      params.submap_chain_sigma_xy0_m)
+                sigmas = chain_sigmas(
+                    d,
+                    abs(float(t[b.anchor_frame] - t[a.anchor_frame])),
+                    yaw_rw,
+                    params.submap_chain_sigma_xy0_m,
+                )
                 if not with_scale and params.odom_scale_sigma > 0:
                     # the graph without K(trip) (GNC's, which decides the inliers) holds the scale
                     # at the smoothed one: its unknown correction belongs in the translation's
@@ -233,19 +257,27 @@ def build_factor_graph(
         else:
             info = _clip_information(info, max_eig)
         reg_idx.append(g.size())
-        g.add(gtsam.BetweenFactorPose2(S(m.i), S(m.j), gtsam.Pose2(*T), gtsam.noiseModel.Gaussian.Information(info)))
+        g.add(
+            gtsam.BetweenFactorPose2(
+                S(m.i), S(m.j), gtsam.Pose2(*T), gtsam.noiseModel.Gaussian.Information(info)
+            )
+        )
     if with_scale:  # last, so that the other factors keep their indices
         for k, group in by_trip.items():
             if len(group) > 1:
                 init.insert(K(k), np.zeros(1))
                 known.append(g.size())
-                g.add(gtsam.PriorFactorVector(K(k), np.zeros(1),
-                                              gtsam.noiseModel.Isotropic.Sigma(1, params.odom_scale_sigma)))
+                g.add(
+                    gtsam.PriorFactorVector(
+                        K(k), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, params.odom_scale_sigma)
+                    )
+                )
     return g, init, reg_idx, known, weights
 
 
-def scaled_chain_factor(key_a: int, key_b: int, key_scale: int, rel_xyyaw: np.ndarray,
-                        noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+def scaled_chain_factor(
+    key_a: int, key_b: int, key_scale: int, rel_xyyaw: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
     """e^sm with the trip's odometry scale correction ``k``: the translation from sub-map a to b,
     in a's frame, is ``(1 + k)`` times the smoothed one; the rotation is the smoothed one.
     Residual ``(R_a^T (t_b - t_a) - (1 + k) rel_t, theta_b - theta_a - rel_theta)`` with analytic
@@ -277,8 +309,13 @@ def scaled_chain_factor(key_a: int, key_b: int, key_scale: int, rel_xyyaw: np.nd
 _BIAS_YAW_SIGMA_RAD = 1e-4
 
 
-def add_gnss_bias_chain(g: gtsam.NonlinearFactorGraph, trip: TripReconstruction, group: Sequence[Submap],
-                        weights: Mapping[int, float], params: AlignmentParams) -> list[int]:
+def add_gnss_bias_chain(
+    g: gtsam.NonlinearFactorGraph,
+    trip: TripReconstruction,
+    group: Sequence[Submap],
+    weights: Mapping[int, float],
+    params: AlignmentParams,
+) -> list[int]:
     """The GNSS bias of one trip's sub-maps (in anchor order) as a Gauss-Markov chain; returns the
     indices of the factors added.
 
@@ -289,24 +326,41 @@ def add_gnss_bias_chain(g: gtsam.NonlinearFactorGraph, trip: TripReconstruction,
     tau)``. A status change (``sigma`` jumps) frees the bias by itself; fixes minutes apart are
     independent again."""
     t = trip.trip.timestamps_s
-    sigma = {s.submap_id: np.sqrt(params.gnss_bias_share) * params.gnss_sigma_base_xy_m / np.sqrt(weights[s.submap_id])
-             for s in group}
+    sigma = {
+        s.submap_id: np.sqrt(params.gnss_bias_share)
+        * params.gnss_sigma_base_xy_m
+        / np.sqrt(weights[s.submap_id])
+        for s in group
+    }
     added = []
     first = group[0].submap_id
     added.append(g.size())
-    g.add(gtsam.PriorFactorPose2(B(first), gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([sigma[first], sigma[first], _BIAS_YAW_SIGMA_RAD]))))
+    g.add(
+        gtsam.PriorFactorPose2(
+            B(first),
+            gtsam.Pose2(),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma[first], sigma[first], _BIAS_YAW_SIGMA_RAD])),
+        )
+    )
     for a, b in zip(group[:-1], group[1:], strict=False):
         phi = np.exp(-abs(float(t[b.anchor_frame] - t[a.anchor_frame])) / params.gnss_bias_tau_s)
         sa, sb = sigma[a.submap_id], sigma[b.submap_id]
         step = np.sqrt(max(sa**2 + sb**2 - 2.0 * phi * sa * sb, 1e-8))
         added.append(g.size())
-        g.add(gtsam.BetweenFactorPose2(B(a.submap_id), B(b.submap_id), gtsam.Pose2(),
-                                       gtsam.noiseModel.Diagonal.Sigmas(np.array([step, step, _BIAS_YAW_SIGMA_RAD]))))
+        g.add(
+            gtsam.BetweenFactorPose2(
+                B(a.submap_id),
+                B(b.submap_id),
+                gtsam.Pose2(),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([step, step, _BIAS_YAW_SIGMA_RAD])),
+            )
+        )
     return added
 
 
-def _huber_copy(g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+def _huber_copy(
+    g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: gtsam.Values
+) -> gtsam.NonlinearFactorGraph:
     """The graph with each registration factor under a Huber loss (warm start for GNC)."""
     h = gtsam.NonlinearFactorGraph()
     regs = set(reg_idx)
@@ -314,14 +368,21 @@ def _huber_copy(g: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], values: g
         f = g.at(n)
         if n in regs:
             reg = cast(gtsam.BetweenFactorPose2, f)  # registration factors are BetweenFactorPose2
-            f = gtsam.BetweenFactorPose2(f.keys()[0], f.keys()[1], reg.measured(),
-                                         gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-                                                                        reg.noiseModel()))
+            f = gtsam.BetweenFactorPose2(
+                f.keys()[0],
+                f.keys()[1],
+                reg.measured(),
+                gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Huber.Create(1.345), reg.noiseModel()
+                ),
+            )
         h.add(f)
     return h
 
 
-def _without(graph: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], inlier: np.ndarray) -> gtsam.NonlinearFactorGraph:
+def _without(
+    graph: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], inlier: np.ndarray
+) -> gtsam.NonlinearFactorGraph:
     """The graph without the registration factors that are not ``inlier``."""
     rejected = {reg_idx[int(n)] for n in np.flatnonzero(~inlier)}
     keep = gtsam.NonlinearFactorGraph()
@@ -332,11 +393,15 @@ def _without(graph: gtsam.NonlinearFactorGraph, reg_idx: Sequence[int], inlier: 
 
 
 def optimize_submap_poses(
-    trips: Sequence[TripReconstruction], submaps: Sequence[Submap], matches: Sequence[PairMatch],
-    params: AlignmentParams, bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
+    trips: Sequence[TripReconstruction],
+    submaps: Sequence[Submap],
+    matches: Sequence[PairMatch],
+    params: AlignmentParams,
+    bias_messages: Mapping[str, Sequence[GnssBiasMessage]] | None = None,
 ) -> PoseGraphResult:
-    g, init, reg_idx, known, weights = build_factor_graph(trips, submaps, matches, params,
-                                                          bias_messages=bias_messages)
+    g, init, reg_idx, known, weights = build_factor_graph(
+        trips, submaps, matches, params, bias_messages=bias_messages
+    )
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(100)
     warm = gtsam.LevenbergMarquardtOptimizer(_huber_copy(g, reg_idx, init), init, lm).optimize()
@@ -359,23 +424,38 @@ def optimize_submap_poses(
     if params.odom_scale_sigma > 0:
         # each trip's odometry scale, on the inliers GNC kept (gtsam's GNC clones its factors,
         # which a Python factor cannot do, so it decides with the scale fixed)
-        gs, init_s, _, _, _ = build_factor_graph(trips, submaps, matches, params, with_scale=True,
-                                                 bias_messages=bias_messages)
+        gs, init_s, _, _, _ = build_factor_graph(
+            trips, submaps, matches, params, with_scale=True, bias_messages=bias_messages
+        )
         start = gtsam.Values(result)
         for key in init_s.keys():
             if not start.exists(key):
                 start.insert(key, init_s.atVector(key))
         result = gauss_newton(_without(gs, reg_idx, inlier), start)
-        scale_correction = {k: float(result.atVector(K(k))[0]) for k in range(len(trips)) if result.exists(K(k))}
+        scale_correction = {
+            k: float(result.atVector(K(k))[0]) for k in range(len(trips)) if result.exists(K(k))
+        }
     # a dense (3 x sub-maps)^2 solve: only when it decides something (``mark_unobservable``)
     gains = own_gnss_gain(g, result, submaps, matches, reg_idx, inlier) if params.mark_unobservable else {}
-    poses = {s.submap_id: np.array([result.atPose2(S(s.submap_id)).x(), result.atPose2(S(s.submap_id)).y(),
-                                    result.atPose2(S(s.submap_id)).theta()]) for s in submaps}
+    poses = {
+        s.submap_id: np.array(
+            [
+                result.atPose2(S(s.submap_id)).x(),
+                result.atPose2(S(s.submap_id)).y(),
+                result.atPose2(S(s.submap_id)).theta(),
+            ]
+        )
+        for s in submaps
+    }
     return PoseGraphResult(poses, inlier, weights, gains, scale_correction)
 
 
-def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 20,
-                 relative_tolerance: float = 1e-6) -> gtsam.Values:
+def gauss_newton(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    max_iterations: int = 20,
+    relative_tolerance: float = 1e-6,
+) -> gtsam.Values:
     """Gauss-Newton by hand, for a graph with Python factors (``scaled_chain_factor``): gtsam's
     LM spends seconds per iteration on such a graph (measured: 3 iterations in 11 s for 2,400
     sub-maps, ``linearize`` alone 0.07 s; LIBRARY-NOTES saw the same), while a plain linearize,
@@ -399,8 +479,14 @@ def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_it
     return values
 
 
-def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, submaps: Sequence[Submap],
-                  matches: Sequence[PairMatch], reg_idx: Sequence[int], inlier: np.ndarray) -> dict[int, np.ndarray]:
+def own_gnss_gain(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    submaps: Sequence[Submap],
+    matches: Sequence[PairMatch],
+    reg_idx: Sequence[int],
+    inlier: np.ndarray,
+) -> dict[int, np.ndarray]:
     """How much of a trip's own GNSS error stays in its optimised sub-map positions.
 
     The GNSS error of a trip is dominated by a slowly varying bias (per axis, minutes of
@@ -421,13 +507,23 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
     if n == 0:
         return {}
     ordering = gtsam.Ordering()
-    keys = [S(s.submap_id) for s in submaps] + [B(s.submap_id) for s in submaps if values.exists(B(s.submap_id))]
+    keys = [S(s.submap_id) for s in submaps] + [
+        B(s.submap_id) for s in submaps if values.exists(B(s.submap_id))
+    ]
     for key in keys:  # sub-map poses first, then the GNSS biases (when modelled)
         ordering.push_back(key)
     column = {key: 3 * m for m, key in enumerate(keys)}
     trips = sorted({int(s.trip_index) for s in submaps if not s.is_prior})
-    pose = np.array([[values.atPose2(S(s.submap_id)).x(), values.atPose2(S(s.submap_id)).y(),
-                      values.atPose2(S(s.submap_id)).theta()] for s in submaps])
+    pose = np.array(
+        [
+            [
+                values.atPose2(S(s.submap_id)).x(),
+                values.atPose2(S(s.submap_id)).y(),
+                values.atPose2(S(s.submap_id)).theta(),
+            ]
+            for s in submaps
+        ]
+    )
     world_to_body = lambda m: _rot(-pose[m, 2])  # noqa: E731
     rhs_by_trip = np.zeros((3 * len(keys), 2 * len(trips)))
 
@@ -435,8 +531,11 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
         """RHS of a measurement perturbation ``xi (3, 2)`` (columns: unit east, north shift)."""
         f = cast(gtsam.NoiseModelFactor, graph.at(factor_index))  # priors and between factors
         A, _ = f.linearize(values).jacobian()  # whitened, columns in f.keys() order
-        rhs = A.T @ f.noiseModel().whiten(xi) if xi.ndim == 1 else A.T @ np.column_stack(
-            [f.noiseModel().whiten(xi[:, c]) for c in range(xi.shape[1])])
+        rhs = (
+            A.T @ f.noiseModel().whiten(xi)
+            if xi.ndim == 1
+            else A.T @ np.column_stack([f.noiseModel().whiten(xi[:, c]) for c in range(xi.shape[1])])
+        )
         for b, key in enumerate(f.keys()):
             rhs_by_trip[column[key] : column[key] + 3, col : col + 2] += rhs[3 * b : 3 * b + 3]
 
@@ -457,8 +556,11 @@ def own_gnss_gain(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, subma
                 add(idx, 2 * trips.index(int(sub.trip_index)), sign * xi)
     H, _ = _without(graph, reg_idx, inlier).linearize(values).hessian(ordering)
     X = np.linalg.solve(H + 1e-12 * np.eye(3 * len(keys)), rhs_by_trip)
-    return {s.submap_id: _rot(pose[m, 2]) @ X[3 * m : 3 * m + 2, 2 * trips.index(int(s.trip_index)) :][:, :2]
-            for m, s in enumerate(submaps) if not s.is_prior}
+    return {
+        s.submap_id: _rot(pose[m, 2]) @ X[3 * m : 3 * m + 2, 2 * trips.index(int(s.trip_index)) :][:, :2]
+        for m, s in enumerate(submaps)
+        if not s.is_prior
+    }
 
 
 def _rot(yaw: float) -> np.ndarray:
@@ -466,8 +568,9 @@ def _rot(yaw: float) -> np.ndarray:
     return np.array([[c, -s_], [s_, c]])
 
 
-def frame_poses_from_submaps(trip: TripReconstruction, trip_submaps: Sequence[Submap],
-                             poses: Mapping[int, np.ndarray]) -> np.ndarray:
+def frame_poses_from_submaps(
+    trip: TripReconstruction, trip_submaps: Sequence[Submap], poses: Mapping[int, np.ndarray]
+) -> np.ndarray:
     """Distribute the sub-map solution to every frame: each sub-map carries its frames rigidly
     (``x_t = x_i (g_i^-1 g_t)``); between two anchors the two proposals are blended linearly in
     travelled distance. ``(N, 3)``; the smoothed poses when the trip has no sub-map."""
@@ -480,7 +583,11 @@ def frame_poses_from_submaps(trip: TripReconstruction, trip_submaps: Sequence[Su
     corrections = [se2.compose(poses[s.submap_id], se2.inverse(s.world_T_submap)) for s in group]
     proposals = np.stack([se2.compose(c[None, :], smoothed) for c in corrections])  # (G, N, 3)
     n = len(smoothed)
-    hi = np.clip(np.searchsorted(anchors, np.arange(n), side="right"), 1, len(group) - 1) if len(group) > 1 else None
+    hi = (
+        np.clip(np.searchsorted(anchors, np.arange(n), side="right"), 1, len(group) - 1)
+        if len(group) > 1
+        else None
+    )
     if hi is None:
         return proposals[0]
     lo = hi - 1

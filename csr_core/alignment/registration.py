@@ -74,7 +74,9 @@ def _landmark_rows(delta: np.ndarray, lm: LandmarkSets, gate_m: float):
     return lm.source_xy, lm.target_xy[idx], lm.target_dir[idx], ok, sigma
 
 
-def _nearest_on_polylines(points: np.ndarray, target_x: np.ndarray, target_y: np.ndarray, n_vertices: np.ndarray):
+def _nearest_on_polylines(
+    points: np.ndarray, target_x: np.ndarray, target_y: np.ndarray, n_vertices: np.ndarray
+):
     """For each point, its nearest segment on its own target polyline (row ``p`` of
     ``target_x, target_y (P, L)``, padded with ``FAR_M``, ``n_vertices (P,)`` each, ~1-2 m apart; the two
     segments around the nearest vertex are compared): foot, normal, and validity (False beyond
@@ -103,9 +105,14 @@ def _subsample(points: np.ndarray, n_max: int) -> np.ndarray:
 
 
 def register_elements(
-    target: ElementSet, source: ElementSet, matches: Sequence[tuple[int, int]], point_sigma_m: float,
-    params: AlignmentParams, closed_target: Sequence[bool] | None = None,
-    initial_xyyaw: np.ndarray | None = None, landmarks: LandmarkSets | None = None,
+    target: ElementSet,
+    source: ElementSet,
+    matches: Sequence[tuple[int, int]],
+    point_sigma_m: float,
+    params: AlignmentParams,
+    closed_target: Sequence[bool] | None = None,
+    initial_xyyaw: np.ndarray | None = None,
+    landmarks: LandmarkSets | None = None,
 ) -> Registration | None:
     """GNC-TLS registration of ``source`` onto ``target`` over matched elements ``(k, k')``
     (``k`` in target, ``k'`` in source). None when fewer than ``min_matched_elements`` remain.
@@ -150,11 +157,19 @@ def register_elements(
     # a prior at the start pose keeps directions the elements do not observe (along a straight
     # road) where the initial pose put them instead of letting them drift
     delta0 = delta.copy()
-    H_prior = np.diag([1 / params.registration_prior_sigma_xy_m**2] * 2 + [1 / params.registration_prior_sigma_yaw_rad**2])
+    H_prior = np.diag(
+        [1 / params.registration_prior_sigma_xy_m**2] * 2 + [1 / params.registration_prior_sigma_yaw_rad**2]
+    )
     c_bar = params.gnc_inlier_k  # in units of each row's sigma
     n_line = len(src_pts)
-    gate = landmark_gate_m(landmarks.target_xy, landmarks.target_dir, landmarks.gate_max_m) if landmarks else 0.0
-    target_x, target_y, n_vertices = padded[owner, :, 0], padded[owner, :, 1], lengths[owner]  # per source point
+    gate = (
+        landmark_gate_m(landmarks.target_xy, landmarks.target_dir, landmarks.gate_max_m) if landmarks else 0.0
+    )
+    target_x, target_y, n_vertices = (
+        padded[owner, :, 0],
+        padded[owner, :, 1],
+        lengths[owner],
+    )  # per source point
     mu = None
     w = np.ones(n_line)
     for outer in range(params.gnc_max_outer + 1):
@@ -174,8 +189,11 @@ def register_elements(
             mu = c_bar**2 / max(2 * r_max2 - c_bar**2, 1e-9) if r_max2 > c_bar**2 else 1e6
         # TLS surrogate weights
         lo, hi = mu / (mu + 1) * c_bar**2, (mu + 1) / mu * c_bar**2
-        w = np.where(r2 <= lo, 1.0, np.where(r2 >= hi, 0.0,
-                     c_bar * np.sqrt(mu * (mu + 1)) / np.sqrt(np.maximum(r2, 1e-12)) - mu))
+        w = np.where(
+            r2 <= lo,
+            1.0,
+            np.where(r2 >= hi, 0.0, c_bar * np.sqrt(mu * (mu + 1)) / np.sqrt(np.maximum(r2, 1e-12)) - mu),
+        )
         w = np.clip(w, 0.0, 1.0) * valid
         J = np.column_stack([normal, normal[:, 0] * -moved[:, 1] + normal[:, 1] * moved[:, 0]])
         wj = J * (w / sig**2)[:, None]
@@ -189,8 +207,9 @@ def register_elements(
             break
         mu = min(mu * GNC_MU_FACTOR, 1e6)
     inlier_pts = w[:n_line] > 0.5
-    element_inlier = np.array([np.sum(inlier_pts[owner == m]) >= max(2, 0.5 * np.sum(owner == m))
-                               for m in range(len(matches))])
+    element_inlier = np.array(
+        [np.sum(inlier_pts[owner == m]) >= max(2, 0.5 * np.sum(owner == m)) for m in range(len(matches))]
+    )
     if element_inlier.sum() < params.min_matched_elements:
         return None
     sel = inlier_pts & element_inlier[owner]
@@ -209,9 +228,14 @@ def register_elements(
     return Registration(delta, info, element_inlier, rms, int(sel.sum()), sensitivity)
 
 
-def match_confidence(target: ElementSet, source_aligned: ElementSet, matches: Sequence[tuple[int, int]],
-                     noise: NoiseScales, params: AlignmentParams,
-                     target_distances: np.ndarray | None = None) -> np.ndarray:
+def match_confidence(
+    target: ElementSet,
+    source_aligned: ElementSet,
+    matches: Sequence[tuple[int, int]],
+    noise: NoiseScales,
+    params: AlignmentParams,
+    target_distances: np.ndarray | None = None,
+) -> np.ndarray:
     """Eq. 7 per match: ``c = w s_kk' + (1-w) mean_l' s_kl,k'l'`` after alignment
     (``target_distances``: ``element_distances(target)`` when already known)."""
     if not matches:

@@ -83,8 +83,11 @@ class Submap:
     def gnss_prior_pose(self, white_solve: bool) -> np.ndarray:
         """The anchor pose Eq. 9's e^g or the e^sm chain holds this sub-map to: the white-noise
         solve's when ``white_solve`` and the trip has one, else ``world_T_submap``."""
-        return self.white_world_T_submap if white_solve and self.white_world_T_submap is not None \
+        return (
+            self.white_world_T_submap
+            if white_solve and self.white_world_T_submap is not None
             else self.world_T_submap
+        )
 
     def landmarks_world(self, world_T_submap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Landmark points and unit directions in the world (at ``world_T_submap``)."""
@@ -205,14 +208,21 @@ def element_bounds(prepared: Sequence[tuple[np.ndarray, bool]]) -> np.ndarray:
 
 
 def clip_elements_to_disk(
-    prepared: Sequence[tuple[np.ndarray, bool]], types: Sequence[ElementType], centre_xy: np.ndarray,
-    radius_m: float, min_length_m: float, bounds: np.ndarray | None = None,
+    prepared: Sequence[tuple[np.ndarray, bool]],
+    types: Sequence[ElementType],
+    centre_xy: np.ndarray,
+    radius_m: float,
+    min_length_m: float,
+    bounds: np.ndarray | None = None,
 ) -> list[tuple[int, np.ndarray, bool]]:
     """Pieces of (resampled) elements inside a disk: ``(element index, points, closed)``.
     ``bounds``: :func:`element_bounds` of ``prepared`` (computed here when not given)."""
     bounds = element_bounds(prepared) if bounds is None else bounds
     # cheap reject by bounding box
-    near = ~(np.any(bounds[:, :2] > centre_xy + radius_m, axis=1) | np.any(bounds[:, 2:] < centre_xy - radius_m, axis=1))
+    near = ~(
+        np.any(bounds[:, :2] > centre_xy + radius_m, axis=1)
+        | np.any(bounds[:, 2:] < centre_xy - radius_m, axis=1)
+    )
     out = []
     for i in map(int, np.flatnonzero(near)):
         (pts, closed), etype = prepared[i], types[i]
@@ -243,7 +253,9 @@ def _limit(elements: list[SubmapElement], n_max: int) -> tuple[SubmapElement, ..
 
 
 def split_submaps(
-    trips: Sequence[TripReconstruction], params: AlignmentParams, dash_sightings: Sequence | None = None,
+    trips: Sequence[TripReconstruction],
+    params: AlignmentParams,
+    dash_sightings: Sequence | None = None,
 ) -> tuple[list[Circle], list[Submap]]:
     """Fig. 4: circles over the frame graph and one sub-map per trip (run) per circle."""
     graph = build_frame_graph(trips, params)
@@ -251,8 +263,12 @@ def split_submaps(
     prepared = [_prepared_instances(t, params) for t in trips]
     bounds = [element_bounds(p) for p in prepared]
     types = [[inst.type for inst in t.instances] for t in trips]
-    marks = [trip_landmarks(t, dash_sightings[k] if dash_sightings else None) if params.landmarks
-             else Landmarks.empty() for k, t in enumerate(trips)]
+    marks = [
+        trip_landmarks(t, dash_sightings[k] if dash_sightings else None)
+        if params.landmarks
+        else Landmarks.empty()
+        for k, t in enumerate(trips)
+    ]
     submaps: list[Submap] = []
     for circle, mem in zip(circles, members, strict=False):
         for k in np.unique(graph.trip_index[mem]):
@@ -261,16 +277,25 @@ def split_submaps(
             tr = trips[int(k)]
             for run in runs:
                 frames = graph.frame_index[run]
-                if arclength_m(tr.poses_xyyaw_world[frames[0] : frames[-1] + 1, :2])[-1] < params.min_submap_path_m:
+                if (
+                    arclength_m(tr.poses_xyyaw_world[frames[0] : frames[-1] + 1, :2])[-1]
+                    < params.min_submap_path_m
+                ):
                     continue
-                near = run[np.argmin(np.linalg.norm(graph.positions_xy[run] - circle.centre_xy_world, axis=1))]
+                near = run[
+                    np.argmin(np.linalg.norm(graph.positions_xy[run] - circle.centre_xy_world, axis=1))
+                ]
                 anchor = int(graph.frame_index[near])
                 pose = tr.poses_xyyaw_world[anchor].copy()
                 lo, hi = int(frames[0]), int(frames[-1])
                 inv = se2.inverse(pose)
                 elems = []
                 for i, pts, closed in clip_elements_to_disk(
-                    prepared[k], types[k], circle.centre_xy_world, circle.radius_m, params.min_element_length_m,
+                    prepared[k],
+                    types[k],
+                    circle.centre_xy_world,
+                    circle.radius_m,
+                    params.min_element_length_m,
                     bounds[k],
                 ):
                     inst = tr.instances[i]
@@ -278,22 +303,42 @@ def split_submaps(
                         continue  # not seen while in this circle
                     elems.append(SubmapElement(inst.type, se2.transform_points(inv, pts), i, closed))
                 lm = marks[k]
-                sel = ((np.linalg.norm(lm.points_xy - circle.centre_xy_world, axis=1) <= circle.radius_m)
-                       & (lm.last_frame >= lo) & (lm.first_frame <= hi))
+                sel = (
+                    (np.linalg.norm(lm.points_xy - circle.centre_xy_world, axis=1) <= circle.radius_m)
+                    & (lm.last_frame >= lo)
+                    & (lm.first_frame <= hi)
+                )
                 c, s_ = np.cos(pose[2]), np.sin(pose[2])
-                submaps.append(Submap(
-                    len(submaps), circle.circle_id, int(k), tr.trip.key, anchor, lo, hi, pose,
-                    _limit(elems, params.max_elements_per_submap),
-                    se2.transform_points(inv, lm.points_xy[sel]),
-                    lm.direction_xy[sel] @ np.array([[c, -s_], [s_, c]]), lm.count[sel],
-                    white_world_T_submap=(None if tr.white_poses_xyyaw_world is None
-                                         else tr.white_poses_xyyaw_world[anchor].copy()),
-                ))
+                submaps.append(
+                    Submap(
+                        len(submaps),
+                        circle.circle_id,
+                        int(k),
+                        tr.trip.key,
+                        anchor,
+                        lo,
+                        hi,
+                        pose,
+                        _limit(elems, params.max_elements_per_submap),
+                        se2.transform_points(inv, lm.points_xy[sel]),
+                        lm.direction_xy[sel] @ np.array([[c, -s_], [s_, c]]),
+                        lm.count[sel],
+                        white_world_T_submap=(
+                            None
+                            if tr.white_poses_xyyaw_world is None
+                            else tr.white_poses_xyyaw_world[anchor].copy()
+                        ),
+                    )
+                )
     return circles, submaps
 
 
-def reduce_prior_map(features: Sequence[MapFeature], trips: Sequence[TripReconstruction],
-                     params: AlignmentParams, duplicate_m: float = DUPLICATE_M) -> tuple[MapFeature, ...]:
+def reduce_prior_map(
+    features: Sequence[MapFeature],
+    trips: Sequence[TripReconstruction],
+    params: AlignmentParams,
+    duplicate_m: float = DUPLICATE_M,
+) -> tuple[MapFeature, ...]:
     """The part of a pre-built map the new trips can touch, with duplicates removed: features
     outside the trips' bounding box (plus a circle radius and a GNSS margin) are dropped, and
     the parts of a feature lying within ``duplicate_m`` of a longer kept feature of the same
@@ -320,8 +365,13 @@ def reduce_prior_map(features: Sequence[MapFeature], trips: Sequence[TripReconst
                 continue
             runs = [pts]
         else:
-            runs = [pts[r] for r in np.split(np.arange(len(pts)), np.flatnonzero(np.diff(covered.astype(int))) + 1)
-                    if not covered[r[0]] and len(r) >= 2 and arclength_m(pts[r])[-1] >= params.min_element_length_m]
+            runs = [
+                pts[r]
+                for r in np.split(np.arange(len(pts)), np.flatnonzero(np.diff(covered.astype(int))) + 1)
+                if not covered[r[0]]
+                and len(r) >= 2
+                and arclength_m(pts[r])[-1] >= params.min_element_length_m
+            ]
         for r in runs:
             kept.append(MapFeature(f.type, r, f.style, f.feature_id, f.properties))
             trees.setdefault(f.type, []).append(cKDTree(r))
@@ -333,20 +383,39 @@ def prior_patches(
 ) -> list[Submap]:
     """The pre-built map's elements inside each circle, as a sub-map anchored at the circle
     centre (``trip_index = -1``); circles with fewer than two map elements get none."""
-    prepared = [(resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
-                 f.type.is_polygon) for f in features]
+    prepared = [
+        (
+            resample_polyline(f.points_xy_world, params.element_resample_m, f.type.is_polygon),
+            f.type.is_polygon,
+        )
+        for f in features
+    ]
     types = [f.type for f in features]
     bounds = element_bounds(prepared)
     out: list[Submap] = []
     for c in circles:
         pose = np.array([c.centre_xy_world[0], c.centre_xy_world[1], c.heading_rad])
         inv = se2.inverse(pose)
-        elems = [SubmapElement(types[i], se2.transform_points(inv, pts), i, closed)
-                 for i, pts, closed in clip_elements_to_disk(prepared, types, c.centre_xy_world, c.radius_m,
-                                                             params.min_element_length_m, bounds)]
+        elems = [
+            SubmapElement(types[i], se2.transform_points(inv, pts), i, closed)
+            for i, pts, closed in clip_elements_to_disk(
+                prepared, types, c.centre_xy_world, c.radius_m, params.min_element_length_m, bounds
+            )
+        ]
         if len(elems) >= 2:
-            out.append(Submap(first_id + len(out), c.circle_id, -1, "<prior>", -1, -1, -1, pose,
-                              _limit(elems, params.max_elements_per_submap)))
+            out.append(
+                Submap(
+                    first_id + len(out),
+                    c.circle_id,
+                    -1,
+                    "<prior>",
+                    -1,
+                    -1,
+                    -1,
+                    pose,
+                    _limit(elems, params.max_elements_per_submap),
+                )
+            )
     return out
 
 
@@ -363,6 +432,8 @@ def submap_pairs(submaps: Sequence[Submap], params: AlignmentParams) -> list[tup
         for p in prior:
             pairs += [(p.submap_id, s.submap_id) for s in trips_]
         for a, s in enumerate(trips_):
-            partners = [t for t in trips_[a + 1 :] if t.trip_index != s.trip_index][: params.max_partners_per_submap]
+            partners = [t for t in trips_[a + 1 :] if t.trip_index != s.trip_index][
+                : params.max_partners_per_submap
+            ]
             pairs += [(s.submap_id, t.submap_id) for t in partners]
     return pairs

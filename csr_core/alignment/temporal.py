@@ -33,8 +33,13 @@ def vote_instances(pairs: Sequence[PairMatch]) -> tuple[dict, dict]:
     return best_j, best_i
 
 
-def temporal_consistency(matched: Sequence[PairMatch], submaps: Sequence[Submap], circles: Sequence[Circle],
-                         noise: NoiseScales, params: AlignmentParams) -> list[PairMatch]:
+def temporal_consistency(
+    matched: Sequence[PairMatch],
+    submaps: Sequence[Submap],
+    circles: Sequence[Circle],
+    noise: NoiseScales,
+    params: AlignmentParams,
+) -> list[PairMatch]:
     groups: dict[tuple[int, int], list[PairMatch]] = defaultdict(list)
     for p in matched:
         groups[(p.trip_i, p.trip_j)].append(p)
@@ -58,15 +63,26 @@ def temporal_consistency(matched: Sequence[PairMatch], submaps: Sequence[Submap]
                     continue
                 changed = True
                 kp_hat = j_of_instance.get(cast(int, b_hat)) if wrong_j else None
-                if kp_hat is not None and kp_hat not in used and best_i.get(b_hat) == a \
-                        and si.elements[k].type == sj.elements[kp_hat].type:
+                if (
+                    kp_hat is not None
+                    and kp_hat not in used
+                    and best_i.get(b_hat) == a
+                    and si.elements[k].type == sj.elements[kp_hat].type
+                ):
                     new.append((k, kp_hat))
                     used.add(kp_hat)
             if not changed:
                 out.append(p)
                 continue
-            redo = match_pair(si, sj, circles[p.circle_id], noise, params, forced_matches=new,
-                              initial_xyyaw=p.delta_local_xyyaw)
+            redo = match_pair(
+                si,
+                sj,
+                circles[p.circle_id],
+                noise,
+                params,
+                forced_matches=new,
+                initial_xyyaw=p.delta_local_xyyaw,
+            )
             if redo is not None:
                 out.append(redo)
     return out

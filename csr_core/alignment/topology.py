@@ -106,24 +106,45 @@ def topology_consistent(
 ) -> bool:
     """Eq. 3, each test only where both sub-maps define the quantity; ``tau_sm`` grows with the
     two counts' Poisson noise (module docstring)."""
-    if a.lane_count >= 0 and b.lane_count >= 0 and abs(a.lane_count - b.lane_count) > params.topo_lane_count_tol:
+    if (
+        a.lane_count >= 0
+        and b.lane_count >= 0
+        and abs(a.lane_count - b.lane_count) > params.topo_lane_count_tol
+    ):
         return False
     tau_rw = params.topo_road_width_k * np.sqrt(2.0) * noise.boundary_sigma_m
-    if np.isfinite(a.road_width_m) and np.isfinite(b.road_width_m) and abs(a.road_width_m - b.road_width_m) > tau_rw:
+    if (
+        np.isfinite(a.road_width_m)
+        and np.isfinite(b.road_width_m)
+        and abs(a.road_width_m - b.road_width_m) > tau_rw
+    ):
         return False
-    tau_sm = max(params.topo_split_merge_tol,
-                 params.topo_split_merge_z * np.sqrt(a.split_merge_count + b.split_merge_count))
+    tau_sm = max(
+        params.topo_split_merge_tol,
+        params.topo_split_merge_z * np.sqrt(a.split_merge_count + b.split_merge_count),
+    )
     if abs(a.split_merge_count - b.split_merge_count) > tau_sm:
         return False
     tau_rc = params.topo_road_centre_floor_m + params.topo_road_centre_k * np.sqrt(
-        a.pose_sigma_m**2 + b.pose_sigma_m**2 + noise.boundary_sigma_m**2)
-    if np.isfinite(a.road_centre_m) and np.isfinite(b.road_centre_m) and abs(a.road_centre_m - b.road_centre_m) > tau_rc:
+        a.pose_sigma_m**2 + b.pose_sigma_m**2 + noise.boundary_sigma_m**2
+    )
+    if (
+        np.isfinite(a.road_centre_m)
+        and np.isfinite(b.road_centre_m)
+        and abs(a.road_centre_m - b.road_centre_m) > tau_rc
+    ):
         return False
     return True
 
 
-def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float, pose_sigma_b_m: float,
-                         noise: NoiseScales, params: AlignmentParams) -> bool:
+def same_road_consistent(
+    a: CrossSection,
+    b: CrossSection,
+    pose_sigma_a_m: float,
+    pose_sigma_b_m: float,
+    noise: NoiseScales,
+    params: AlignmentParams,
+) -> bool:
     """Eq. 3 on the same road: the road each of the two vehicles drove, as both sub-maps show it.
 
     Two trips on the two carriageways of a divided road (paired since the frame graph reaches
@@ -136,13 +157,17 @@ def same_road_consistent(a: CrossSection, b: CrossSection, pose_sigma_a_m: float
     for trips that no pair ties otherwise: for every pair it tied the two carriageways of the
     benchmark's highways too, with right registrations, and lost ATE on two of four fleets
     (docs/alignment.md)."""
-    return all(topology_consistent(descriptor_at(a, at, pose_sigma_a_m), descriptor_at(b, at, pose_sigma_b_m),
-                                   noise, params)
-               for at in {a.vehicle_m, b.vehicle_m})
+    return all(
+        topology_consistent(
+            descriptor_at(a, at, pose_sigma_a_m), descriptor_at(b, at, pose_sigma_b_m), noise, params
+        )
+        for at in {a.vehicle_m, b.vehicle_m}
+    )
 
 
-def sliding_window_vote(keys: Sequence[tuple], order: np.ndarray, votes: np.ndarray, half_window: int,
-                        min_fraction: float) -> np.ndarray:
+def sliding_window_vote(
+    keys: Sequence[tuple], order: np.ndarray, votes: np.ndarray, half_window: int, min_fraction: float
+) -> np.ndarray:
     """Smooth binary outcomes in time: within each group (same two trips), ordered by
     ``order``, a pair is kept when at least ``min_fraction`` of the ``2w+1`` outcomes around
     it (itself included) are positive, and its own outcome is positive."""
@@ -162,8 +187,12 @@ def sliding_window_vote(keys: Sequence[tuple], order: np.ndarray, votes: np.ndar
 
 
 def topology_filter(
-    pairs: Sequence[tuple[int, int]], submaps: Sequence[Submap], circles: Sequence[Circle],
-    trips: Sequence[TripReconstruction], noise: NoiseScales, params: AlignmentParams,
+    pairs: Sequence[tuple[int, int]],
+    submaps: Sequence[Submap],
+    circles: Sequence[Circle],
+    trips: Sequence[TripReconstruction],
+    noise: NoiseScales,
+    params: AlignmentParams,
 ) -> np.ndarray:
     """Step 1 for all candidate pairs: Eq. 3, then voting over each trip pair's sequence (a
     second reading for trips that meet nobody in the first, module docstring)."""
@@ -187,7 +216,10 @@ def topology_filter(
     alone = {t for k in keys for t in k if t >= 0} - met
     again = np.array([bool(alone & set(k)) for k in keys], bool)
     if again.any():
-        raw[again] = [same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
-                      for (i, j), a in zip(pairs, again, strict=True) if a]
+        raw[again] = [
+            same_road_consistent(sections[i], sections[j], sigmas[i], sigmas[j], noise, params)
+            for (i, j), a in zip(pairs, again, strict=True)
+            if a
+        ]
         kept = sliding_window_vote(keys, order, raw, params.voting_half_window, params.voting_min_fraction)
     return kept

@@ -108,22 +108,31 @@ def scenario_budget(scenario_dir: Path, cache_dir: Path | None = None) -> dict:
 
     def mcd(features, poses_by_key: dict[str, np.ndarray]) -> float:
         keys = sorted(poses_by_key)
-        truth_T_est = metrics.umeyama_se2(np.concatenate([poses_by_key[k][:, :2] for k in keys]),
-                                          np.concatenate([truth[k][:, :2] for k in keys]))
+        truth_T_est = metrics.umeyama_se2(
+            np.concatenate([poses_by_key[k][:, :2] for k in keys]),
+            np.concatenate([truth[k][:, :2] for k in keys]),
+        )
         return metrics.map_scores(metrics.transform_features(truth_T_est, features), truth_map, true_xy).mcd
 
-    out: dict = {"trips": len(recons), "trips_per_place": trips_per_place({k: v[:, :2] for k, v in truth.items()}),
-                 "mcd": {}, "ate_rmse_m": {}}
-    for name, change in (("pipeline", None),
-                         ("exact_registrations", lambda m, submaps: with_true_registration(m, submaps, truth))):
+    out: dict = {
+        "trips": len(recons),
+        "trips_per_place": trips_per_place({k: v[:, :2] for k, v in truth.items()}),
+        "mcd": {},
+        "ate_rmse_m": {},
+    }
+    for name, change in (
+        ("pipeline", None),
+        ("exact_registrations", lambda m, submaps: with_true_registration(m, submaps, truth)),
+    ):
         aligned = align_with_matches(recons, change, {})
         poses_by_key, _, _ = poses_after_alignment(recons, aligned)
         out["mcd"][name] = mcd(fuse_trips(recons, poses_by_key, aligned.match_pairs).features, poses_by_key)
         out["ate_rmse_m"][name] = ate_rmse_m(poses_by_key, truth)
     on_truth = _true_pose_recons(recons, frame, truth, _true_pose_cache(cache_dir, scenario_dir))
     out["mcd"]["true_poses"] = mcd(fuse_trips(on_truth, truth).features, truth)
-    out["mcd_true_poses_overlaid"] = mcd([MapFeature(i.type, i.points_xy_world, i.style)
-                                          for r in on_truth for i in r.instances], truth)
+    out["mcd_true_poses_overlaid"] = mcd(
+        [MapFeature(i.type, i.points_xy_world, i.style) for r in on_truth for i in r.instances], truth
+    )
     return out
 
 
@@ -135,8 +144,13 @@ def _evaluate(job: Job) -> dict:
     return {"spec": job.spec.name, "world": job.spec.world, "seed": job.spec.seed, "cached": cached, **r}
 
 
-def run_budget_bench(scenario_cache: Path, work_dir: Path, set_name: str = "standard-seeds", jobs: int = 2,
-                     progress: Callable[[str], None] | None = None) -> list[dict]:
+def run_budget_bench(
+    scenario_cache: Path,
+    work_dir: Path,
+    set_name: str = "standard-seeds",
+    jobs: int = 2,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict]:
     """Every scenario of ``set_name`` (simulated unless cached in ``scenario_cache``; single-trip
     results cached in ``work_dir``, keyed by ``CACHE_SOURCES``) in ``jobs`` processes."""
     fingerprint = simulator_fingerprint()
@@ -154,11 +168,16 @@ def per_world(results: Sequence[dict]) -> dict[str, dict]:
     worlds: dict[str, list[dict]] = {}
     for r in results:
         worlds.setdefault(r["world"], []).append(r)
-    return {w: {"n": len(rs), "trips_per_place": float(np.median([r["trips_per_place"] for r in rs])),
-                "mcd": {p: float(np.mean([r["mcd"][p] for r in rs])) for p in POSES},
-                "mcd_true_poses_overlaid": float(np.mean([r["mcd_true_poses_overlaid"] for r in rs])),
-                "ate_rmse_m": {p: float(np.mean([r["ate_rmse_m"][p] for r in rs])) for p in POSES[:2]}}
-            for w, rs in worlds.items()}
+    return {
+        w: {
+            "n": len(rs),
+            "trips_per_place": float(np.median([r["trips_per_place"] for r in rs])),
+            "mcd": {p: float(np.mean([r["mcd"][p] for r in rs])) for p in POSES},
+            "mcd_true_poses_overlaid": float(np.mean([r["mcd_true_poses_overlaid"] for r in rs])),
+            "ate_rmse_m": {p: float(np.mean([r["ate_rmse_m"][p] for r in rs])) for p in POSES[:2]},
+        }
+        for w, rs in worlds.items()
+    }
 
 
 def plot_budget(results: Sequence[dict], path: Path, set_name: str = "standard-seeds") -> Path:
@@ -172,10 +191,18 @@ def plot_budget(results: Sequence[dict], path: Path, set_name: str = "standard-s
     names = list(worlds)
     fig, ax = plt.subplots(figsize=(1.6 * len(names) + 2.5, 4.2))
     width = 0.26
-    labels = {"pipeline": "pipeline", "exact_registrations": "exact registrations (GNSS floor)",
-              "true_poses": "true poses (element stages alone)"}
+    labels = {
+        "pipeline": "pipeline",
+        "exact_registrations": "exact registrations (GNSS floor)",
+        "true_poses": "true poses (element stages alone)",
+    }
     for k, p in enumerate(POSES):
-        ax.bar(np.arange(len(names)) + (k - 1) * width, [worlds[w]["mcd"][p] for w in names], width, label=labels[p])
+        ax.bar(
+            np.arange(len(names)) + (k - 1) * width,
+            [worlds[w]["mcd"][p] for w in names],
+            width,
+            label=labels[p],
+        )
     ax.axhline(MCD_TARGET_M, color="black", lw=1, ls="--", label=f"target {MCD_TARGET_M} m")
     ax.set_xticks(np.arange(len(names)), names)
     ax.set_ylabel("mCD [m] (mean over seeds)")
@@ -188,14 +215,23 @@ def plot_budget(results: Sequence[dict], path: Path, set_name: str = "standard-s
     return path
 
 
-def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
-                   set_name: str = "standard-seeds") -> str:
+def render_section(
+    results: Sequence[dict],
+    figure: Path | None,
+    doc_dir: Path,
+    elapsed_s: float,
+    set_name: str = "standard-seeds",
+) -> str:
     """The markdown of BENCHMARKS.md's error-budget section."""
     worlds = per_world(results)
     mean = {p: float(np.mean([r["mcd"][p] for r in results])) for p in POSES}
-    regenerate = "csr bench-budget --write BENCHMARKS.md" + ("" if set_name == "standard-seeds" else f" --set {set_name}")
+    regenerate = "csr bench-budget --write BENCHMARKS.md" + (
+        "" if set_name == "standard-seeds" else f" --set {set_name}"
+    )
     n_cached = sum(bool(r.get("cached")) for r in results)
-    cached = f", {n_cached} of {len(results)} scenarios' single-trip results from the cache" if n_cached else ""
+    cached = (
+        f", {n_cached} of {len(results)} scenarios' single-trip results from the cache" if n_cached else ""
+    )
     lines = [
         "## Where the map's error comes from (the mCD, `csr bench-budget"
         + ("`)" if set_name == "standard-seeds" else f" --set {set_name}`)"),
@@ -215,27 +251,66 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
         f"{MCD_TARGET_M} m.**",
         "",
     ]
-    rows = [[w, str(v["n"]), f"{v['trips_per_place']:g}", f"{v['mcd']['pipeline']:.3f}", f"{v['mcd']['exact_registrations']:.3f}",
-             f"{v['mcd']['true_poses']:.3f}", f"{v['mcd_true_poses_overlaid']:.3f}",
-             f"{v['ate_rmse_m']['pipeline']:.3f}", f"{v['ate_rmse_m']['exact_registrations']:.3f}"]
-            for w, v in worlds.items()]
-    header = ["world", "scenarios", "trips/place", "mCD pipeline", "mCD exact registrations", "mCD true poses",
-              "true poses, instances overlaid", "ATE pipeline", "ATE exact registrations"]
-    lines += [markdown_table(header, rows), "",
-              "Per scenario:", "",
-              markdown_table(["scenario"] + header[2:], [
-                  [r["spec"], f"{r['trips_per_place']:g}", f"{r['mcd']['pipeline']:.3f}", f"{r['mcd']['exact_registrations']:.3f}",
-                   f"{r['mcd']['true_poses']:.3f}", f"{r['mcd_true_poses_overlaid']:.3f}",
-                   f"{r['ate_rmse_m']['pipeline']:.3f}", f"{r['ate_rmse_m']['exact_registrations']:.3f}"]
-                  for r in results]), ""]
+    rows = [
+        [
+            w,
+            str(v["n"]),
+            f"{v['trips_per_place']:g}",
+            f"{v['mcd']['pipeline']:.3f}",
+            f"{v['mcd']['exact_registrations']:.3f}",
+            f"{v['mcd']['true_poses']:.3f}",
+            f"{v['mcd_true_poses_overlaid']:.3f}",
+            f"{v['ate_rmse_m']['pipeline']:.3f}",
+            f"{v['ate_rmse_m']['exact_registrations']:.3f}",
+        ]
+        for w, v in worlds.items()
+    ]
+    header = [
+        "world",
+        "scenarios",
+        "trips/place",
+        "mCD pipeline",
+        "mCD exact registrations",
+        "mCD true poses",
+        "true poses, instances overlaid",
+        "ATE pipeline",
+        "ATE exact registrations",
+    ]
+    lines += [
+        markdown_table(header, rows),
+        "",
+        "Per scenario:",
+        "",
+        markdown_table(
+            ["scenario"] + header[2:],
+            [
+                [
+                    r["spec"],
+                    f"{r['trips_per_place']:g}",
+                    f"{r['mcd']['pipeline']:.3f}",
+                    f"{r['mcd']['exact_registrations']:.3f}",
+                    f"{r['mcd']['true_poses']:.3f}",
+                    f"{r['mcd_true_poses_overlaid']:.3f}",
+                    f"{r['ate_rmse_m']['pipeline']:.3f}",
+                    f"{r['ate_rmse_m']['exact_registrations']:.3f}",
+                ]
+                for r in results
+            ],
+        ),
+        "",
+    ]
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
-        lines += [f"![mCD per world on the pipeline's poses, exact registrations and the true poses]({rel.as_posix()})",
-                  ""]
-    lines += ["*trips/place*: how many trips drive each place (`bench.evaluate.trips_per_place`; per world the "
-              "median over its scenarios). *instances overlaid*: the single-trip instances of every trip on the true poses, not fused: what "
-              "fusion gains over them. The *pipeline* columns are this module's own run of `csr reconstruct`'s "
-              "stages (`pipeline.poses_after_alignment`, `pipeline.fuse_trips`): on `standard-seeds` they equal "
-              "`csr bench`'s pipeline figures (mCD and ATE of all 15 scenarios to the third decimal, checked when "
-              "this section was added)."]
+        lines += [
+            f"![mCD per world on the pipeline's poses, exact registrations and the true poses]({rel.as_posix()})",
+            "",
+        ]
+    lines += [
+        "*trips/place*: how many trips drive each place (`bench.evaluate.trips_per_place`; per world the "
+        "median over its scenarios). *instances overlaid*: the single-trip instances of every trip on the true poses, not fused: what "
+        "fusion gains over them. The *pipeline* columns are this module's own run of `csr reconstruct`'s "
+        "stages (`pipeline.poses_after_alignment`, `pipeline.fuse_trips`): on `standard-seeds` they equal "
+        "`csr bench`'s pipeline figures (mCD and ATE of all 15 scenarios to the third decimal, checked when "
+        "this section was added)."
+    ]
     return "\n".join(lines)

@@ -65,7 +65,13 @@ def evaluate_output(scenario_dir: str | Path, out_dir: str | Path) -> EvaluatedO
         sum(float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) for xy in true_xy.values()) / 1000.0
     )
     return EvaluatedOutput(
-        meta, evaluate(true_xy, est_xy, truth_map, pred_map), true_xy, est_xy, truth_map, pred_map, length_km,
+        meta,
+        evaluate(true_xy, est_xy, truth_map, pred_map),
+        true_xy,
+        est_xy,
+        truth_map,
+        pred_map,
+        length_km,
         trips_per_place(true_xy),
     )
 
@@ -75,8 +81,9 @@ def evaluate_output(scenario_dir: str | Path, out_dir: str | Path) -> EvaluatedO
 SAME_ROAD_RADIUS_M = 8.0
 
 
-def trips_per_place(true_xy_by_key: dict[str, np.ndarray], radius_m: float = SAME_ROAD_RADIUS_M,
-                    step: int = 10) -> float:
+def trips_per_place(
+    true_xy_by_key: dict[str, np.ndarray], radius_m: float = SAME_ROAD_RADIUS_M, step: int = 10
+) -> float:
     """How many trips drive each place of the fleet: the median, over every ``step``-th true frame
     of every trip, of the number of trips (its own included) whose true path passes within
     ``radius_m``. The alignment's accuracy targets are stated for ">= 10 trips per road"; this is the
@@ -88,6 +95,10 @@ def trips_per_place(true_xy_by_key: dict[str, np.ndarray], radius_m: float = SAM
     counts = []
     for xy in paths:
         probe = xy[::step]
-        counts.append(sum((tree.query(probe, distance_upper_bound=radius_m)[0] <= radius_m).astype(int)
-                          for tree in trees))
+        counts.append(
+            sum(
+                (tree.query(probe, distance_upper_bound=radius_m)[0] <= radius_m).astype(int)
+                for tree in trees
+            )
+        )
     return float(np.median(np.concatenate(counts)))

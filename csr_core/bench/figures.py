@@ -225,12 +225,19 @@ def plot_ate_by_density(records: Sequence[Record], path: Path) -> Path | None:
         ax.scatter(x, y, marker=markers.get(method, "s"), label=METHOD_NAMES.get(method, method), s=28)
         if method == "pipeline":
             for r, xi, yi in zip(rs, x, y, strict=True):
-                ax.annotate(f"{r.world} {r.scenario.rsplit('-', 1)[-1]}", (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
+                ax.annotate(
+                    f"{r.world} {r.scenario.rsplit('-', 1)[-1]}",
+                    (xi, yi),
+                    fontsize=6,
+                    xytext=(3, 2),
+                    textcoords="offset points",
+                )
     ax.axhline(ATE_TARGET_M, color="grey", lw=0.8, ls="--")
     ax.text(ax.get_xlim()[0], ATE_TARGET_M, " target", fontsize=7, va="bottom", color="grey")
     ax.set_yscale("log")
-    ax.set_xlabel(f"trips per place (median over frames: trips whose true path passes within "
-                  f"{SAME_ROAD_RADIUS_M:g} m)")
+    ax.set_xlabel(
+        f"trips per place (median over frames: trips whose true path passes within {SAME_ROAD_RADIUS_M:g} m)"
+    )
     ax.set_ylabel("aligned ATE RMSE [m]")
     ax.legend(fontsize=7)
     ax.set_title("Pose error against fleet density, one point per scenario", fontsize=10)

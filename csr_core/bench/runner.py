@@ -93,7 +93,7 @@ def sources_fingerprint(*parts: str) -> str:
     digest = hashlib.sha1()
     for part in parts:
         path = core / part
-        for source in ([path] if path.is_file() else sorted(path.rglob("*.py"))):
+        for source in [path] if path.is_file() else sorted(path.rglob("*.py")):
             digest.update(source.read_bytes())
     return digest.hexdigest()[:8]
 
@@ -126,9 +126,13 @@ def reference_cpu_seconds(repeats: int = 3) -> float:
     return best
 
 
-def map_in_processes(fn: Callable[[_Item], _Result], items: Sequence[_Item], jobs: int,
-                     progress: Callable[[str], None] | None = None,
-                     label: Callable[[_Result], str] = str) -> list[_Result]:
+def map_in_processes(
+    fn: Callable[[_Item], _Result],
+    items: Sequence[_Item],
+    jobs: int,
+    progress: Callable[[str], None] | None = None,
+    label: Callable[[_Result], str] = str,
+) -> list[_Result]:
     """``[fn(item) for item in items]`` in ``jobs`` worker processes (results in ``items``
     order), reporting "evaluated k/n: label(result)" as each one comes back."""
     from concurrent.futures import ProcessPoolExecutor

@@ -29,8 +29,20 @@ class ScenarioSpec:
 
 
 #: names accepted by :func:`scenario_set` (``csr bench --set``)
-SCENARIO_SETS = ("quick", "standard", "standard-seeds", "dense", "hard", "validator", "variants", "full", "toy",
-                 "real-maps", "real-maps-quick", "loops")
+SCENARIO_SETS = (
+    "quick",
+    "standard",
+    "standard-seeds",
+    "dense",
+    "hard",
+    "validator",
+    "variants",
+    "full",
+    "toy",
+    "real-maps",
+    "real-maps-quick",
+    "loops",
+)
 #: seeds of ``standard-seeds``: one seed's fleets are a small sample (seed 1 vs seeds 2-3 differ
 #: by half in aligned ATE), so the reported figures average three
 STANDARD_SEEDS = (1, 2, 3)
@@ -43,7 +55,14 @@ DENSE_TRIPS = {"urban": 40, "highway": 70, "rural": 40, "roundabout": 20, "karls
 #: ``validator``: the validator's measurement on the hard profile (``csr bench-validator``),
 #: the six fleets of 8 trips x 1.5 km it is always measured on (docs/topology.md),
 #: so that its figures compare across runs: (world, seed)
-VALIDATOR_FLEETS = (("urban", 5), ("urban", 9), ("karlsruhe", 3), ("highway", 7), ("rural", 11), ("roundabout", 2))
+VALIDATOR_FLEETS = (
+    ("urban", 5),
+    ("urban", 9),
+    ("karlsruhe", 3),
+    ("highway", 7),
+    ("rural", 11),
+    ("roundabout", 2),
+)
 #: ``variants``: the fleets ``csr bench-variants`` rewrites into foreign ones; small, and in the two
 #: compact worlds, where 6 trips of 800 m meet each other (the highway and rural worlds are large
 #: enough that such a fleet barely overlaps, and its accuracy is its GNSS's)
@@ -69,10 +88,17 @@ def scenario_set(name: str) -> list[ScenarioSpec]:
     if name == "variants":
         return [ScenarioSpec(w, n, "standard", 1, length) for w, n, length in VARIANT_FLEETS]
     if name == "real-maps":  # every real map, both fleet models, standard and hard, three seeds
-        return [ScenarioSpec(w, 10, profile, seed, 1500.0, fleet) for fleet in FLEETS
-                for profile in ("standard", "hard") for seed in STANDARD_SEEDS for w in REAL_MAP_WORLDS]
+        return [
+            ScenarioSpec(w, 10, profile, seed, 1500.0, fleet)
+            for fleet in FLEETS
+            for profile in ("standard", "hard")
+            for seed in STANDARD_SEEDS
+            for w in REAL_MAP_WORLDS
+        ]
     if name == "real-maps-quick":  # one seed of the standard profile, both fleet models
-        return [ScenarioSpec(w, 10, "standard", 1, 1500.0, fleet) for fleet in FLEETS for w in REAL_MAP_WORLDS]
+        return [
+            ScenarioSpec(w, 10, "standard", 1, 1500.0, fleet) for fleet in FLEETS for w in REAL_MAP_WORLDS
+        ]
     if name == "loops":  # trips that lap short loops with long stops (the integrity test's case)
         return [ScenarioSpec(w, 8, "loops", 1, 2000.0) for w in ("roundabout", "urban", "kashiwanoha")]
     if name == "toy":

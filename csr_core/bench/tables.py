@@ -23,6 +23,7 @@ def section_markers(set_name: str) -> tuple[str, str]:
     ``csr bench --set dense --write`` leaves the ``standard-seeds`` tables alone."""
     return f"<!-- bench:{set_name}:begin -->", f"<!-- bench:{set_name}:end -->"
 
+
 METHOD_NAMES = {
     "pipeline": "CSR pipeline",
     "gnss_only": "GNSS-only",
@@ -197,8 +198,11 @@ def table_ablation(records: Sequence[Record]) -> str | None:
 
 def worst_trip_rmse_m(ev: EvaluatedOutput) -> float:
     """The largest per-trip position RMSE (metres, raw: no alignment to the truth) of a run."""
-    errors = [float(np.sqrt(np.mean(np.sum((est - ev.true_xy_by_key[k]) ** 2, axis=1))))
-              for k, est in ev.est_xy_by_key.items() if len(est)]
+    errors = [
+        float(np.sqrt(np.mean(np.sum((est - ev.true_xy_by_key[k]) ** 2, axis=1))))
+        for k, est in ev.est_xy_by_key.items()
+        if len(est)
+    ]
     return max(errors) if errors else float("nan")
 
 

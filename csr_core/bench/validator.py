@@ -42,8 +42,16 @@ SUSPECT_ORDER = sorted(SUSPECT, key=lambda kind: (-SEVERITY[kind], kind))
 #: what the cached per-fleet instances depend on: the single-trip stage, the alignment, the
 #: instances moved with it (``topology.instances.reposition_instances``) and the core's types,
 #: frames and upload decoding
-ALIGNMENT_CACHE_SOURCES = ("single_trip", "alignment", "topology/instances.py", "types.py", "se2.py", "geo.py",
-                           "upload.py", "scenario.py")
+ALIGNMENT_CACHE_SOURCES = (
+    "single_trip",
+    "alignment",
+    "topology/instances.py",
+    "types.py",
+    "se2.py",
+    "geo.py",
+    "upload.py",
+    "scenario.py",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,16 +67,36 @@ def _evaluate(job: Job) -> dict:
     from csr_core.topology.evaluate import evaluate_scenario
 
     cached = job.cache.exists()
-    r = evaluate_scenario(job.scenario_dir, poses="aligned", cache=str(job.cache), validator_figure=job.figure,
-                          figure_bbox_xy=None, keep_instances=True)
-    return {"spec": job.spec.name, "world": job.spec.world, "seed": job.spec.seed, "trips": r["trips"],
-            "mcd": r["fused"]["mcd"], "validator": r["validator"], "instances": r["instances"],
-            "figure": str(job.figure) if job.figure else None, "cached": cached}
+    r = evaluate_scenario(
+        job.scenario_dir,
+        poses="aligned",
+        cache=str(job.cache),
+        validator_figure=job.figure,
+        figure_bbox_xy=None,
+        keep_instances=True,
+    )
+    return {
+        "spec": job.spec.name,
+        "world": job.spec.world,
+        "seed": job.spec.seed,
+        "trips": r["trips"],
+        "mcd": r["fused"]["mcd"],
+        "validator": r["validator"],
+        "instances": r["instances"],
+        "figure": str(job.figure) if job.figure else None,
+        "cached": cached,
+    }
 
 
-def run_validator_bench(cache_dir: Path, work_dir: Path, set_name: str = "validator", jobs: int = 2,
-                        figure_for: str | None = "karlsruhe", figure_dir: Path | None = None,
-                        progress: Callable[[str], None] | None = None) -> list[dict]:
+def run_validator_bench(
+    cache_dir: Path,
+    work_dir: Path,
+    set_name: str = "validator",
+    jobs: int = 2,
+    figure_for: str | None = "karlsruhe",
+    figure_dir: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict]:
     """Every fleet of ``set_name`` (simulated unless cached in ``cache_dir``; the single-trip and
     alignment results cached in ``work_dir``, keyed by ``ALIGNMENT_CACHE_SOURCES``), evaluated in
     ``jobs`` processes. The first fleet of world ``figure_for`` (or the first fleet, if the set
@@ -100,13 +128,17 @@ def pooled(results: Sequence[dict], key: str | None = None) -> dict:
         wrong += v["wrong"]
         flagged += v["flagged"]
         caught += round(v["recall"] * v["wrong"])
-    return {"wrong": wrong, "flagged": flagged, "caught": caught,
-            "recall": caught / wrong if wrong else float("nan"), "precision": caught / flagged if flagged else float("nan")}
+    return {
+        "wrong": wrong,
+        "flagged": flagged,
+        "caught": caught,
+        "recall": caught / wrong if wrong else float("nan"),
+        "precision": caught / flagged if flagged else float("nan"),
+    }
 
 
 def _share(v: float) -> str:
     return f"{v:.3f}" if v == v else "n/a"
-
 
 
 def reach_of(results: Sequence[dict], served: dict | None = None) -> dict | None:
@@ -120,8 +152,12 @@ def reach_of(results: Sequence[dict], served: dict | None = None) -> dict | None
     fleets = [r["spec"] for r in results for _ in r.get("instances", ())]
     table = evidence_table(rows)
     learned = learned_reach(rows, fleets, RECALL_MIN, PRECISION_MIN) if len(set(fleets)) >= 2 else None
-    return {"table": table, "ceiling": trip_comparison_recall_ceiling(table), "learned": learned,
-            "served": served if served is not None else pooled(results)}
+    return {
+        "table": table,
+        "ceiling": trip_comparison_recall_ceiling(table),
+        "learned": learned,
+        "served": served if served is not None else pooled(results),
+    }
 
 
 def reach_lines(reach: dict | None, figure: Path | None = None, doc_dir: Path | None = None) -> list[str]:
@@ -130,33 +166,54 @@ def reach_lines(reach: dict | None, figure: Path | None = None, doc_dir: Path | 
         return []
     table = reach["table"]
     wrong = sum(t["wrong"] for t in table.values())
-    class_rows = [[name, str(t["instances"]), str(t["wrong"]),
-                   f"{t['wrong'] / t['instances']:.3f}" if t["instances"] else "n/a", str(t["flagged"]), str(t["caught"])]
-                  for name, t in table.items()]
+    class_rows = [
+        [
+            name,
+            str(t["instances"]),
+            str(t["wrong"]),
+            f"{t['wrong'] / t['instances']:.3f}" if t["instances"] else "n/a",
+            str(t["flagged"]),
+            str(t["caught"]),
+        ]
+        for name, t in table.items()
+    ]
     agree = table[TRIPS_AGREE]
-    lines = ["### What a validator can reach here", "",
-             "Where the wrong instances are, by what their trips say of them (`topology.validator_reach`: *one trip* "
-             "saw it; two or more *disagree* by the `high_variance` or `trips_disagree` rule; two or more *agree* "
-             "within their own noise):", "",
-             markdown_table(["evidence", "instances", "wrong", "share wrong", "flagged", "flagged and wrong"],
-                            class_rows), "",
-             f"- {agree['wrong']} of the {wrong} wrong instances are instances that two or more trips agree on within "
-             f"their noise: an error all their trips share, which no comparison of trips shows. A validator that "
-             f"caught every other wrong instance and flagged none of the {agree['instances']} agreeing ones "
-             f"({agree['wrong'] / max(agree['instances'], 1):.1%} of them wrong) would reach recall "
-             f"{_share(reach['ceiling'])}."]
+    lines = [
+        "### What a validator can reach here",
+        "",
+        "Where the wrong instances are, by what their trips say of them (`topology.validator_reach`: *one trip* "
+        "saw it; two or more *disagree* by the `high_variance` or `trips_disagree` rule; two or more *agree* "
+        "within their own noise):",
+        "",
+        markdown_table(
+            ["evidence", "instances", "wrong", "share wrong", "flagged", "flagged and wrong"], class_rows
+        ),
+        "",
+        f"- {agree['wrong']} of the {wrong} wrong instances are instances that two or more trips agree on within "
+        f"their noise: an error all their trips share, which no comparison of trips shows. A validator that "
+        f"caught every other wrong instance and flagged none of the {agree['instances']} agreeing ones "
+        f"({agree['wrong'] / max(agree['instances'], 1):.1%} of them wrong) would reach recall "
+        f"{_share(reach['ceiling'])}.",
+    ]
     if reach["learned"] is not None:
-        said = "; ".join(f"{model}: precision {_share(v['precision_at_recall'])} at recall >= {RECALL_MIN}, "
-                         f"recall {_share(v['recall_at_precision'])} at precision >= {PRECISION_MIN}"
-                         for model, v in reach["learned"].items())
-        lines += [f"- A classifier trained on the truth's verdicts and every property the map serves per instance "
-                  f"(support, coverage, trips that drove alongside, uncertainty, scatter, length, type, the flags), "
-                  f"on all fleets but one and scored on the one left out, pooled over the fleets, at its best "
-                  f"threshold: {said}."]
+        said = "; ".join(
+            f"{model}: precision {_share(v['precision_at_recall'])} at recall >= {RECALL_MIN}, "
+            f"recall {_share(v['recall_at_precision'])} at precision >= {PRECISION_MIN}"
+            for model, v in reach["learned"].items()
+        )
+        lines += [
+            f"- A classifier trained on the truth's verdicts and every property the map serves per instance "
+            f"(support, coverage, trips that drove alongside, uncertainty, scatter, length, type, the flags), "
+            f"on all fleets but one and scored on the one left out, pooled over the fleets, at its best "
+            f"threshold: {said}."
+        ]
     lines.append("")
     if figure is not None and doc_dir is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), Path(doc_dir).resolve()))
-        lines += [f"![What a validator can reach: the flags, the classifiers, the bound]({rel.as_posix()})", ""]
+        lines += [
+            f"![What a validator can reach: the flags, the classifiers, the bound]({rel.as_posix()})",
+            "",
+        ]
     return lines
 
 
@@ -169,16 +226,29 @@ def plot_reach(reach: dict, out_png: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 5.5))
-    ax.fill_between([RECALL_MIN, 1.0], PRECISION_MIN, 1.0, color="tab:green", alpha=0.12,
-                    label=f"target bound (recall >= {RECALL_MIN}, precision >= {PRECISION_MIN})")
+    ax.fill_between(
+        [RECALL_MIN, 1.0],
+        PRECISION_MIN,
+        1.0,
+        color="tab:green",
+        alpha=0.12,
+        label=f"target bound (recall >= {RECALL_MIN}, precision >= {PRECISION_MIN})",
+    )
     for (model, v), color in zip((reach["learned"] or {}).items(), ("tab:blue", "tab:purple"), strict=False):
         rec, prec = v["curve"]
         ax.step(rec, prec, where="post", color=color, lw=1.3, label=f"{model}, trained on the other fleets")
     if reach["ceiling"] == reach["ceiling"]:
-        ax.axvline(reach["ceiling"], color="0.4", ls="--", lw=1.0,
-                   label="recall without the instances agreeing trips saw")
+        ax.axvline(
+            reach["ceiling"],
+            color="0.4",
+            ls="--",
+            lw=1.0,
+            label="recall without the instances agreeing trips saw",
+        )
     served = reach["served"]
-    ax.plot([served["recall"]], [served["precision"]], "o", color="tab:red", ms=8, label="the flags as served")
+    ax.plot(
+        [served["recall"]], [served["precision"]], "o", color="tab:red", ms=8, label="the flags as served"
+    )
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_xlabel("recall (wrong instances flagged)")
@@ -191,8 +261,14 @@ def plot_reach(reach: dict, out_png: Path) -> None:
     plt.close(fig)
 
 
-def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, elapsed_s: float,
-                   set_name: str = "validator", reach_figure: Path | None = None) -> str:
+def render_section(
+    results: Sequence[dict],
+    figure: Path | None,
+    doc_dir: Path,
+    elapsed_s: float,
+    set_name: str = "validator",
+    reach_figure: Path | None = None,
+) -> str:
     """The markdown of BENCHMARKS.md's validator section; ``reach_figure``: also draw what a
     validator can reach there (``plot_reach``) and show it."""
     n_cached = sum(bool(r.get("cached")) for r in results)
@@ -203,7 +279,9 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     met = total["recall"] >= RECALL_MIN and total["precision"] >= PRECISION_MIN  # False on n/a (NaN)
     instances = sum(r["validator"]["instances"] for r in results)
     fleets = ", ".join(f"`{r['spec']}`" for r in results)
-    regenerate = "csr bench-validator --write BENCHMARKS.md" + ("" if set_name == "validator" else f" --set {set_name}")
+    regenerate = "csr bench-validator --write BENCHMARKS.md" + (
+        "" if set_name == "validator" else f" --set {set_name}"
+    )
     lines = [
         "## Validator (`csr bench-validator`)",
         "",
@@ -229,22 +307,46 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     rows = []
     for r in results:
         v = r["validator"]
-        rows.append([r["spec"], str(r["trips"]), str(v["instances"]), str(v["wrong"]), str(v["flagged"]),
-                     _share(v["recall"] if v["wrong"] else float("nan")),
-                     _share(v["precision"] if v["flagged"] else float("nan")), f"{r['mcd']:.3f}"])
-    lines += [markdown_table(["fleet", "trips", "instances", "wrong", "flagged", "recall", "precision", "map mCD [m]"], rows), ""]
+        rows.append(
+            [
+                r["spec"],
+                str(r["trips"]),
+                str(v["instances"]),
+                str(v["wrong"]),
+                str(v["flagged"]),
+                _share(v["recall"] if v["wrong"] else float("nan")),
+                _share(v["precision"] if v["flagged"] else float("nan")),
+                f"{r['mcd']:.3f}",
+            ]
+        )
+    lines += [
+        markdown_table(
+            ["fleet", "trips", "instances", "wrong", "flagged", "recall", "precision", "map mCD [m]"], rows
+        ),
+        "",
+    ]
     kinds: dict[str, np.ndarray] = {}
     for r in results:
         for kind, c in r["validator"]["per_flag"].items():
             kinds[kind] = kinds.get(kind, np.zeros(4, int)) + np.array(
-                [c["flagged"], c["wrong"], c["alone"], c["alone_wrong"]])
-    flag_rows = [[kind, str(c[0]), str(c[1]), f"{c[1] / max(c[0], 1):.2f}", str(c[2]), str(c[3])]
-                 for kind, c in sorted(kinds.items(), key=lambda kv: -kv[1][0])]
+                [c["flagged"], c["wrong"], c["alone"], c["alone_wrong"]]
+            )
+    flag_rows = [
+        [kind, str(c[0]), str(c[1]), f"{c[1] / max(c[0], 1):.2f}", str(c[2]), str(c[3])]
+        for kind, c in sorted(kinds.items(), key=lambda kv: -kv[1][0])
+    ]
     informative = ", ".join(f"`{k}`" for k in sorted(k for k, v in SEVERITY.items() if v == 0))
-    lines += ["Per flag, pooled (an instance can carry several; *alone*: its only suspect flag; "
-              f"{informative} are informative, not suspect):", "",
-              markdown_table(["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows)
-              if flag_rows else "(no instance flagged)", ""]
+    lines += [
+        "Per flag, pooled (an instance can carry several; *alone*: its only suspect flag; "
+        f"{informative} are informative, not suspect):",
+        "",
+        markdown_table(
+            ["flag", "instances", "of them wrong", "share wrong", "alone", "alone, wrong"], flag_rows
+        )
+        if flag_rows
+        else "(no instance flagged)",
+        "",
+    ]
     reach = reach_of(results, total)
     if reach is not None and reach_figure is not None:
         plot_reach(reach, reach_figure)
@@ -252,5 +354,7 @@ def render_section(results: Sequence[dict], figure: Path | None, doc_dir: Path, 
     if figure is not None:
         rel = Path(os.path.relpath(Path(figure).resolve(), doc_dir.resolve()))
         lines += [f"![The validator on one fleet: caught, missed, false alarms]({rel.as_posix()})", ""]
-    lines += ["How the flags were chosen and what was tried: docs/topology.md (\"Validation\" and \"Tried and rejected\")."]
+    lines += [
+        'How the flags were chosen and what was tried: docs/topology.md ("Validation" and "Tried and rejected").'
+    ]
     return "\n".join(lines)

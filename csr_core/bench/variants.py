@@ -39,8 +39,10 @@ class Variant:
 
     name: str
     what: str
-    rewrite_trip: Callable[[dict, np.random.Generator], tuple[dict, np.ndarray | None]] = (
-        lambda doc, rng: (doc, None))
+    rewrite_trip: Callable[[dict, np.random.Generator], tuple[dict, np.ndarray | None]] = lambda doc, rng: (
+        doc,
+        None,
+    )
     origin_latlon: tuple[float, float] | None = None
     #: the GNSS antenna this far ahead of and left of the vehicle frame's origin (metres): the fixes
     #: are the antenna's, the odometry and perception the vehicle frame's
@@ -180,32 +182,49 @@ def _status_single(doc: dict, rng: np.random.Generator) -> tuple[dict, None]:
     return doc, None
 
 
-VARIANTS: dict[str, Variant] = {v.name: v for v in (
-    Variant("original", "the simulated fleet as written"),
-    Variant("no_std", "no receiver std_m on any fix", _without_gnss_field("std_m")),
-    Variant("no_heading", "no course heading on any fix", _without_gnss_field("heading_deg")),
-    Variant("gnss_1hz_held", "the receiver at 1 Hz, its fix repeated on the 9 frames between", _gnss_held(1.0)),
-    Variant("frames_5hz", "every second frame (5 Hz)", _every_nth_frame(2)),
-    Variant("frames_2hz", "every fifth frame (2 Hz)", _every_nth_frame(5)),
-    Variant("frames_dropped", "a random tenth of the frames lost, and three 2 s gaps", _frames_dropped),
-    Variant("odom_elsewhere", "odometry frame rotated and moved kilometres", _odometry_elsewhere),
-    Variant("odom_yaw_continuous", "odometry yaw not wrapped into [-pi, pi)", _odometry_yaw_continuous),
-    Variant("t_offset", "frame times start 100-1000 s after started_at", _time_offset),
-    Variant("detector_extras", "scores, tracker ids, divider style unknown, no sensor_setup", _detector_extras),
-    Variant("coarse_polylines", "every third vertex of each line", _coarse_polylines),
-    Variant("std_overconfident", "every std_m a tenth of the simulator's honest one", _std_scaled(0.1)),
-    Variant("std_pessimistic", "every std_m five times the honest one", _std_scaled(5.0)),
-    Variant("status_single", "every fix reported as status single", _status_single),
-    Variant("antenna_ahead", "GNSS antenna 1.5 m ahead of the vehicle frame (the roof, not the rear axle)",
+VARIANTS: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("original", "the simulated fleet as written"),
+        Variant("no_std", "no receiver std_m on any fix", _without_gnss_field("std_m")),
+        Variant("no_heading", "no course heading on any fix", _without_gnss_field("heading_deg")),
+        Variant(
+            "gnss_1hz_held", "the receiver at 1 Hz, its fix repeated on the 9 frames between", _gnss_held(1.0)
+        ),
+        Variant("frames_5hz", "every second frame (5 Hz)", _every_nth_frame(2)),
+        Variant("frames_2hz", "every fifth frame (2 Hz)", _every_nth_frame(5)),
+        Variant("frames_dropped", "a random tenth of the frames lost, and three 2 s gaps", _frames_dropped),
+        Variant("odom_elsewhere", "odometry frame rotated and moved kilometres", _odometry_elsewhere),
+        Variant("odom_yaw_continuous", "odometry yaw not wrapped into [-pi, pi)", _odometry_yaw_continuous),
+        Variant("t_offset", "frame times start 100-1000 s after started_at", _time_offset),
+        Variant(
+            "detector_extras", "scores, tracker ids, divider style unknown, no sensor_setup", _detector_extras
+        ),
+        Variant("coarse_polylines", "every third vertex of each line", _coarse_polylines),
+        Variant("std_overconfident", "every std_m a tenth of the simulator's honest one", _std_scaled(0.1)),
+        Variant("std_pessimistic", "every std_m five times the honest one", _std_scaled(5.0)),
+        Variant("status_single", "every fix reported as status single", _status_single),
+        Variant(
+            "antenna_ahead",
+            "GNSS antenna 1.5 m ahead of the vehicle frame (the roof, not the rear axle)",
             antenna_forward_left_m=(1.5, 0.0),
             gap="no antenna lever arm is estimated: trips driving a road in opposite directions start 3 m apart "
-                "along it (docs/single-trip.md)"),
-    Variant("no_centerline", "a perception stack without centrelines (MapTR's classes)", _without_types("centerline")),
-    Variant("no_markings", "no stop lines, crosswalks or road markings perceived",
-            _without_types("stop_line", "crosswalk", "road_marking")),
-    Variant("southern_west", "the fleet moved to 33.4 S 70.6 W", origin_latlon=(-33.45, -70.66)),
-    Variant("far_north", "the fleet moved to 69.6 N 18.9 E", origin_latlon=(69.65, 18.96)),
-)}
+            "along it (docs/single-trip.md)",
+        ),
+        Variant(
+            "no_centerline",
+            "a perception stack without centrelines (MapTR's classes)",
+            _without_types("centerline"),
+        ),
+        Variant(
+            "no_markings",
+            "no stop lines, crosswalks or road markings perceived",
+            _without_types("stop_line", "crosswalk", "road_marking"),
+        ),
+        Variant("southern_west", "the fleet moved to 33.4 S 70.6 W", origin_latlon=(-33.45, -70.66)),
+        Variant("far_north", "the fleet moved to 69.6 N 18.9 E", origin_latlon=(69.65, 18.96)),
+    )
+}
 
 
 def _move_lonlat(lonlat_deg: np.ndarray, src: LocalFrame, dst: LocalFrame) -> np.ndarray:
@@ -252,8 +271,9 @@ def write_variant(source: Path, out: Path, variant: Variant, seed: int = 0) -> P
         if dst is not src:
             _set_fixes(doc, _move_lonlat(_fixes(doc), src, dst))
         (out / "trips" / path.name).write_bytes(gzip.compress(json.dumps(doc).encode()))
-        _write_truth_poses(truth, out / "truth" / "poses" / f"{key}.csv", src, dst,
-                           t_shift=doc["frames"][0]["t"] - first_t)
+        _write_truth_poses(
+            truth, out / "truth" / "poses" / f"{key}.csv", src, dst, t_shift=doc["frames"][0]["t"] - first_t
+        )
     truth_map = json.loads((source / "truth" / "map.geojson").read_text())
     if dst is not src:
         for feat in truth_map["features"]:
@@ -272,8 +292,9 @@ def _set_fixes(doc: dict, lonlat_deg: np.ndarray) -> None:
         f["gnss"]["lon"], f["gnss"]["lat"] = round(float(lon), 9), round(float(lat), 9)
 
 
-def _move_to_antenna(doc: dict, heading_deg: np.ndarray, frame: LocalFrame,
-                     forward_left_m: tuple[float, float]) -> None:
+def _move_to_antenna(
+    doc: dict, heading_deg: np.ndarray, frame: LocalFrame, forward_left_m: tuple[float, float]
+) -> None:
     """Every fix moved by the antenna's offset, turned by the frame's true heading (degrees
     clockwise from north, one per frame of ``doc``)."""
     heading = np.radians(heading_deg)
@@ -283,7 +304,9 @@ def _move_to_antenna(doc: dict, heading_deg: np.ndarray, frame: LocalFrame,
     _set_fixes(doc, frame.to_lonlat(frame.to_local(_fixes(doc)) + offset))
 
 
-def _write_truth_poses(rows: np.ndarray, dst_csv: Path, src: LocalFrame, dst: LocalFrame, t_shift: float) -> None:
+def _write_truth_poses(
+    rows: np.ndarray, dst_csv: Path, src: LocalFrame, dst: LocalFrame, t_shift: float
+) -> None:
     """The truth rows (t, lat, lon, heading_deg) of the kept frames, shifted in time and moved."""
     rows = rows.copy()
     rows[:, 0] += t_shift
@@ -315,26 +338,47 @@ def run_variant(job: VariantJob) -> dict:
     evaluators run it) and the contract's metrics; the figures as a plain dict."""
     from csr_core.bench.runner import run_method
 
-    scenario = write_variant(job.source, job.work_dir / "scenarios" / job.base / job.variant, VARIANTS[job.variant])
+    scenario = write_variant(
+        job.source, job.work_dir / "scenarios" / job.base / job.variant, VARIANTS[job.variant]
+    )
     rec = run_method(scenario, job.work_dir / "runs" / job.base / job.variant, "pipeline")
-    row = {"base": job.base, "variant": job.variant, "ok": rec.ok, "wall_s": rec.run.wall_s,
-           "error": "" if rec.ok else rec.run.stderr_tail[-400:]}
+    row = {
+        "base": job.base,
+        "variant": job.variant,
+        "ok": rec.ok,
+        "wall_s": rec.run.wall_s,
+        "error": "" if rec.ok else rec.run.stderr_tail[-400:],
+    }
     if rec.ok:
         ev = rec.ev.evaluation
-        row |= {"ate_m": ev.aligned.ate.rmse, "rpe_m": ev.aligned.rpe.rmse, "mcd_m": ev.map_aligned.mcd,
-                "coverage": ev.coverage, "km": rec.km}
+        row |= {
+            "ate_m": ev.aligned.ate.rmse,
+            "rpe_m": ev.aligned.rpe.rmse,
+            "mcd_m": ev.map_aligned.mcd,
+            "coverage": ev.coverage,
+            "km": rec.km,
+        }
     return row
 
 
 def holds(row: dict, original: dict) -> bool:
     """The variant ran, kept every trip the original kept, and stayed within ``HOLD_FACTOR``."""
-    return bool(row["ok"] and original["ok"] and row["coverage"] >= original["coverage"]
-                and row["ate_m"] <= HOLD_FACTOR * original["ate_m"] + HOLD_SLACK_M
-                and row["mcd_m"] <= HOLD_FACTOR * original["mcd_m"] + HOLD_SLACK_M)
+    return bool(
+        row["ok"]
+        and original["ok"]
+        and row["coverage"] >= original["coverage"]
+        and row["ate_m"] <= HOLD_FACTOR * original["ate_m"] + HOLD_SLACK_M
+        and row["mcd_m"] <= HOLD_FACTOR * original["mcd_m"] + HOLD_SLACK_M
+    )
 
 
-def run_variants_bench(sources: dict[str, Path], work_dir: Path, names: list[str] | None = None, jobs: int = 2,
-                       progress: Callable[[str], None] | None = None) -> list[dict]:
+def run_variants_bench(
+    sources: dict[str, Path],
+    work_dir: Path,
+    names: list[str] | None = None,
+    jobs: int = 2,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict]:
     """Every variant in ``names`` (default all, ``original`` always) of every source fleet."""
     from csr_core.bench.runner import map_in_processes
 
@@ -362,8 +406,14 @@ def plot_variants(rows: list[dict], path: Path) -> Path:
         ax.bar(xs, ate, width, label=base)
         o = by.get("original")
         if o and o["ok"]:
-            ax.hlines(HOLD_FACTOR * o["ate_m"] + HOLD_SLACK_M, -0.5, len(names) - 0.5, colors=f"C{b}",
-                      linestyles="dashed", linewidth=1)
+            ax.hlines(
+                HOLD_FACTOR * o["ate_m"] + HOLD_SLACK_M,
+                -0.5,
+                len(names) - 0.5,
+                colors=f"C{b}",
+                linestyles="dashed",
+                linewidth=1,
+            )
     ax.set_xticks(np.arange(len(names)), names, rotation=35, ha="right")
     ax.set_ylabel("aligned ATE [m]")
     ax.set_title("Foreign fleets through csr reconstruct (dashed: the bound each must hold)")
@@ -375,8 +425,9 @@ def plot_variants(rows: list[dict], path: Path) -> Path:
     return path
 
 
-def render_section(rows: list[dict], elapsed_s: float, regenerate: str, figure: Path | None = None,
-                   doc_dir: Path = Path(".")) -> str:
+def render_section(
+    rows: list[dict], elapsed_s: float, regenerate: str, figure: Path | None = None, doc_dir: Path = Path(".")
+) -> str:
     """The markdown of BENCHMARKS.md's foreign-fleet section (``figure`` linked relative to
     ``doc_dir``, the folder of the markdown file)."""
     import os
@@ -389,28 +440,72 @@ def render_section(rows: list[dict], elapsed_s: float, regenerate: str, figure: 
     for r in rows:
         o = originals[r["base"]]
         if not r["ok"]:
-            table.append([r["base"], r["variant"], VARIANTS[r["variant"]].what, "**failed**", "-", "-", "-", "-", "**no**"])
+            table.append(
+                [
+                    r["base"],
+                    r["variant"],
+                    VARIANTS[r["variant"]].what,
+                    "**failed**",
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                    "**no**",
+                ]
+            )
             continue
         ratio = r["ate_m"] / o["ate_m"] if o["ok"] and o["ate_m"] > 0 else float("nan")
-        table.append([r["base"], r["variant"], VARIANTS[r["variant"]].what, fmt(r["ate_m"]), fmt(ratio, 2),
-                      fmt(r["rpe_m"]), fmt(r["mcd_m"]), fmt(r["coverage"], 2),
-                      "yes" if r["variant"] == "original" or holds(r, o) else "**no**"])
+        table.append(
+            [
+                r["base"],
+                r["variant"],
+                VARIANTS[r["variant"]].what,
+                fmt(r["ate_m"]),
+                fmt(ratio, 2),
+                fmt(r["rpe_m"]),
+                fmt(r["mcd_m"]),
+                fmt(r["coverage"], 2),
+                "yes" if r["variant"] == "original" or holds(r, o) else "**no**",
+            ]
+        )
     n_hold = sum(1 for r in rows if r["variant"] != "original" and holds(r, originals[r["base"]]))
     n_var = sum(1 for r in rows if r["variant"] != "original")
-    return "\n".join([
-        "## Foreign fleets (`csr bench-variants`)",
-        "",
-        f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine). Measured "
-        f"{_time.strftime('%Y-%m-%d %H:%M UTC', _time.gmtime())}. Each variant rewrites a simulated fleet into "
-        "uploads that the contract allows and our simulator never writes (`csr_core/bench/variants.py`; truth "
-        "kept consistent), then runs `csr reconstruct` on it as an outside evaluator would and scores it with "
-        "the contract's metrics. *holds*: every trip kept, aligned ATE and mCD within "
-        f"{HOLD_FACTOR:g}x the original's + {HOLD_SLACK_M:g} m.",
-        "",
-        f"**{n_hold} of {n_var} variants hold.** Known gaps (variants that show what the pipeline does not do yet): "
-        + "; ".join(f"`{v.name}`: {v.gap}" for v in VARIANTS.values() if v.gap) + ".",
-        "",
-        markdown_table(["fleet", "variant", "what changes", "ATE [m]", "x original", "RPE [m]", "mCD [m]",
-                        "coverage", "holds"], table),
-    ] + ([] if figure is None else [
-        "", f"![Foreign fleets: aligned ATE per variant]({Path(os.path.relpath(figure.resolve(), doc_dir.resolve()))})"]))
+    return "\n".join(
+        [
+            "## Foreign fleets (`csr bench-variants`)",
+            "",
+            f"Regenerate: `{regenerate}` ({duration_text(elapsed_s)} on this machine). Measured "
+            f"{_time.strftime('%Y-%m-%d %H:%M UTC', _time.gmtime())}. Each variant rewrites a simulated fleet into "
+            "uploads that the contract allows and our simulator never writes (`csr_core/bench/variants.py`; truth "
+            "kept consistent), then runs `csr reconstruct` on it as an outside evaluator would and scores it with "
+            "the contract's metrics. *holds*: every trip kept, aligned ATE and mCD within "
+            f"{HOLD_FACTOR:g}x the original's + {HOLD_SLACK_M:g} m.",
+            "",
+            f"**{n_hold} of {n_var} variants hold.** Known gaps (variants that show what the pipeline does not do yet): "
+            + "; ".join(f"`{v.name}`: {v.gap}" for v in VARIANTS.values() if v.gap)
+            + ".",
+            "",
+            markdown_table(
+                [
+                    "fleet",
+                    "variant",
+                    "what changes",
+                    "ATE [m]",
+                    "x original",
+                    "RPE [m]",
+                    "mCD [m]",
+                    "coverage",
+                    "holds",
+                ],
+                table,
+            ),
+        ]
+        + (
+            []
+            if figure is None
+            else [
+                "",
+                f"![Foreign fleets: aligned ATE per variant]({Path(os.path.relpath(figure.resolve(), doc_dir.resolve()))})",
+            ]
+        )
+    )

@@ -23,9 +23,20 @@ from csr_core.export.osm import ValidationResult, to_osm_xml, validate_lanelet2_
 from csr_core.geo import LocalFrame
 
 __all__ = [
-    "DEFAULT", "ExportError", "ExportReport", "Lanelet2Map", "Lanelet2Params", "LonLatFeature",
-    "ValidationResult", "build_lanelet2_map", "export_lanelet2", "export_lanelet2_geojson",
-    "lonlat_features_from_geojson", "to_local", "to_osm_xml", "validate_lanelet2_osm",
+    "DEFAULT",
+    "ExportError",
+    "ExportReport",
+    "Lanelet2Map",
+    "Lanelet2Params",
+    "LonLatFeature",
+    "ValidationResult",
+    "build_lanelet2_map",
+    "export_lanelet2",
+    "export_lanelet2_geojson",
+    "lonlat_features_from_geojson",
+    "to_local",
+    "to_osm_xml",
+    "validate_lanelet2_osm",
 ]
 
 
@@ -39,7 +50,9 @@ def export_lanelet2(
     return to_osm_xml(m), m
 
 
-def export_lanelet2_geojson(doc: dict, params: Lanelet2Params = DEFAULT) -> tuple[bytes, Lanelet2Map, dict[str, int]]:
+def export_lanelet2_geojson(
+    doc: dict, params: Lanelet2Params = DEFAULT
+) -> tuple[bytes, Lanelet2Map, dict[str, int]]:
     """A GeoJSON FeatureCollection -> (XML, map, counts of input features ignored by reason)."""
     features, ignored = lonlat_features_from_geojson(doc)
     xml_bytes, m = export_lanelet2(features, params)

@@ -73,16 +73,21 @@ def lonlat_features_from_geojson(doc: dict) -> tuple[list[LonLatFeature], dict[s
                 lonlat = lonlat[:-1]
             if not np.isfinite(lonlat).all():
                 raise ExportError(f"features[{i}].geometry: non-finite coordinates")
-            out.append(LonLatFeature(
-                type=etype, lonlat_deg=lonlat, feature_id=fid,
-                style=DividerStyle(style) if style in DividerStyle._value2member_map_ else None,
-                properties={k: v for k, v in props.items() if k not in ("type", "style", "id")},
-            ))
+            out.append(
+                LonLatFeature(
+                    type=etype,
+                    lonlat_deg=lonlat,
+                    feature_id=fid,
+                    style=DividerStyle(style) if style in DividerStyle._value2member_map_ else None,
+                    properties={k: v for k, v in props.items() if k not in ("type", "style", "id")},
+                )
+            )
     return out, ignored
 
 
-def to_local(features: Sequence[LonLatFeature] | Iterable[LonLatFeature],
-             frame: LocalFrame | None = None) -> tuple[LocalFrame, tuple[MapFeature, ...]]:
+def to_local(
+    features: Sequence[LonLatFeature] | Iterable[LonLatFeature], frame: LocalFrame | None = None
+) -> tuple[LocalFrame, tuple[MapFeature, ...]]:
     """Project features into ``frame`` (default: the local plane around them; then at least
     one feature is needed)."""
     features = [f for f in features if len(f.lonlat_deg)]
@@ -94,6 +99,8 @@ def to_local(features: Sequence[LonLatFeature] | Iterable[LonLatFeature],
     frame = frame or LocalFrame.around(all_lonlat)
     xy = np.split(frame.to_local(all_lonlat), np.cumsum([len(f.lonlat_deg) for f in features])[:-1])
     return frame, tuple(
-        MapFeature(type=f.type, points_xy_world=p, style=f.style, feature_id=f.feature_id, properties=f.properties)
+        MapFeature(
+            type=f.type, points_xy_world=p, style=f.style, feature_id=f.feature_id, properties=f.properties
+        )
         for f, p in zip(features, xy, strict=True)
     )

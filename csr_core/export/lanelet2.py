@@ -179,8 +179,7 @@ class _Points:
         pa, pb = self.anchor[ra], self.anchor[rb]
         if pa is not None and pb is not None:
             d = pb - pa
-            if (abs(float(dir_xy[0] * d[1] - dir_xy[1] * d[0])) > join_m
-                    or abs(float(dir_xy @ d)) > along_m):
+            if abs(float(dir_xy[0] * d[1] - dir_xy[1] * d[0])) > join_m or abs(float(dir_xy @ d)) > along_m:
                 return False
         self.parent[rb] = ra
         if pa is None:
@@ -313,9 +312,12 @@ def _side_labels(
     rel = index.xy[h] - p_xy[k]
     lat = (n_xy[k] * rel).sum(1)
     along = (t_xy[k] * rel).sum(1)
-    ok = ((np.abs(along) <= params.CANDIDATE_STEP_M) & (np.abs(lat) >= params.BOUND_MIN_OFFSET_M)
-          & (np.abs(lat) <= params.BOUND_MAX_OFFSET_M)
-          & (np.abs((t_xy[k] * index.tan[h]).sum(1)) >= math.cos(params.BOUND_MAX_ANGLE_RAD)))
+    ok = (
+        (np.abs(along) <= params.CANDIDATE_STEP_M)
+        & (np.abs(lat) >= params.BOUND_MIN_OFFSET_M)
+        & (np.abs(lat) <= params.BOUND_MAX_OFFSET_M)
+        & (np.abs((t_xy[k] * index.tan[h]).sum(1)) >= math.cos(params.BOUND_MAX_ANGLE_RAD))
+    )
     k, h, lat = k[ok], h[ok], lat[ok]
     for side, sel in ((LEFT, lat > 0), (RIGHT, lat < 0)):
         ks, hs, ls = k[sel], h[sel], lat[sel]
@@ -343,7 +345,7 @@ def _fold_short_runs(codes: np.ndarray, s: np.ndarray, min_len_m: float) -> np.n
         before = length[i - 1] if i > 0 else -1.0
         after = length[i + 1] if i + 1 < len(starts) else -1.0
         j = i - 1 if before >= after else i + 1
-        codes[starts[i]:ends[i]] = codes[starts[j]]
+        codes[starts[i] : ends[i]] = codes[starts[j]]
 
 
 # --- the export ------------------------------------------------------------------------------
@@ -366,8 +368,9 @@ class _Run:
         self.ends[side][0] = point
 
 
-def _estimate_offset(side: int, i: int, s: np.ndarray, offset: np.ndarray,
-                     params: Lanelet2Params) -> tuple[float, int]:
+def _estimate_offset(
+    side: int, i: int, s: np.ndarray, offset: np.ndarray, params: Lanelet2Params
+) -> tuple[float, int]:
     """Offset of ``side`` at sample ``i`` where no bound was found there: the nearest measured
     one within reach on that side, else the other side's mirrored, else the default."""
     sign = 1.0 if side == LEFT else -1.0
@@ -404,12 +407,17 @@ def build_lanelet2_map(
         label, offset = _side_labels(p, t, index, params)
         for side in (LEFT, RIGHT):
             label[:, side] = _fold_short_runs(label[:, side], s, params.MIN_RUN_M)
-        pair = _fold_short_runs((label[:, LEFT] + 1) * (len(cands) + 1) + label[:, RIGHT] + 1, s, params.MIN_RUN_M)
+        pair = _fold_short_runs(
+            (label[:, LEFT] + 1) * (len(cands) + 1) + label[:, RIGHT] + 1, s, params.MIN_RUN_M
+        )
         label = np.column_stack([pair // (len(cands) + 1) - 1, pair % (len(cands) + 1) - 1])
         cut = np.flatnonzero(pair[1:] != pair[:-1]) + 1
         bounds = np.r_[0, cut, len(p) - 1]
-        lane_runs = [_Run(lane, int(a), int(b), (int(label[a, LEFT]), int(label[a, RIGHT])))
-                     for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+        lane_runs = [
+            _Run(lane, int(a), int(b), (int(label[a, LEFT]), int(label[a, RIGHT])))
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+            if b > a
+        ]
         samples[lane] = (p, t, s)
         # 5. end points: stations on painted sides, estimates elsewhere; runs of a lane joined
         n_xy = np.column_stack([-t[:, 1], t[:, 0]])
@@ -426,12 +434,16 @@ def build_lanelet2_map(
                     r.ends[side][e] = idx
         for prev, nxt in zip(lane_runs[:-1], lane_runs[1:], strict=False):
             for side in (LEFT, RIGHT):
-                if not points.union(prev.ends[side][1], nxt.ends[side][0], params.JOIN_M, params.JOIN_M, t[prev.i1]):
+                if not points.union(
+                    prev.ends[side][1], nxt.ends[side][0], params.JOIN_M, params.JOIN_M, t[prev.i1]
+                ):
                     nxt.force_start(side, prev.ends[side][1])  # the bound steps sideways (paint changes)
         runs[lane] = lane_runs
 
     # 5. lanes joined in the lane graph share their end / start points
-    succ_edges = [(u, v) for u, v, kind in g.edges(data="kind") if kind == "successor" and u in runs and v in runs]
+    succ_edges = [
+        (u, v) for u, v, kind in g.edges(data="kind") if kind == "successor" and u in runs and v in runs
+    ]
     for u, v in succ_edges:
         for side in (LEFT, RIGHT):
             a, b = runs[u][-1].ends[side][1], runs[v][0].ends[side][0]
@@ -440,8 +452,14 @@ def build_lanelet2_map(
             if len(lane_graph.predecessors(v)) == 1 and runs[v][0].lead[side] < 0:
                 runs[v][0].force_start(side, a)
             else:
-                log.debug("lanes %s -> %s: %s end points %s and %s too far apart to join", u, v,
-                          ("left", "right")[side], np.round(points.xy[a], 2), np.round(points.xy[b], 2))
+                log.debug(
+                    "lanes %s -> %s: %s end points %s and %s too far apart to join",
+                    u,
+                    v,
+                    ("left", "right")[side],
+                    np.round(points.xy[a], 2),
+                    np.round(points.xy[b], 2),
+                )
     roots, pos = points.resolve()
 
     # 6. skip what cannot be a lanelet
@@ -493,8 +511,10 @@ def build_lanelet2_map(
                     step = max(int(round(params.VIRTUAL_STEP_M / params.SAMPLE_STEP_M)), 1)
                     inner = list(range(r.i0 + step, r.i1 - step // 2, step))
                     w = (s[inner] - s[r.i0]) / max(s[r.i1] - s[r.i0], 1e-9)
-                    mid = [points.add(p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i], PRIO_ESTIMATED)
-                           for i, wi in zip(inner, w, strict=True)]
+                    mid = [
+                        points.add(p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i], PRIO_ESTIMATED)
+                        for i, wi in zip(inner, w, strict=True)
+                    ]
                     bound_ways.append(builder.way([a, *mid, b], (("type", "virtual"),)))
                     has_virtual = True
             left_way, right_way = bound_ways
@@ -504,10 +524,18 @@ def build_lanelet2_map(
             if not builder.simple_outline(left_way, right_way):
                 r.skip = "bounds cross"
                 continue
-            if builder.lanelet(left_way, right_way, (
-                ("type", "lanelet"), ("subtype", "road"), ("location", params.location),
-                ("one_way", "yes"), ("csr:lane", lane), ("csr:centerline_id", g.nodes[lane]["feature_id"]),
-            )):
+            if builder.lanelet(
+                left_way,
+                right_way,
+                (
+                    ("type", "lanelet"),
+                    ("subtype", "road"),
+                    ("location", params.location),
+                    ("one_way", "yes"),
+                    ("csr:lane", lane),
+                    ("csr:centerline_id", g.nodes[lane]["feature_id"]),
+                ),
+            ):
                 n_virtual += has_virtual
             else:
                 r.skip = TWO_WAY
@@ -522,14 +550,28 @@ def build_lanelet2_map(
             sides = _crosswalk_sides(xy)
             if sides is None:
                 continue
-            cw = [builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
-                  for side in sides]
+            cw = [
+                builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
+                for side in sides
+            ]
             if cw[0] is not None and cw[1] is not None:
-                builder.lanelet(cw[0], cw[1], (("type", "lanelet"), ("subtype", "crosswalk"),
-                                                   ("one_way", "no"), ("participant:pedestrian", "yes"), *tags_id))
+                builder.lanelet(
+                    cw[0],
+                    cw[1],
+                    (
+                        ("type", "lanelet"),
+                        ("subtype", "crosswalk"),
+                        ("one_way", "no"),
+                        ("participant:pedestrian", "yes"),
+                        *tags_id,
+                    ),
+                )
                 n_cross += 1
         elif f.type == ElementType.STOP_LINE and len(xy) >= 2:
-            if builder.way([points.add(q, PRIO_PAINT) for q in xy], (("type", "stop_line"), *tags_id)) is not None:
+            if (
+                builder.way([points.add(q, PRIO_PAINT) for q in xy], (("type", "stop_line"), *tags_id))
+                is not None
+            ):
                 n_stop += 1
         elif f.type == ElementType.ROAD_MARKING and len(xy) >= 3:
             ids = [points.add(q, PRIO_PAINT) for q in xy]
@@ -571,8 +613,15 @@ def build_lanelet2_map(
         ways=len(ways),
     )
     log.info("lanelet2 export: %s", report.as_dict())
-    return Lanelet2Map(frame, node_ids, frame.to_lonlat(xy_world) if len(xy_world) else np.zeros((0, 2)),
-                       xy_world, ways, relations, report)
+    return Lanelet2Map(
+        frame,
+        node_ids,
+        frame.to_lonlat(xy_world) if len(xy_world) else np.zeros((0, 2)),
+        xy_world,
+        ways,
+        relations,
+        report,
+    )
 
 
 def _crosswalk_sides(outline_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -625,8 +674,9 @@ class _OsmBuilder:
     def simple_outline(self, left: int, right: int) -> bool:
         """Left and right bound enclose a simple polygon (a stored way may run either way)."""
         a, b = self.xy_of(left), self.xy_of(right)
-        if np.linalg.norm(a[0] - b[-1]) + np.linalg.norm(a[-1] - b[0]) < np.linalg.norm(a[0] - b[0]) + np.linalg.norm(
-                a[-1] - b[-1]):
+        if np.linalg.norm(a[0] - b[-1]) + np.linalg.norm(a[-1] - b[0]) < np.linalg.norm(
+            a[0] - b[0]
+        ) + np.linalg.norm(a[-1] - b[-1]):
             b = b[::-1]
         return bool(shapely.Polygon(np.vstack([a, b[::-1]])).is_valid)
 
@@ -642,15 +692,20 @@ class _OsmBuilder:
         self.relations.append(((("way", left, "left"), ("way", right, "right")), tags))
         return True
 
-    def finish(self, n_points: int) -> tuple[np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...]]:
+    def finish(
+        self, n_points: int
+    ) -> tuple[np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...]]:
         used = sorted({n for nodes, _ in self.ways for n in nodes})
         xy = np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in used]).reshape(-1, 2)
         node_id = {n: k + 1 for k, n in enumerate(used)}
         way_base = len(used) + 1
-        ways = tuple(OsmWay(way_base + w, tuple(node_id[n] for n in nodes), tags)
-                     for w, (nodes, tags) in enumerate(self.ways))
+        ways = tuple(
+            OsmWay(way_base + w, tuple(node_id[n] for n in nodes), tags)
+            for w, (nodes, tags) in enumerate(self.ways)
+        )
         rel_base = way_base + len(ways)
         relations = tuple(
             OsmRelation(rel_base + k, tuple((t, way_base + ref, role) for t, ref, role in members), tags)
-            for k, (members, tags) in enumerate(self.relations))
+            for k, (members, tags) in enumerate(self.relations)
+        )
         return np.arange(1, len(used) + 1), xy, ways, relations

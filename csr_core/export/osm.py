@@ -34,16 +34,26 @@ def to_osm_xml(m: Lanelet2Map, *, generator: str = "csr") -> bytes:
     ]
     if len(m.lonlat_deg):
         lo, hi = m.lonlat_deg.min(axis=0), m.lonlat_deg.max(axis=0)
-        out.append(f"<bounds minlat='{lo[1]:.9f}' minlon='{lo[0]:.9f}' maxlat='{hi[1]:.9f}' maxlon='{hi[0]:.9f}'/>")
-    for nid, (lon, lat), (x, y) in zip(m.node_ids.tolist(), m.lonlat_deg.tolist(), m.xy_world.tolist(), strict=True):
-        out.append(f"<node id='{nid}' visible='true' version='1' lat='{lat:.9f}' lon='{lon:.9f}'>"
-                   f"<tag k='ele' v='0'/><tag k='local_x' v='{x:.3f}'/><tag k='local_y' v='{y:.3f}'/></node>")
+        out.append(
+            f"<bounds minlat='{lo[1]:.9f}' minlon='{lo[0]:.9f}' maxlat='{hi[1]:.9f}' maxlon='{hi[0]:.9f}'/>"
+        )
+    for nid, (lon, lat), (x, y) in zip(
+        m.node_ids.tolist(), m.lonlat_deg.tolist(), m.xy_world.tolist(), strict=True
+    ):
+        out.append(
+            f"<node id='{nid}' visible='true' version='1' lat='{lat:.9f}' lon='{lon:.9f}'>"
+            f"<tag k='ele' v='0'/><tag k='local_x' v='{x:.3f}'/><tag k='local_y' v='{y:.3f}'/></node>"
+        )
     for w in m.ways:
         nds = "".join(f"<nd ref='{n}'/>" for n in w.node_ids)
         out.append(f"<way id='{w.way_id}' visible='true' version='1'>{nds}{_tags(w.tags)}</way>")
     for r in m.relations:
-        mem = "".join(f"<member type='{t}' ref='{ref}' role={quoteattr(role)}/>" for t, ref, role in r.members)
-        out.append(f"<relation id='{r.relation_id}' visible='true' version='1'>{mem}{_tags(r.tags)}</relation>")
+        mem = "".join(
+            f"<member type='{t}' ref='{ref}' role={quoteattr(role)}/>" for t, ref, role in r.members
+        )
+        out.append(
+            f"<relation id='{r.relation_id}' visible='true' version='1'>{mem}{_tags(r.tags)}</relation>"
+        )
     out.append("</osm>")
     return ("\n".join(out) + "\n").encode()
 
@@ -65,8 +75,9 @@ class ValidationResult:
 def _oriented(left: np.ndarray, right: np.ndarray, one_way: bool) -> tuple[bool, bool]:
     """(invert left, invert right) as Lanelet2's loader orients bounds: the right bound runs
     like the left; both are inverted if the left one is not on the left."""
-    inv_r = (np.linalg.norm(left[0] - right[-1]) + np.linalg.norm(left[-1] - right[0])
-             < np.linalg.norm(left[0] - right[0]) + np.linalg.norm(left[-1] - right[-1]))
+    inv_r = np.linalg.norm(left[0] - right[-1]) + np.linalg.norm(left[-1] - right[0]) < np.linalg.norm(
+        left[0] - right[0]
+    ) + np.linalg.norm(left[-1] - right[-1])
     r = right[::-1] if inv_r else right
     d = left[-1] - left[0] + r[-1] - r[0]
     rel = r.mean(axis=0) - left.mean(axis=0)
@@ -75,7 +86,9 @@ def _oriented(left: np.ndarray, right: np.ndarray, one_way: bool) -> tuple[bool,
     return False, bool(inv_r)
 
 
-def validate_lanelet2_osm(xml_bytes: bytes, *, min_width_m: float = 0.5, max_width_m: float = 10.0) -> ValidationResult:
+def validate_lanelet2_osm(
+    xml_bytes: bytes, *, min_width_m: float = 0.5, max_width_m: float = 10.0
+) -> ValidationResult:
     """Check a Lanelet2 OSM file against the format's rules (see the module doc)."""
     problems: list[str] = []
     root = ET.fromstring(xml_bytes)
@@ -101,7 +114,11 @@ def validate_lanelet2_osm(xml_bytes: bytes, *, min_width_m: float = 0.5, max_wid
             relations.append(el)
     frame = LocalFrame.around(np.array(list(nodes.values()))) if nodes else LocalFrame(0.0, 0.0)
     node_keys = list(nodes)
-    xy = dict(zip(node_keys, frame.to_local(np.array([nodes[k] for k in node_keys])), strict=True)) if nodes else {}
+    xy = (
+        dict(zip(node_keys, frame.to_local(np.array([nodes[k] for k in node_keys])), strict=True))
+        if nodes
+        else {}
+    )
     for w, refs in ways.items():
         missing = [r for r in refs if r not in nodes]
         if missing:
@@ -160,4 +177,6 @@ def validate_lanelet2_osm(xml_bytes: bytes, *, min_width_m: float = 0.5, max_wid
                 n_pairs += 1
             elif start_b[0] == end[0] or start_b[1] == end[1]:  # (a neighbour shares it crosswise)
                 problems.append(f"lanelets {rid} -> {b}: share the end node of one bound, not of the other")
-    return ValidationResult(tuple(problems[:MAX_PROBLEMS]), len(problems), len(nodes), len(ways), n_lanelets, n_pairs)
+    return ValidationResult(
+        tuple(problems[:MAX_PROBLEMS]), len(problems), len(nodes), len(ways), n_lanelets, n_pairs
+    )

@@ -153,7 +153,9 @@ def _shortest_loops(world: World) -> dict[int, tuple[float, list[int]]]:
     length = {n: _lane_length(world, n) for n in g.nodes}
     succ = nx.DiGraph()
     succ.add_nodes_from(g.nodes)
-    succ.add_weighted_edges_from((u, v, length[v]) for u, v, d in g.edges(data=True) if d["kind"] == SUCCESSOR)
+    succ.add_weighted_edges_from(
+        (u, v, length[v]) for u, v, d in g.edges(data=True) if d["kind"] == SUCCESSOR
+    )
     out: dict[int, tuple[float, list[int]]] = {}
     for lane in sorted(g.nodes):
         if not g.nodes[lane]["visible"]:
@@ -189,7 +191,9 @@ def looping_route(world: World, rng: np.random.Generator, length_m: float, param
     back: list[int] = []
     lane, have = entry, 0.0
     while have < approach_m:
-        preds = sorted(u for u, _, d in g.in_edges(lane, data=True) if d["kind"] == SUCCESSOR and u not in loop)
+        preds = sorted(
+            u for u, _, d in g.in_edges(lane, data=True) if d["kind"] == SUCCESSOR and u not in loop
+        )
         if not preds:
             break
         lane = preds[int(rng.integers(len(preds)))]

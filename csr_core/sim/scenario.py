@@ -256,7 +256,9 @@ def _simulate_scenario(
     world = load_world(world_name)
     frame = LocalFrame(world.origin_lat, world.origin_lon)
     index: Any = (
-        build_truth_index(world, prof.perception) if fleet == "a" else build_truth_index_b(world.elements, prof.perception)
+        build_truth_index(world, prof.perception)
+        if fleet == "a"
+        else build_truth_index_b(world.elements, prof.perception)
     )
     simulate: Callable[..., Any] = simulate_trip if fleet == "a" else simulate_trip_b
     out = Path(out_dir)

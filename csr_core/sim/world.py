@@ -146,8 +146,13 @@ class WorldBuilder:
         ]
         return ends, starts
 
-    def _nearest_start(self, p_end: np.ndarray, starts: list[int], max_gap_m: float,
-                       accept: Callable[[np.ndarray, float, np.ndarray], bool]) -> tuple[int | None, float]:
+    def _nearest_start(
+        self,
+        p_end: np.ndarray,
+        starts: list[int],
+        max_gap_m: float,
+        accept: Callable[[np.ndarray, float, np.ndarray], bool],
+    ) -> tuple[int | None, float]:
         """The lane start nearest to ``p_end`` (closer than ``max_gap_m``) that ``accept(gap_xy,
         distance_m, start_tangent)`` admits, and its distance; ``(None, max_gap_m)`` if none."""
         best, best_d = None, max_gap_m
@@ -195,9 +200,13 @@ class WorldBuilder:
             c = g.nodes[e]["centerline_xy"]
             p_end, t_end = c[-1], geo.tangents(c)[-1]
             best, best_d = self._nearest_start(
-                p_end, starts, max_gap_m,
-                cast(Callable[[np.ndarray, float, np.ndarray], bool],
-                     lambda _gap, _d, t_start, t_end=t_end: float(np.dot(t_start, t_end)) < -0.5),
+                p_end,
+                starts,
+                max_gap_m,
+                cast(
+                    Callable[[np.ndarray, float, np.ndarray], bool],
+                    lambda _gap, _d, t_start, t_end=t_end: float(np.dot(t_start, t_end)) < -0.5,
+                ),
             )
             if best is None:
                 continue

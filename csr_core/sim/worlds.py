@@ -7,7 +7,17 @@ from collections.abc import Callable
 
 from csr_core.sim.world import SimulationError, World
 
-WORLD_NAMES = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9", "newmarket")
+WORLD_NAMES = (
+    "urban",
+    "highway",
+    "rural",
+    "roundabout",
+    "karlsruhe",
+    "kashiwanoha",
+    "carcarana",
+    "a9",
+    "newmarket",
+)
 
 
 def _builders() -> dict[str, Callable[[], World]]:

@@ -79,14 +79,26 @@ def bev_range_m(trip, quantile: float = 0.002) -> tuple[float, float, float, flo
 
 def _inside(points_v: np.ndarray, box: tuple[float, float, float, float], margin: float) -> np.ndarray:
     x0, x1, y0, y1 = box
-    return ((points_v[..., 0] >= x0 + margin) & (points_v[..., 0] <= x1 - margin)
-            & (points_v[..., 1] >= y0 + margin) & (points_v[..., 1] <= y1 - margin))
+    return (
+        (points_v[..., 0] >= x0 + margin)
+        & (points_v[..., 0] <= x1 - margin)
+        & (points_v[..., 1] >= y0 + margin)
+        & (points_v[..., 1] <= y1 - margin)
+    )
 
 
-def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.ndarray, poses: np.ndarray,
-                      box: tuple[float, float, float, float], margin: float,
-                      same_type_tree: cKDTree | None, same_type_frame: np.ndarray, corroborate_m: float,
-                      enough: float = 1.0) -> float:
+def _visibility_ratio(
+    points_w: np.ndarray,
+    seen_frames: np.ndarray,
+    frames: np.ndarray,
+    poses: np.ndarray,
+    box: tuple[float, float, float, float],
+    margin: float,
+    same_type_tree: cKDTree | None,
+    same_type_frame: np.ndarray,
+    corroborate_m: float,
+    enough: float = 1.0,
+) -> float:
     """Tracked frames that saw the element / tracked frames that had it inside the BEV range
     (shrunk by ``margin``), over the frames whose vehicle is within reach of it.
 
@@ -112,8 +124,11 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
         return n_seen / len(cand)
     rest = cand[~was_seen]  # only the frames that did not see it are tested
     x0, x1, y0, y1 = box
-    in_range = checks.frames_in_range(np.ascontiguousarray(samples, dtype=float), poses[frames[rest]],
-                                      np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]))
+    in_range = checks.frames_in_range(
+        np.ascontiguousarray(samples, dtype=float),
+        poses[frames[rest]],
+        np.array([x0 + margin, x1 - margin, y0 + margin, y1 - margin]),
+    )
     rest = rest[in_range]
     n_corroborated = 0
     if len(rest) and same_type_tree is not None:
@@ -127,8 +142,9 @@ def _visibility_ratio(points_w: np.ndarray, seen_frames: np.ndarray, frames: np.
     return float(n_seen + n_corroborated) / max(n_seen + len(rest), 1)
 
 
-def _within_reach(points_w: np.ndarray, path: search.SortedPoints, reach_m: float, is_polygon: bool
-                  ) -> list[np.ndarray]:
+def _within_reach(
+    points_w: np.ndarray, path: search.SortedPoints, reach_m: float, is_polygon: bool
+) -> list[np.ndarray]:
     """The parts of an instance within ``reach_m`` of the vehicle path: a trip covers the lateral
     reach of its BEV range around its path. Beyond it an element was only seen far ahead
     (at the far end of the range, where the detector is noisiest) in the few frames before the
@@ -143,15 +159,28 @@ def _within_reach(points_w: np.ndarray, path: search.SortedPoints, reach_m: floa
     return [points_w[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= 2]
 
 
-def _resplice_mixture(obs: np.ndarray, obs_points_w: np.ndarray, obs_frame: np.ndarray, pts_w: np.ndarray,
-                      obs_id: np.ndarray, offsets: np.ndarray, end_free: np.ndarray, original: np.ndarray,
-                      params: SingleTripParams) -> list[SplicedLine]:
+def _resplice_mixture(
+    obs: np.ndarray,
+    obs_points_w: np.ndarray,
+    obs_frame: np.ndarray,
+    pts_w: np.ndarray,
+    obs_id: np.ndarray,
+    offsets: np.ndarray,
+    end_free: np.ndarray,
+    original: np.ndarray,
+    params: SingleTripParams,
+) -> list[SplicedLine]:
     """The observations ``obs`` of a splice that mixes elements, regrouped by
     ``regroup_observations`` and spliced group by group on their own shapes (observation
     indices kept)."""
-    labels = regroup_observations(obs_points_w[obs], obs_frame[obs], params.SPLICE_MODE_GATE_M,
-                                  params.TRACK_MAX_ANGLE_RAD, params.TRACK_MAX_SKIP_FRAMES,
-                                  params.TRACK_MAX_EXTRAPOLATION_M)
+    labels = regroup_observations(
+        obs_points_w[obs],
+        obs_frame[obs],
+        params.SPLICE_MODE_GATE_M,
+        params.TRACK_MAX_ANGLE_RAD,
+        params.TRACK_MAX_SKIP_FRAMES,
+        params.TRACK_MAX_EXTRAPOLATION_M,
+    )
     out = []
     for lab in np.unique(labels):
         group = obs[labels == lab]
@@ -164,10 +193,23 @@ def _resplice_mixture(obs: np.ndarray, obs_points_w: np.ndarray, obs_frame: np.n
         sub_off = np.concatenate([[0], np.cumsum(counts)])
         sub_ends = np.column_stack([sub_off[:-1], sub_off[1:] - 1])
         # each group on its own shape (junction connectors do not follow the path)
-        for part in splice_line(pts_w[take], np.repeat(np.arange(len(group)), counts), sub_ends, end_free[group],
-                                None, params, original[take]):
-            out.append(SplicedLine(part.points_xy_world, part.lateral_residuals_m, part.along_residuals_m,
-                                   group[part.observations]))
+        for part in splice_line(
+            pts_w[take],
+            np.repeat(np.arange(len(group)), counts),
+            sub_ends,
+            end_free[group],
+            None,
+            params,
+            original[take],
+        ):
+            out.append(
+                SplicedLine(
+                    part.points_xy_world,
+                    part.lateral_residuals_m,
+                    part.along_residuals_m,
+                    group[part.observations],
+                )
+            )
     return out
 
 
@@ -199,7 +241,10 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
     diagonal = np.array([np.hypot(*np.ptp(candidates[i][0].points_xy_world, axis=0)) for i in polys])
     near = cKDTree(centre).query_pairs(float(diagonal.max()) + 1e-6, output_type="ndarray")
     partners: dict[int, list[int]] = {}
-    for u, v in near.tolist():  # a point inside an outline is within its bounding box's diagonal of its centre
+    for (
+        u,
+        v,
+    ) in near.tolist():  # a point inside an outline is within its bounding box's diagonal of its centre
         partners.setdefault(polys[u], []).append(v)
         partners.setdefault(polys[v], []).append(u)
     dropped: set[int] = set()
@@ -215,7 +260,12 @@ def _without_duplicate_polygons(candidates: list, whole_ids: dict[int, np.ndarra
                 continue
             cb = centre[k]
             if _inside_polygon(cb, a.points_xy_world) or _inside_polygon(ca, b.points_xy_world):
-                log.debug("dropped %s at %s: duplicate of the one at %s", b.type.value, np.round(cb, 1), np.round(ca, 1))
+                log.debug(
+                    "dropped %s at %s: duplicate of the one at %s",
+                    b.type.value,
+                    np.round(cb, 1),
+                    np.round(ca, 1),
+                )
                 dropped.add(j)
     return [c for i, c in enumerate(candidates) if i not in dropped]
 
@@ -238,12 +288,20 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
     these by the noise of their type in the trip, :func:`_unseen_gate_m`); parts shorter than the
     type's minimum length are dropped (counted), the residuals stay with the longest part, and
     every part keeps the track's frames and observation count."""
-    barrier = barrier_geometry([c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
-                               [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
-                               params.PAINT_BREAK_REACH_M) if params.PAINT_BREAKS else None
+    barrier = (
+        barrier_geometry(
+            [c[0].points_xy_world for c in candidates if c[0].type == ElementType.STOP_LINE],
+            [c[0].points_xy_world for c in candidates if c[0].type == ElementType.CROSSWALK],
+            params.PAINT_BREAK_REACH_M,
+        )
+        if params.PAINT_BREAKS
+        else None
+    )
     noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in _CONTINUOUS}, {}, params)
     step_m = params.UNSEEN_CUT_STEP_M if params.UNSEEN_CUT_SIGMAS else None  # None: as spliced
-    tracks: dict[int, ObservedPoints] = {}  # one per track: the instances cut from one track share its observations
+    tracks: dict[
+        int, ObservedPoints
+    ] = {}  # one per track: the instances cut from one track share its observations
 
     def observed_points(observed: tuple[np.ndarray, np.ndarray], dense_m: float | None) -> ObservedPoints:
         """The track's observed points (world, with their detections' offsets), densified to
@@ -260,23 +318,40 @@ def _cut_where_unseen(candidates: list, params: SingleTripParams) -> tuple[list,
             out.append(cand)
             continue
         if inst.type == ElementType.LANE_DIVIDER and barrier is not None:
-            parts = cut_at_paint_breaks(inst.points_xy_world, observed_points(observed, None), barrier,
-                                        params.PAINT_BREAK_GATE_M)
+            parts = cut_at_paint_breaks(
+                inst.points_xy_world, observed_points(observed, None), barrier, params.PAINT_BREAK_GATE_M
+            )
         elif inst.type in _CONTINUOUS and params.CONTINUOUS_UNSEEN_CUT:
-            parts = cut_unseen(inst.points_xy_world, observed_points(observed, step_m), _unseen_gate_m(noise[inst.type], params))
+            parts = cut_unseen(
+                inst.points_xy_world,
+                observed_points(observed, step_m),
+                _unseen_gate_m(noise[inst.type], params),
+            )
         else:
             parts = [inst.points_xy_world]
         if len(parts) == 1 and len(parts[0]) == len(inst.points_xy_world):
             out.append(cand)
             continue
-        log.debug("%s from %s: cut where it was not seen, %d parts",
-                  inst.type.value, np.round(inst.points_xy_world[0], 1), len(parts))
+        log.debug(
+            "%s from %s: cut where it was not seen, %d parts",
+            inst.type.value,
+            np.round(inst.points_xy_world[0], 1),
+            len(parts),
+        )
         kept = 0
         for points_w in sorted(parts, key=len, reverse=True):
-            if float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) < params.min_length_m(inst.type):
+            if float(np.linalg.norm(np.diff(points_w, axis=0), axis=1).sum()) < params.min_length_m(
+                inst.type
+            ):
                 continue
-            out.append((replace(inst, points_xy_world=points_w), lat if not kept else lat[:0],
-                        alo if not kept else alo[:0], observed))
+            out.append(
+                (
+                    replace(inst, points_xy_world=points_w),
+                    lat if not kept else lat[:0],
+                    alo if not kept else alo[:0],
+                    observed,
+                )
+            )
             kept += 1
         n_dropped += len(parts) - kept if parts else 1
     return out, n_dropped
@@ -289,8 +364,9 @@ def _style(styles: list) -> DividerStyle | None:
     return DividerStyle.UNKNOWN if any(s is not None for s in styles) else None
 
 
-def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT,
-                     smoothed: SmoothedPoses | None = None) -> TripReconstruction:
+def reconstruct_trip(
+    trip, frame: LocalFrame, params: SingleTripParams = DEFAULT, smoothed: SmoothedPoses | None = None
+) -> TripReconstruction:
     """Single-trip reconstruction of ``trip`` in the world frame ``frame`` (paper III-C).
 
     ``smoothed`` replaces the pose smoothing of step 2 with given poses (for evaluating the
@@ -307,15 +383,23 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # 2. pose smoothing, Eq. 2, tested against the trip's own GNSS (repaired or marked degraded)
     quality: TripQuality | None = None
     if smoothed is None:
-        smoothed, quality = smooth_poses_checked(trip.timestamps_s, gnss_xy, trip.fix_status, trip.gnss_std_m,
-                                                 frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
-                                                 trip.odom_xyyaw, params)
+        smoothed, quality = smooth_poses_checked(
+            trip.timestamps_s,
+            gnss_xy,
+            trip.fix_status,
+            trip.gnss_std_m,
+            frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
+            trip.odom_xyyaw,
+            params,
+        )
     poses = smoothed.poses_xyyaw_world
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))]
     t_pose = time.perf_counter()
     cpu.append(time.process_time())
     # 3. keyframes by distance and time
-    keyframes = select_keyframes(poses, trip.timestamps_s, params.KEYFRAME_DISTANCE_M, params.KEYFRAME_PERIOD_S)
+    keyframes = select_keyframes(
+        poses, trip.timestamps_s, params.KEYFRAME_DISTANCE_M, params.KEYFRAME_PERIOD_S
+    )
     # 4. element tracking on frames spaced by travel/time
     box = bev_range_m(trip)
     frames = select_tracking_frames(poses, trip.timestamps_s, params.TRACK_STEP_M, params.TRACK_STEP_S)
@@ -332,11 +416,15 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # (instance, lateral residuals, along residuals, its track's observed points and their
     # detections' offsets, or None for a polygon)
     candidates: list[tuple[TripInstance, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]] = []
-    whole_polygons: dict[int, np.ndarray] = {}  # polygon outlines fused from whole (unclipped) outlines, by id (kept alive)
+    whole_polygons: dict[
+        int, np.ndarray
+    ] = {}  # polygon outlines fused from whole (unclipped) outlines, by id (kept alive)
     edge_margin = params.BEV_RANGE_MARGIN_M / 2
     reach = max(abs(v) for v in box)
     lateral_reach = min(max(abs(box[2]), abs(box[3])), params.INSTANCE_MAX_LATERAL_M)
-    path = search.SortedPoints(resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2])
+    path = search.SortedPoints(
+        resample_polyline(poses[:, :2], params.SPLICE_BIN_M) if len(poses) > 1 else poses[:, :2]
+    )
     k_pts = pieces.points_w.shape[1]
     type_points = {}  # per type: KD-tree of all its detections' resampled points, their tracked frame
     for t, code in TYPE_CODES.items():
@@ -358,16 +446,27 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
         yaw = poses[upload_frames, 2]
         # the detections as sent, densified (not polygons: their vertices are corners), in the world
         pts_v, offsets, original, pts_w, obs_id = observations.track_observations(
-            pieces.raw_points_v, pieces.raw_offsets, track.pieces, np.cos(yaw), np.sin(yaw), poses[upload_frames, 0],
-            poses[upload_frames, 1], 0.0 if track.type.is_polygon else float(params.SPLICE_BIN_M))
+            pieces.raw_points_v,
+            pieces.raw_offsets,
+            track.pieces,
+            np.cos(yaw),
+            np.sin(yaw),
+            poses[upload_frames, 0],
+            poses[upload_frames, 1],
+            0.0 if track.type.is_polygon else float(params.SPLICE_BIN_M),
+        )
         spliced: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         observed = None if track.type.is_polygon else (pts_w, offsets)  # for _cut_where_unseen
         if track.type.is_polygon:
             inside = _inside(pts_v, box, edge_margin)
             whole = np.logical_and.reduceat(inside, offsets[:-1])
             obs_w = np.split(pts_w, offsets[1:-1])
-            outline, lat, alo = splice_polygon(obs_w, whole, poses[upload_frames, 2],
-                                               np.split(inside, offsets[1:-1]) if params.POLYGON_EDGE_AXES else None)
+            outline, lat, alo = splice_polygon(
+                obs_w,
+                whole,
+                poses[upload_frames, 2],
+                np.split(inside, offsets[1:-1]) if params.POLYGON_EDGE_AXES else None,
+            )
             spliced.append((outline, lat, alo, track.frames))
             if whole.any():
                 whole_polygons[id(outline)] = outline
@@ -377,72 +476,161 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
             # the vehicle path while the element was in reach guides the splice
             t0 = np.searchsorted(travel, travel[upload_frames.min()] - reach)
             t1 = np.searchsorted(travel, travel[upload_frames.max()] + reach)
-            guide = poses[t0:t1 + 1, :2]
+            guide = poses[t0 : t1 + 1, :2]
             mixed_above = params.INSTANCE_MAX_SIGMA_RATIO * params.NOISE_PRIOR_LATERAL_M
-            for piece in splice_line(pts_w, obs_id, obs_ends, end_free, guide, track_params, original,
-                                     follow_bends=track.type == ElementType.LANE_DIVIDER):
+            for piece in splice_line(
+                pts_w,
+                obs_id,
+                obs_ends,
+                end_free,
+                guide,
+                track_params,
+                original,
+                follow_bends=track.type == ElementType.LANE_DIVIDER,
+            ):
                 lat = piece.lateral_residuals_m
                 parts = [piece]
                 resplit = False
                 if len(lat) >= params.NOISE_MIN_SAMPLES and robust_sigma(lat) > mixed_above:
                     # a mixture of elements (a junction): split its observations apart, splice each
-                    parts = _resplice_mixture(piece.observations, pieces.points_w[track.pieces], track_frames,
-                                              pts_w, obs_id, offsets, end_free, original, track_params)
+                    parts = _resplice_mixture(
+                        piece.observations,
+                        pieces.points_w[track.pieces],
+                        track_frames,
+                        pts_w,
+                        obs_id,
+                        offsets,
+                        end_free,
+                        original,
+                        track_params,
+                    )
                     resplit = True
                 queue = list(parts)
                 while queue:
                     part = queue.pop(0)
-                    kept = runs_along_observations(part.points_xy_world, pts_w, obs_id, part.observations,
-                                                   params.TRACK_MAX_ANGLE_RAD, params.TRACK_GATE_M,
-                                                   params.SPLICE_ACROSS_WINDOW_M)
+                    kept = runs_along_observations(
+                        part.points_xy_world,
+                        pts_w,
+                        obs_id,
+                        part.observations,
+                        params.TRACK_MAX_ANGLE_RAD,
+                        params.TRACK_GATE_M,
+                        params.SPLICE_ACROSS_WINDOW_M,
+                    )
                     if not kept and not resplit and params.SPLICE_REGROUP_ACROSS:
                         # no part of it runs along its observations: it joined elements that meet at
                         # an angle (a kerb's two legs at an island's corner); regroup and splice each
-                        log.debug("%s from %s: runs across its observations everywhere, regrouped",
-                                  track.type.value, np.round(part.points_xy_world[0], 1))
-                        queue = _resplice_mixture(part.observations, pieces.points_w[track.pieces], track_frames,
-                                                  pts_w, obs_id, offsets, end_free, original, track_params)
+                        log.debug(
+                            "%s from %s: runs across its observations everywhere, regrouped",
+                            track.type.value,
+                            np.round(part.points_xy_world[0], 1),
+                        )
+                        queue = _resplice_mixture(
+                            part.observations,
+                            pieces.points_w[track.pieces],
+                            track_frames,
+                            pts_w,
+                            obs_id,
+                            offsets,
+                            end_free,
+                            original,
+                            track_params,
+                        )
                         resplit = True
                         n_dropped += not queue
                         continue
                     if len(kept) != 1 or len(kept[0]) != len(part.points_xy_world):
-                        log.debug("%s from %s: cut where it runs across its observations, %d parts left",
-                                  track.type.value, np.round(part.points_xy_world[0], 1), len(kept))
+                        log.debug(
+                            "%s from %s: cut where it runs across its observations, %d parts left",
+                            track.type.value,
+                            np.round(part.points_xy_world[0], 1),
+                            len(kept),
+                        )
                         n_dropped += not kept
                     # residuals stay with the longest part (as for the parts within reach, below)
                     for k, kept_xy in enumerate(sorted(kept, key=len, reverse=True)):
-                        spliced.append((kept_xy, part.lateral_residuals_m if k == 0 else part.lateral_residuals_m[:0],
-                                        part.along_residuals_m if k == 0 else part.along_residuals_m[:0],
-                                        unique_ids(track_frames[part.observations])))
-        spliced = [(part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
-                   for points_w, lat, alo, seen in spliced
-                   for k, part in enumerate(sorted(_within_reach(points_w, path, lateral_reach, track.type.is_polygon),
-                                                   key=len, reverse=True))]
+                        spliced.append(
+                            (
+                                kept_xy,
+                                part.lateral_residuals_m if k == 0 else part.lateral_residuals_m[:0],
+                                part.along_residuals_m if k == 0 else part.along_residuals_m[:0],
+                                unique_ids(track_frames[part.observations]),
+                            )
+                        )
+        spliced = [
+            (part, lat if k == 0 else lat[:0], alo if k == 0 else alo[:0], seen)
+            for points_w, lat, alo, seen in spliced
+            for k, part in enumerate(
+                sorted(
+                    _within_reach(points_w, path, lateral_reach, track.type.is_polygon), key=len, reverse=True
+                )
+            )
+        ]
         style: list[DividerStyle | None] | None = None  # the track's, voted once
         for points_w, lat, alo, seen in spliced:
             step = points_w[1:] - points_w[:-1]
-            length = float(np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1]).sum())  # as np.linalg.norm
-            if len(seen) < track_params.TRACK_MIN_FRAMES or (not track.type.is_polygon
-                                                       and length < params.min_length_m(track.type)):
-                log.debug("dropped %s (%.0f m from %s): %d frames", track.type.value, length,
-                          np.round(points_w[0], 1), len(seen))
+            length = float(
+                np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1]).sum()
+            )  # as np.linalg.norm
+            if len(seen) < track_params.TRACK_MIN_FRAMES or (
+                not track.type.is_polygon and length < params.min_length_m(track.type)
+            ):
+                log.debug(
+                    "dropped %s (%.0f m from %s): %d frames",
+                    track.type.value,
+                    length,
+                    np.round(points_w[0], 1),
+                    len(seen),
+                )
                 n_dropped += 1
                 continue
-            ratio = _visibility_ratio(points_w, seen, frames, poses, box, params.BEV_RANGE_MARGIN_M,
-                                      *type_points[track.type], params.TRACK_GATE_M,
-                                      enough=min_visibility)
+            ratio = _visibility_ratio(
+                points_w,
+                seen,
+                frames,
+                poses,
+                box,
+                params.BEV_RANGE_MARGIN_M,
+                *type_points[track.type],
+                params.TRACK_GATE_M,
+                enough=min_visibility,
+            )
             if ratio < min_visibility:
-                log.debug("dropped %s (%.0f m from %s): visibility %.2f", track.type.value, length,
-                          np.round(points_w[0], 1), ratio)
+                log.debug(
+                    "dropped %s (%.0f m from %s): visibility %.2f",
+                    track.type.value,
+                    length,
+                    np.round(points_w[0], 1),
+                    ratio,
+                )
                 n_dropped += 1
                 continue
             if style is None:
-                style = [_style([trip.elements[f][j].style  # (plain ints index the tuples faster)
-                                 for f, j in zip(upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True)])]
-            candidates.append((TripInstance(
-                type=track.type, points_xy_world=points_w, style=style[0],
-                n_observations=len(seen), first_frame=int(frames[seen[0]]), last_frame=int(frames[seen[-1]])),
-                lat, alo, observed))
+                style = [
+                    _style(
+                        [
+                            trip.elements[f][j].style  # (plain ints index the tuples faster)
+                            for f, j in zip(
+                                upload_frames.tolist(), pieces.element[track.pieces].tolist(), strict=True
+                            )
+                        ]
+                    )
+                ]
+            candidates.append(
+                (
+                    TripInstance(
+                        type=track.type,
+                        points_xy_world=points_w,
+                        style=style[0],
+                        n_observations=len(seen),
+                        first_frame=int(frames[seen[0]]),
+                        last_frame=int(frames[seen[-1]]),
+                    ),
+                    lat,
+                    alo,
+                    observed,
+                )
+            )
     candidates = _without_duplicate_polygons(candidates, whole_polygons)
     cpu.append(time.process_time())
     if params.PAINT_BREAKS or params.CONTINUOUS_UNSEEN_CUT:
@@ -453,15 +641,27 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     # than its type's (a mixture of elements: connectors crossing in a junction) is dropped.
     # Not a polygon: its vertex residuals include vertices sliding along a side (a crosswalk's
     # intermediate vertices), so a whole, well-seen crosswalk looked like a mixture.
-    noise = estimate_noise({t: [c[1] for c in candidates if c[0].type == t] for t in ElementType},
-                           {t: [c[2] for c in candidates if c[0].type == t] for t in ElementType}, params)
+    noise = estimate_noise(
+        {t: [c[1] for c in candidates if c[0].type == t] for t in ElementType},
+        {t: [c[2] for c in candidates if c[0].type == t] for t in ElementType},
+        params,
+    )
     for inst, lat, alo, _ in candidates:
         ref = noise[inst.type]
-        if (not inst.type.is_polygon and len(lat) >= params.NOISE_MIN_SAMPLES and ref.n_samples >= params.NOISE_MIN_SAMPLES
-                and robust_sigma(lat) > max(params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m,
-                                            params.INSTANCE_MIXTURE_MIN_SIGMA_M)):
-            log.debug("dropped %s from %s: lateral sigma %.2f m vs type %.2f m", inst.type.value,
-                      np.round(inst.points_xy_world[0], 1), robust_sigma(lat), ref.lateral_sigma_m)
+        if (
+            not inst.type.is_polygon
+            and len(lat) >= params.NOISE_MIN_SAMPLES
+            and ref.n_samples >= params.NOISE_MIN_SAMPLES
+            and robust_sigma(lat)
+            > max(params.INSTANCE_MAX_SIGMA_RATIO * ref.lateral_sigma_m, params.INSTANCE_MIXTURE_MIN_SIGMA_M)
+        ):
+            log.debug(
+                "dropped %s from %s: lateral sigma %.2f m vs type %.2f m",
+                inst.type.value,
+                np.round(inst.points_xy_world[0], 1),
+                robust_sigma(lat),
+                ref.lateral_sigma_m,
+            )
             n_dropped += 1
             continue
         lateral.setdefault(inst.type, []).append(lat)
@@ -470,14 +670,24 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     noise = estimate_noise(lateral, along, params)
     t_end = time.perf_counter()
     cpu.append(time.process_time())
-    log.info("trip %s: %d frames, %d tracks, %d instances (%d dropped); %.3f s (poses %.3f, tracking %.3f)",
-             trip.key, trip.n_frames, len(tracks), len(instances), n_dropped, t_end - t_start,
-             t_pose - t_start, t_track - t_pose)
+    log.info(
+        "trip %s: %d frames, %d tracks, %d instances (%d dropped); %.3f s (poses %.3f, tracking %.3f)",
+        trip.key,
+        trip.n_frames,
+        len(tracks),
+        len(instances),
+        n_dropped,
+        t_end - t_start,
+        t_pose - t_start,
+        t_track - t_pose,
+    )
     diagnostics = {
         "odom_scale": smoothed.odom_scale,
         "odom_yaw_rate_bias_deg_s": float(np.degrees(smoothed.odom_yaw_rate_bias_rad_s)),
         "gnss_latency_s": smoothed.gnss_latency_s,
-        "gnss_rejected_share": float(1.0 - smoothed.gnss_inlier[trip.has_fix].mean()) if trip.has_fix.any() else 0.0,
+        "gnss_rejected_share": float(1.0 - smoothed.gnss_inlier[trip.has_fix].mean())
+        if trip.has_fix.any()
+        else 0.0,
         "tracked_frames": int(len(frames)),
         "tracks": len(tracks),
         "dropped": n_dropped,
@@ -486,7 +696,14 @@ def reconstruct_trip(trip, frame: LocalFrame, params: SingleTripParams = DEFAULT
     }
     if quality is not None:
         diagnostics["quality"] = quality.as_dict()
-    return TripReconstruction(trip=trip, poses_xyyaw_world=poses, pose_sigma_xy_m=smoothed.sigma_xy_m,
-                              keyframe_indices=keyframes, instances=tuple(instances), noise=noise,
-                              gnss_inlier=smoothed.gnss_inlier, diagnostics=diagnostics,
-                              white_poses_xyyaw_world=smoothed.white_poses_xyyaw_world)
+    return TripReconstruction(
+        trip=trip,
+        poses_xyyaw_world=poses,
+        pose_sigma_xy_m=smoothed.sigma_xy_m,
+        keyframe_indices=keyframes,
+        instances=tuple(instances),
+        noise=noise,
+        gnss_inlier=smoothed.gnss_inlier,
+        diagnostics=diagnostics,
+        white_poses_xyyaw_world=smoothed.white_poses_xyyaw_world,
+    )

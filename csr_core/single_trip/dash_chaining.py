@@ -97,7 +97,7 @@ def dash_chord(track_index: int, points_w: np.ndarray, params: SingleTripParams)
         ends = centre + np.outer([along.min(), along.max()], u)
         return DashChord(track_index, ends, np.stack([-u, u]), length / 2.0, sigma)
     c, r2 = kasa_circle(pts)
-    if not np.isfinite(r2) or r2 < BEND_MIN_RADIUS_M ** 2:
+    if not np.isfinite(r2) or r2 < BEND_MIN_RADIUS_M**2:
         return None
     r = float(np.sqrt(r2))
     rel = pts - c
@@ -118,9 +118,18 @@ def dash_chord(track_index: int, points_w: np.ndarray, params: SingleTripParams)
     return DashChord(track_index, np.array(ends), np.array(dirs), 0.0, float(sigma))
 
 
-def link_costs(ends_a: np.ndarray, out_a: np.ndarray, behind_a: np.ndarray, sigma_a: np.ndarray,
-               ends_b: np.ndarray, out_b: np.ndarray, behind_b: np.ndarray, sigma_b: np.ndarray,
-               params: SingleTripParams, max_gap_m: np.ndarray | float) -> np.ndarray:
+def link_costs(
+    ends_a: np.ndarray,
+    out_a: np.ndarray,
+    behind_a: np.ndarray,
+    sigma_a: np.ndarray,
+    ends_b: np.ndarray,
+    out_b: np.ndarray,
+    behind_b: np.ndarray,
+    sigma_b: np.ndarray,
+    params: SingleTripParams,
+    max_gap_m: np.ndarray | float,
+) -> np.ndarray:
     """Squared sigmas of the curvature mismatch (module docstring) when the ends ``ends_a (P, 2)``
     (direction out of their unit ``out_a``, holding ``behind_a`` behind the end, direction sigma
     ``sigma_a``) continue into the ends ``ends_b`` (likewise); ``inf`` where they cannot be one
@@ -133,21 +142,33 @@ def link_costs(ends_a: np.ndarray, out_a: np.ndarray, behind_a: np.ndarray, sigm
     gap = np.where(ok, gap, 1.0)
     w_a, w_b = 2.0 / (2.0 * behind_a + gap), 2.0 / (2.0 * behind_b + gap)
     kappa_a = w_a * np.arctan2(out_a[:, 0] * chord[:, 1] - out_a[:, 1] * chord[:, 0], (out_a * chord).sum(1))
-    kappa_b = w_b * np.arctan2(chord[:, 0] * into_b[:, 1] - chord[:, 1] * into_b[:, 0], (chord * into_b).sum(1))
+    kappa_b = w_b * np.arctan2(
+        chord[:, 0] * into_b[:, 1] - chord[:, 1] * into_b[:, 0], (chord * into_b).sum(1)
+    )
     ok &= np.abs(0.5 * (kappa_a + kappa_b)) <= 1.0 / BEND_MIN_RADIUS_M
     chord_sigma = np.sqrt(2.0) * params.NOISE_PRIOR_LATERAL_M / gap
     variance = (w_a * sigma_a) ** 2 + (w_b * sigma_b) ** 2 + ((w_a + w_b) * chord_sigma) ** 2
     z2 = (kappa_a - kappa_b) ** 2 / variance
-    return np.where(ok & (z2 <= params.TRACK_GATE_SIGMAS ** 2), z2, np.inf)
+    return np.where(ok & (z2 <= params.TRACK_GATE_SIGMAS**2), z2, np.inf)
 
 
-def link_cost(a: DashChord, end_a: int, b: DashChord, end_b: int, params: SingleTripParams,
-              max_gap_m: float) -> float | None:
+def link_cost(
+    a: DashChord, end_a: int, b: DashChord, end_b: int, params: SingleTripParams, max_gap_m: float
+) -> float | None:
     """:func:`link_costs` of end ``end_a`` of unit ``a`` into end ``end_b`` of unit ``b``; ``None``
     when they cannot be one line."""
-    z2 = link_costs(a.ends_xy[end_a][None], a.out_dirs[end_a][None], np.array([a.behind_m]),
-                    np.array([a.angle_sigma_rad]), b.ends_xy[end_b][None], b.out_dirs[end_b][None],
-                    np.array([b.behind_m]), np.array([b.angle_sigma_rad]), params, max_gap_m)[0]
+    z2 = link_costs(
+        a.ends_xy[end_a][None],
+        a.out_dirs[end_a][None],
+        np.array([a.behind_m]),
+        np.array([a.angle_sigma_rad]),
+        b.ends_xy[end_b][None],
+        b.out_dirs[end_b][None],
+        np.array([b.behind_m]),
+        np.array([b.angle_sigma_rad]),
+        params,
+        max_gap_m,
+    )[0]
     return float(z2) if np.isfinite(z2) else None
 
 
@@ -181,7 +202,9 @@ def runs_across_path(pieces: Pieces, members: np.ndarray, params: SingleTripPara
     chord = pieces.points_v[members, -1] - pieces.points_v[members, 0]
     length = np.hypot(chord[:, 0], chord[:, 1])
     ok = length > 2.0
-    return bool(ok.any()) and float(np.median(np.abs(chord[ok, 0]) / length[ok])) < params.SPLICE_ALONG_GUIDE_MIN
+    return (
+        bool(ok.any()) and float(np.median(np.abs(chord[ok, 0]) / length[ok])) < params.SPLICE_ALONG_GUIDE_MIN
+    )
 
 
 def dash_labels(points_w: np.ndarray, params: SingleTripParams) -> np.ndarray:
@@ -194,17 +217,26 @@ def dash_labels(points_w: np.ndarray, params: SingleTripParams) -> np.ndarray:
     chord = points_w[:, -1] - points_w[:, 0]
     length = np.hypot(chord[:, 0], chord[:, 1])
     middle = points_w.mean(axis=1)
-    pairs = cKDTree(middle).query_pairs(float(length.max()) + params.TRACK_MERGE_GATE_M, output_type="ndarray")
+    pairs = cKDTree(middle).query_pairs(
+        float(length.max()) + params.TRACK_MERGE_GATE_M, output_type="ndarray"
+    )
     if len(pairs) == 0:
         return np.arange(m)
     a, b = pairs[:, 0], pairs[:, 1]
-    near = np.hypot(*(middle[a] - middle[b]).T) <= np.maximum(length[a], length[b]) / 2 + params.TRACK_MERGE_GATE_M
+    near = (
+        np.hypot(*(middle[a] - middle[b]).T)
+        <= np.maximum(length[a], length[b]) / 2 + params.TRACK_MERGE_GATE_M
+    )
     a, b = a[near], b[near]
     u = chord / np.maximum(length, 1e-9)[:, None]
-    parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(params.TRACK_MAX_ANGLE_RAD)) | (np.minimum(length[a], length[b]) < 2.0)
+    parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(params.TRACK_MAX_ANGLE_RAD)) | (
+        np.minimum(length[a], length[b]) < 2.0
+    )
     a, b = a[parallel], b[parallel]
     cap = 3.0 * params.TRACK_MERGE_GATE_M
-    ok = np.flatnonzero(pair_distance(points_w[b], points_w[a], 0.0, cap).mean(1) <= params.TRACK_MERGE_GATE_M)
+    ok = np.flatnonzero(
+        pair_distance(points_w[b], points_w[a], 0.0, cap).mean(1) <= params.TRACK_MERGE_GATE_M
+    )
     ok = ok[pair_distance(points_w[a[ok]], points_w[b[ok]], 0.0, cap).mean(1) <= params.TRACK_MERGE_GATE_M]
     return component_labels(m, a[ok], b[ok])
 
@@ -223,7 +255,7 @@ def side_by_side_frames(pieces: Pieces, members: np.ndarray, params: SingleTripP
     counts = np.diff(np.r_[start, len(frame)])
     found = []
     for first, n in zip(start[counts > 1].tolist(), counts[counts > 1].tolist(), strict=True):
-        pv = pieces.points_v[members[first:first + n]]  # (n, k, 2)
+        pv = pieces.points_v[members[first : first + n]]  # (n, k, 2)
         x_lo, x_hi = pv[..., 0].min(1), pv[..., 0].max(1)
         overlap = np.minimum(x_hi[:, None], x_hi[None, :]) - np.maximum(x_lo[:, None], x_lo[None, :])
         y_mid = pv[..., 1].mean(1)
@@ -273,8 +305,14 @@ def dash_units(pieces: Pieces, track: Track, params: SingleTripParams) -> list[n
     return units
 
 
-def _attach_leftovers(pieces: Pieces, units: list[np.ndarray], source: list[int], chorded: set[int],
-                      chains: DisjointSet, params: SingleTripParams) -> None:
+def _attach_leftovers(
+    pieces: Pieces,
+    units: list[np.ndarray],
+    source: list[int],
+    chorded: set[int],
+    chains: DisjointSet,
+    params: SingleTripParams,
+) -> None:
     """A unit without a chord (no line or circle fits it: a dash seen partly, a stretch of a long
     line) rejoins the unit of its own track that its points lie on (mean distance within
     ``TRACK_MERGE_GATE_M``): the tracker's association, kept."""
@@ -294,8 +332,14 @@ def _attach_leftovers(pieces: Pieces, units: list[np.ndarray], source: list[int]
             chains.merge(u, targets[best])
 
 
-def _link(chords: list[DashChord], source: list[int], weak: list[bool], chains: DisjointSet,
-          params: SingleTripParams, max_gap_m: float) -> None:
+def _link(
+    chords: list[DashChord],
+    source: list[int],
+    weak: list[bool],
+    chains: DisjointSet,
+    params: SingleTripParams,
+    max_gap_m: float,
+) -> None:
     """Merge in ``chains`` the units whose ends continue one another (``link_cost``), the nearest
     consistent continuation first, each end once, no loops. Between units of one track (the
     tracker joined them) a gap holds up to the splicer's ``SPLICE_MAX_GAP_M``; between tracks up
@@ -316,13 +360,23 @@ def _link(chords: list[DashChord], source: list[int], weak: list[bool], chains: 
     keep = (unit[ea] != unit[eb]) & (same | ~either_weak)
     ea, eb, same, either_weak = ea[keep], eb[keep], same[keep], either_weak[keep]
     limit = np.where(same & ~either_weak, params.SPLICE_MAX_GAP_M, max_gap_m)
-    cost = link_costs(ends[ea], outs[ea], behind[ea], sigma[ea], ends[eb], outs[eb], behind[eb], sigma[eb],
-                      params, limit)
+    cost = link_costs(
+        ends[ea], outs[ea], behind[ea], sigma[ea], ends[eb], outs[eb], behind[eb], sigma[eb], params, limit
+    )
     ok = np.isfinite(cost)
     ea, eb, cost = ea[ok], eb[ok], cost[ok]
     gap = np.hypot(*(ends[ea] - ends[eb]).T)
-    candidates = sorted(zip(gap.tolist(), cost.tolist(), unit[ea].tolist(), (ea % 2).tolist(), unit[eb].tolist(),
-                            (eb % 2).tolist(), strict=True))
+    candidates = sorted(
+        zip(
+            gap.tolist(),
+            cost.tolist(),
+            unit[ea].tolist(),
+            (ea % 2).tolist(),
+            unit[eb].tolist(),
+            (eb % 2).tolist(),
+            strict=True,
+        )
+    )
     used: set[tuple[int, int]] = set()
     for _, _, ua, end_a, ub, end_b in candidates:  # the nearest consistent continuation first
         if (ua, end_a) in used or (ub, end_b) in used or chains.connected(ua, ub):
@@ -331,8 +385,9 @@ def _link(chords: list[DashChord], source: list[int], weak: list[bool], chains: 
         chains.merge(ua, ub)
 
 
-def chain_dash_tracks(pieces: Pieces, tracks: list[Track], elements, frames: np.ndarray,
-                      params: SingleTripParams) -> list[Track]:
+def chain_dash_tracks(
+    pieces: Pieces, tracks: list[Track], elements, frames: np.ndarray, params: SingleTripParams
+) -> list[Track]:
     """``tracks`` with those of dashed lane dividers re-cut into the lines their dashes form
     (module docstring); the other tracks unchanged. A dashed track that one line or circle
     carries is one unit; any other (a curved line tracked dash by dash, dashes of guide lines
@@ -343,8 +398,12 @@ def chain_dash_tracks(pieces: Pieces, tracks: list[Track], elements, frames: np.
     dashed: list[Track] = []
     for track in tracks:
         if track.type == ElementType.LANE_DIVIDER:
-            styles = [elements[frames[f]][j].style for f, j in zip(pieces.frame[track.pieces].tolist(),
-                                                                   pieces.element[track.pieces].tolist(), strict=True)]
+            styles = [
+                elements[frames[f]][j].style
+                for f, j in zip(
+                    pieces.frame[track.pieces].tolist(), pieces.element[track.pieces].tolist(), strict=True
+                )
+            ]
             if sum(s == DividerStyle.DASHED for s in styles) * 2 > len(styles):
                 dashed.append(track)
                 continue
@@ -354,7 +413,9 @@ def chain_dash_tracks(pieces: Pieces, tracks: list[Track], elements, frames: np.
     gaps = observed_dash_gaps_m(pieces, [t for t in dashed if not runs_across_path(pieces, t.pieces, params)])
     max_gap_m = params.SPLICE_MAX_GAP_M
     if len(gaps) >= params.TRACK_MIN_FRAMES:
-        max_gap_m = min(max_gap_m, float(np.quantile(gaps, DASH_GAP_QUANTILE)) + 2.0 * params.NOISE_PRIOR_ALONG_M)
+        max_gap_m = min(
+            max_gap_m, float(np.quantile(gaps, DASH_GAP_QUANTILE)) + 2.0 * params.NOISE_PRIOR_ALONG_M
+        )
     units: list[np.ndarray] = []
     source: list[int] = []  # the dashed track each unit came from
     for k, track in enumerate(dashed):
@@ -366,7 +427,9 @@ def chain_dash_tracks(pieces: Pieces, tracks: list[Track], elements, frames: np.
     _link(chords, source, _weak(pieces, units, params), chains, params, max_gap_m)
     _attach_leftovers(pieces, units, source, {c.track for c in chords}, chains, params)
     for group in sorted(chains.subsets(), key=min):
-        out.append(_track_of(pieces, ElementType.LANE_DIVIDER, np.concatenate([units[u] for u in sorted(group)])))
+        out.append(
+            _track_of(pieces, ElementType.LANE_DIVIDER, np.concatenate([units[u] for u in sorted(group)]))
+        )
     return out
 
 

@@ -90,8 +90,11 @@ def load_scenario(scenario_dir: str | Path) -> LoadedScenario:
     for tf in list_trip_files(scenario_dir):
         track = truth_poses[tf.key]
         true_xy = frame.to_local(track.lonlat_deg)
-        trips.append(LoadedTrip(load_trip(tf), np.column_stack([
-            true_xy, frame.yaw_rad(track.heading_deg, track.lonlat_deg)])))
+        trips.append(
+            LoadedTrip(
+                load_trip(tf), np.column_stack([true_xy, frame.yaw_rad(track.heading_deg, track.lonlat_deg)])
+            )
+        )
     return LoadedScenario(meta.name, frame, tuple(trips), tuple(truth_map))
 
 
@@ -99,7 +102,7 @@ def _forward_fill(xy: np.ndarray, has_fix: np.ndarray) -> np.ndarray:
     idx = np.where(has_fix, np.arange(len(xy)), 0)
     np.maximum.accumulate(idx, out=idx)
     first = int(np.argmax(has_fix)) if has_fix.any() else 0
-    idx[: first] = first
+    idx[:first] = first
     return xy[idx]
 
 
@@ -111,7 +114,7 @@ def _local_offsets(instances, est_xy: np.ndarray, true_xy: np.ndarray, window_m:
     for inst in instances:
         i0 = int(np.searchsorted(travel, travel[inst.first_frame] - window_m / 2))
         i1 = int(np.searchsorted(travel, travel[inst.last_frame] + window_m / 2))
-        out.append(metrics.umeyama_se2(est_xy[i0:i1 + 1], true_xy[i0:i1 + 1]))
+        out.append(metrics.umeyama_se2(est_xy[i0 : i1 + 1], true_xy[i0 : i1 + 1]))
     return out
 
 
@@ -121,8 +124,12 @@ NOISE_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.
 def detection_distances_m(trip: Trip, poses_xyyaw: np.ndarray, truth_map, etype: ElementType) -> np.ndarray:
     """Distance of every detected point of type ``etype`` (placed with ``poses_xyyaw``, the
     true poses) to the truth of that type, capped at ``metrics.CD_CAP_M``; ``(P,)``."""
-    pts = [se2.transform_points(poses_xyyaw[k], e.points_xy_vehicle)
-           for k, frame_elements in enumerate(trip.elements) for e in frame_elements if e.type == etype]
+    pts = [
+        se2.transform_points(poses_xyyaw[k], e.points_xy_vehicle)
+        for k, frame_elements in enumerate(trip.elements)
+        for e in frame_elements
+        if e.type == etype
+    ]
     segments = metrics._segments(metrics._as_chains([f for f in truth_map if f.type == etype]))
     if not pts or not len(segments):
         return np.zeros(0)
@@ -144,22 +151,38 @@ class _InstanceHits:
                 continue
             d_pred = metrics.distances_to_segments(metrics.sample_features(p_feats), segs)
             d_truth = metrics.distances_to_segments(samples, metrics._segments(metrics._as_chains(p_feats)))
-            self.hits[etype] += np.array([np.sum(d_pred <= metrics.MATCH_THRESHOLD_M), len(d_pred),
-                                          np.sum(d_truth <= metrics.MATCH_THRESHOLD_M), len(d_truth)], float)
+            self.hits[etype] += np.array(
+                [
+                    np.sum(d_pred <= metrics.MATCH_THRESHOLD_M),
+                    len(d_pred),
+                    np.sum(d_truth <= metrics.MATCH_THRESHOLD_M),
+                    len(d_truth),
+                ],
+                float,
+            )
 
     def scores(self) -> dict:
         total = np.sum(np.stack(list(self.hits.values())), axis=0)
         return {
             "correctness": float(total[0] / max(total[1], 1)),
             "completeness": float(total[2] / max(total[3], 1)),
-            "per_type": {t.value: {"correctness": float(h[0] / h[1]) if h[1] else None,
-                                   "completeness": float(h[2] / h[3]) if h[3] else None}
-                         for t, h in self.hits.items() if h[1] or h[3]},
+            "per_type": {
+                t.value: {
+                    "correctness": float(h[0] / h[1]) if h[1] else None,
+                    "completeness": float(h[2] / h[3]) if h[3] else None,
+                }
+                for t, h in self.hits.items()
+                if h[1] or h[3]
+            },
         }
 
 
-def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT, true_poses: bool = False,
-                    local_offset_m: float = LOCAL_OFFSET_M) -> dict:
+def evaluate_loaded(
+    scenario: LoadedScenario,
+    params: SingleTripParams = DEFAULT,
+    true_poses: bool = False,
+    local_offset_m: float = LOCAL_OFFSET_M,
+) -> dict:
     """The figures of the module docstring for one loaded scenario. ``true_poses``: the pose
     smoothing is replaced by the true poses, which isolates the element stages (tracking,
     splicing, ghost rejection) from the pose error."""
@@ -194,11 +217,17 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
             for t in NOISE_TYPES:
                 if t in rec.noise and rec.noise[t].n_samples:
                     estimated[t].append(rec.noise[t].lateral_sigma_m)
-                observed[t].append(detection_distances_m(trip, loaded.true_poses_xyyaw, scenario.truth_map, t))
-        for hits, offsets in ((rigid, [truth_T_est] * len(rec.instances)),
-                              (local, _local_offsets(rec.instances, est_xy, true_xy, local_offset_m))):
-            predicted = [MapFeature(i.type, metrics.apply_se2(T, i.points_xy_world), i.style)
-                         for i, T in zip(rec.instances, offsets, strict=True)]
+                observed[t].append(
+                    detection_distances_m(trip, loaded.true_poses_xyyaw, scenario.truth_map, t)
+                )
+        for hits, offsets in (
+            (rigid, [truth_T_est] * len(rec.instances)),
+            (local, _local_offsets(rec.instances, est_xy, true_xy, local_offset_m)),
+        ):
+            predicted = [
+                MapFeature(i.type, metrics.apply_se2(T, i.points_xy_world), i.style)
+                for i, T in zip(rec.instances, offsets, strict=True)
+            ]
             hits.add(predicted, scenario.truth_map, true_xy)
 
     def rms(parts: list[np.ndarray]) -> float:
@@ -211,8 +240,10 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
         d = np.concatenate(observed[t]) if observed[t] else np.zeros(0)
         d = d[d < metrics.CD_CAP_M]  # at the cap: not a view of a true element (or beyond the truth kept)
         if estimated[t] and len(d):
-            noise[t.value] = {"estimated_lateral_sigma_m": float(np.mean(estimated[t])),
-                              "observed_lateral_sigma_m": float(1.4826 * np.median(d))}
+            noise[t.value] = {
+                "estimated_lateral_sigma_m": float(np.mean(estimated[t])),
+                "observed_lateral_sigma_m": float(1.4826 * np.median(d)),
+            }
     return {
         "scenario": scenario.name,
         "true_poses": true_poses,
@@ -234,8 +265,12 @@ def evaluate_loaded(scenario: LoadedScenario, params: SingleTripParams = DEFAULT
     }
 
 
-def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAULT, true_poses: bool = False,
-                      local_offset_m: float = LOCAL_OFFSET_M) -> dict:
+def evaluate_scenario(
+    scenario_dir: str | Path,
+    params: SingleTripParams = DEFAULT,
+    true_poses: bool = False,
+    local_offset_m: float = LOCAL_OFFSET_M,
+) -> dict:
     """:func:`evaluate_loaded` on a scenario folder."""
     return evaluate_loaded(load_scenario(scenario_dir), params, true_poses, local_offset_m)
 
@@ -243,6 +278,7 @@ def evaluate_scenario(scenario_dir: str | Path, params: SingleTripParams = DEFAU
 def pose_only(scenario_dir: str | Path, params: SingleTripParams = DEFAULT) -> dict:
     """ATE / trip-aligned ATE / RPE of the smoothed poses only (quick parameter studies)."""
     from csr_core.single_trip.pose_graph import smooth_poses
+
     meta = read_scenario_meta(scenario_dir)
     frame = meta.frame
     truth_poses = read_poses_dir(Path(scenario_dir) / "truth" / "poses")
@@ -250,9 +286,15 @@ def pose_only(scenario_dir: str | Path, params: SingleTripParams = DEFAULT) -> d
     for tf in list_trip_files(scenario_dir):
         trip = load_trip(tf)
         true_xy = frame.to_local(truth_poses[tf.key].lonlat_deg)
-        sp = smooth_poses(trip.timestamps_s, frame.to_local(trip.gnss_lonlat_deg), trip.fix_status,
-                          trip.gnss_std_m, frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
-                          trip.odom_xyyaw, params)
+        sp = smooth_poses(
+            trip.timestamps_s,
+            frame.to_local(trip.gnss_lonlat_deg),
+            trip.fix_status,
+            trip.gnss_std_m,
+            frame.grid_heading_deg(trip.gnss_heading_deg, trip.gnss_lonlat_deg),
+            trip.odom_xyyaw,
+            params,
+        )
         est = sp.poses_xyyaw_world[:, :2]
         a.append(metrics.position_errors(est, true_xy))
         al.append(metrics.position_errors(metrics.apply_se2(metrics.umeyama_se2(est, true_xy), est), true_xy))
@@ -265,23 +307,52 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenarios", nargs="+")
     ap.add_argument("--json", action="store_true", help="one JSON object per scenario")
-    ap.add_argument("--true-poses", action="store_true",
-                    help="replace the pose smoothing by the true poses (element stages alone)")
-    ap.add_argument("--local-offset-m", type=float, default=LOCAL_OFFSET_M,
-                    help="travel around an instance over which the 'local' figures remove the pose offset "
-                         f"(default {LOCAL_OFFSET_M:g}; the issue's figure is 'rigid', the trip's own offset)")
-    ap.add_argument("--gnss-bias-state", action=argparse.BooleanOptionalAction, default=DEFAULT.GNSS_BIAS_STATE,
-                    help="the last pose solve with the GNSS error as a Gauss-Markov state (gnss_bias.py; "
-                         f"default {DEFAULT.GNSS_BIAS_STATE})")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="a SingleTripParams field to change (repeatable), e.g. DASH_CHAINING=false")
+    ap.add_argument(
+        "--true-poses",
+        action="store_true",
+        help="replace the pose smoothing by the true poses (element stages alone)",
+    )
+    ap.add_argument(
+        "--local-offset-m",
+        type=float,
+        default=LOCAL_OFFSET_M,
+        help="travel around an instance over which the 'local' figures remove the pose offset "
+        f"(default {LOCAL_OFFSET_M:g}; the issue's figure is 'rigid', the trip's own offset)",
+    )
+    ap.add_argument(
+        "--gnss-bias-state",
+        action=argparse.BooleanOptionalAction,
+        default=DEFAULT.GNSS_BIAS_STATE,
+        help="the last pose solve with the GNSS error as a Gauss-Markov state (gnss_bias.py; "
+        f"default {DEFAULT.GNSS_BIAS_STATE})",
+    )
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a SingleTripParams field to change (repeatable), e.g. DASH_CHAINING=false",
+    )
     args = ap.parse_args(argv)
     try:
         params = replace_fields(replace(DEFAULT, GNSS_BIAS_STATE=args.gnss_bias_state), args.param)
     except ValueError as exc:
         ap.error(str(exc))
-    cols = ("scenario", "trips", "km", "ate_raw_gnss_m", "ate_smoothed_m", "ate_trip_aligned_m", "rpe_raw_gnss_m",
-            "rpe_smoothed_m", "jump_frames", "jump_max_smoothed_err_m", "rigid", "local", "seconds_per_km")
+    cols = (
+        "scenario",
+        "trips",
+        "km",
+        "ate_raw_gnss_m",
+        "ate_smoothed_m",
+        "ate_trip_aligned_m",
+        "rpe_raw_gnss_m",
+        "rpe_smoothed_m",
+        "jump_frames",
+        "jump_max_smoothed_err_m",
+        "rigid",
+        "local",
+        "seconds_per_km",
+    )
     if not args.json:
         print("| " + " | ".join(cols) + " |")  # noqa: T201
         print("|" + "---|" * len(cols))  # noqa: T201
@@ -300,8 +371,13 @@ def main(argv: list[str] | None = None) -> int:
         print("| " + " | ".join(cells) + " |")  # noqa: T201
         for name in ("rigid", "local"):
             print(f"  per type, {name}: " + json.dumps(r[name]["per_type"]))  # noqa: T201
-        print("  CPU s/km per stage: " + ", ".join(f"{k} {v:.3f}"  # noqa: T201
-                                                  for k, v in r["stage_seconds_per_km"].items()))
+        print(  # noqa: T201
+            "  CPU s/km per stage: "
+            + ", ".join(
+                f"{k} {v:.3f}"  # noqa: T201
+                for k, v in r["stage_seconds_per_km"].items()
+            )
+        )
     return 0
 
 

@@ -42,8 +42,13 @@ def _bias_key(k: int) -> int:
     return gtsam.symbol("b", k)
 
 
-def white_sigma_m(timestamps_s: np.ndarray, fix_xy_model: np.ndarray, gnss_xy: np.ndarray, kept: np.ndarray,
-                  params: SingleTripParams) -> float | None:
+def white_sigma_m(
+    timestamps_s: np.ndarray,
+    fix_xy_model: np.ndarray,
+    gnss_xy: np.ndarray,
+    kept: np.ndarray,
+    params: SingleTripParams,
+) -> float | None:
     """Per-axis white noise of the ``kept`` fixes, from the trip itself: the change of ``gnss -
     model`` between consecutive kept fixes (a bias hardly moves in one fix interval, so what
     changes is the white part, twice). Robust (MAD) over both axes; at least
@@ -60,8 +65,14 @@ def white_sigma_m(timestamps_s: np.ndarray, fix_xy_model: np.ndarray, gnss_xy: n
     return max(1.4826 * mad / np.sqrt(2.0), params.GNSS_WHITE_SIGMA_MIN_M)
 
 
-def white_sigmas_m(timestamps_s: np.ndarray, status: np.ndarray, fix_xy_model: np.ndarray, gnss_xy: np.ndarray,
-                   kept: np.ndarray, params: SingleTripParams) -> np.ndarray:
+def white_sigmas_m(
+    timestamps_s: np.ndarray,
+    status: np.ndarray,
+    fix_xy_model: np.ndarray,
+    gnss_xy: np.ndarray,
+    kept: np.ndarray,
+    params: SingleTripParams,
+) -> np.ndarray:
     """White sigma per fix (N,): measured per fix status (an RTK-fixed spell's centimetres are
     not a single-point fix's decimetres); a status with too few fixes takes the trip's pooled
     value, a trip with too few the sigma floor."""
@@ -121,8 +132,14 @@ def fill_from_nearest(per_node: np.ndarray) -> np.ndarray:
     return per_node[np.where(np.abs(before - k) < np.abs(after - k), before, after)]
 
 
-def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarray, node_sigma_m: np.ndarray,
-                           node_run: np.ndarray, bias_xy_lin: np.ndarray, tau_s: float) -> None:
+def add_gauss_markov_chain(
+    g: gtsam.NonlinearFactorGraph,
+    node_time_s: np.ndarray,
+    node_sigma_m: np.ndarray,
+    node_run: np.ndarray,
+    bias_xy_lin: np.ndarray,
+    tau_s: float,
+) -> None:
     """The first-order Gauss-Markov prior of the biases: ``b_0 ~ N(0, s_0^2)`` and, in units of
     each node's stationary sigma, ``b_{k+1} / s_{k+1} = phi b_k / s_k + w``, ``phi = exp(-dt /
     tau)``, ``w ~ N(0, 1 - phi^2)``; ``phi = 0`` where ``node_run`` changes (a new fix status, or
@@ -132,8 +149,13 @@ def add_gauss_markov_chain(g: gtsam.NonlinearFactorGraph, node_time_s: np.ndarra
     ``LinearContainerFactor``, linearised at ``bias_xy_lin``: a bias keeps its yaw at 0, where
     ``Pose2``'s local coordinates are the plain translation difference and the factor is exact."""
     s0 = float(node_sigma_m[0])
-    g.add(gtsam.PriorFactorPose2(_bias_key(0), gtsam.Pose2(0.0, 0.0, 0.0),
-                                 gtsam.noiseModel.Diagonal.Sigmas(np.array([s0, s0, BIAS_YAW_SIGMA_RAD]))))
+    g.add(
+        gtsam.PriorFactorPose2(
+            _bias_key(0),
+            gtsam.Pose2(0.0, 0.0, 0.0),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([s0, s0, BIAS_YAW_SIGMA_RAD])),
+        )
+    )
     lin = gtsam.Values()
     for k, (x, y) in enumerate(bias_xy_lin.tolist()):
         lin.insert(_bias_key(k), gtsam.Pose2(x, y, 0.0))
@@ -187,11 +209,17 @@ def build_bias_graph(
     est = gtsam.noiseModel.mEstimator.Cauchy.Create(params.GNSS_CAUCHY_C_SIGMAS)
     models: dict[float, gtsam.noiseModel.Base] = {}  # one per distinct white sigma (one per status)
     # b^-1 x = (p - b, yaw): measured (z, the node's yaw now), so the log map's rotation is ~0
-    for node, z, w in zip(node_of_fix.tolist(), fix_xy_at_node.tolist(), np.asarray(white_m).tolist(), strict=True):
+    for node, z, w in zip(
+        node_of_fix.tolist(), fix_xy_at_node.tolist(), np.asarray(white_m).tolist(), strict=True
+    ):
         model = models.get(w)
         if model is None:
-            model = models[w] = gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Diagonal.Sigmas(
-                np.array([w, w, FREE_ROTATION_SIGMA_RAD])))
-        g.add(gtsam.BetweenFactorPose2(_bias_key(node), node, gtsam.Pose2(z[0], z[1], float(node_poses[node, 2])),
-                                       model))
+            model = models[w] = gtsam.noiseModel.Robust.Create(
+                est, gtsam.noiseModel.Diagonal.Sigmas(np.array([w, w, FREE_ROTATION_SIGMA_RAD]))
+            )
+        g.add(
+            gtsam.BetweenFactorPose2(
+                _bias_key(node), node, gtsam.Pose2(z[0], z[1], float(node_poses[node, 2])), model
+            )
+        )
     return g, values

@@ -50,8 +50,9 @@ class CourseNoise:
     neighbour_correlation: float  # rho between consecutive fixes (0: white)
 
 
-def _change_sigmas(residual_rad: np.ndarray, frames: np.ndarray, lag: int, bands: np.ndarray,
-                   min_pairs: int) -> tuple[float, np.ndarray]:
+def _change_sigmas(
+    residual_rad: np.ndarray, frames: np.ndarray, lag: int, bands: np.ndarray, min_pairs: int
+) -> tuple[float, np.ndarray]:
     """The per-fix sigma from the changes of ``residual`` between fixes ``lag`` frames apart (both
     with a course): robust spread / sqrt(2), over all pairs and per speed band (``bands`` of
     ``frames``, 0..SPEED_BANDS-1); NaN where there are fewer than ``min_pairs``."""
@@ -61,14 +62,23 @@ def _change_sigmas(residual_rad: np.ndarray, frames: np.ndarray, lag: int, bands
     first = frames[paired]
     change = np.asarray(se2.wrap_angle(residual_rad[first + lag] - residual_rad[first]))
     band = bands[paired]
-    per_band = np.array([robust_sigma(change[band == b]) if np.sum(band == b) >= min_pairs else np.nan
-                         for b in range(SPEED_BANDS)]) / np.sqrt(2.0)
+    per_band = np.array(
+        [
+            robust_sigma(change[band == b]) if np.sum(band == b) >= min_pairs else np.nan
+            for b in range(SPEED_BANDS)
+        ]
+    ) / np.sqrt(2.0)
     pooled = robust_sigma(change) / np.sqrt(2.0) if len(change) >= min_pairs else float("nan")
     return pooled, per_band
 
 
-def course_noise(heading_yaw_rad: np.ndarray, odom_yaw_rad: np.ndarray, speed_mps: np.ndarray,
-                 timestamps_s: np.ndarray, params: SingleTripParams) -> CourseNoise | None:
+def course_noise(
+    heading_yaw_rad: np.ndarray,
+    odom_yaw_rad: np.ndarray,
+    speed_mps: np.ndarray,
+    timestamps_s: np.ndarray,
+    params: SingleTripParams,
+) -> CourseNoise | None:
     """The per-fix course sigmas of one trip (module docstring); ``heading_yaw_rad (N,)`` NaN
     where there is no course. None when the trip has too few consecutive courses to measure them
     (the graph then falls back to one course per node at ``GNSS_HEADING_SIGMA_RAD``)."""

@@ -99,8 +99,9 @@ class GnssConsistency:
     def failing_stretches_s(self) -> list[tuple[float, float]]:
         """Consecutive failing windows merged: (start, end) times in seconds."""
         out: list[tuple[float, float]] = []
-        for a, b, z in zip(self.window_start_s.tolist(), self.window_end_s.tolist(), self.window_z.tolist(),
-                           strict=True):
+        for a, b, z in zip(
+            self.window_start_s.tolist(), self.window_end_s.tolist(), self.window_z.tolist(), strict=True
+        ):
             if z <= self.z_limit:
                 continue
             if out and a <= out[-1][1] + 1.0:  # the next window (its first fix a frame later)
@@ -127,23 +128,34 @@ class TripQuality:
     rmse_to_gnss_m: float
 
     def as_dict(self) -> dict:
-        return {"verdict": self.verdict.value, "reason": self.reason,
-                "stretches_s": [[round(a, 1), round(b, 1)] for a, b in self.stretches_s],
-                "worst_z": round(self.worst_z, 2), "z_limit": round(self.z_limit, 2),
-                "median_offset_m": round(self.median_offset_m, 3),
-                "gnss_median_expected_m": round(self.expected_median_m, 3),
-                "rejected_share": round(self.rejected_share, 3),
-                "rmse_to_gnss_m": round(self.rmse_to_gnss_m, 3)}
+        return {
+            "verdict": self.verdict.value,
+            "reason": self.reason,
+            "stretches_s": [[round(a, 1), round(b, 1)] for a, b in self.stretches_s],
+            "worst_z": round(self.worst_z, 2),
+            "z_limit": round(self.z_limit, 2),
+            "median_offset_m": round(self.median_offset_m, 3),
+            "gnss_median_expected_m": round(self.expected_median_m, 3),
+            "rejected_share": round(self.rejected_share, 3),
+            "rmse_to_gnss_m": round(self.rmse_to_gnss_m, 3),
+        }
 
     @property
     def degraded(self) -> bool:
         return self.verdict == TripVerdict.DEGRADED
 
 
-def gnss_consistency(timestamps_s: np.ndarray, poses_xyyaw_world: np.ndarray, gnss_xy_world: np.ndarray,
-                     gnss_sigma_m: np.ndarray, has_fix: np.ndarray, params: SingleTripParams,
-                     gnss_latency_s: float = 0.0, inlier: np.ndarray | None = None,
-                     min_fixes: int = 5) -> GnssConsistency:
+def gnss_consistency(
+    timestamps_s: np.ndarray,
+    poses_xyyaw_world: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    gnss_sigma_m: np.ndarray,
+    has_fix: np.ndarray,
+    params: SingleTripParams,
+    gnss_latency_s: float = 0.0,
+    inlier: np.ndarray | None = None,
+    min_fixes: int = 5,
+) -> GnssConsistency:
     """The test of :class:`GnssConsistency`. Arrays (N, ...) per frame; ``gnss_sigma_m`` the
     per-axis 1-sigma of each fix (inf: none); a fix stamped t is compared with the pose at
     ``t - gnss_latency_s``; ``inlier`` the fixes the smoother kept (None: all, and no rejection
@@ -156,8 +168,11 @@ def gnss_consistency(timestamps_s: np.ndarray, poses_xyyaw_world: np.ndarray, gn
     if len(fix) == 0:
         return GnssConsistency(empty, empty, empty, math.inf, 0.0, 0.0, math.inf, 0.0, 1.0, 0.0)
     at = timestamps_s[fix] - gnss_latency_s
-    pose_xy = (interpolate_poses(timestamps_s, poses_xyyaw_world, at)[:, :2] if gnss_latency_s
-               else poses_xyyaw_world[fix, :2])
+    pose_xy = (
+        interpolate_poses(timestamps_s, poses_xyyaw_world, at)[:, :2]
+        if gnss_latency_s
+        else poses_xyyaw_world[fix, :2]
+    )
     offset = gnss_xy_world[fix] - pose_xy
     dist = np.linalg.norm(offset, axis=1)
     kept = np.ones(len(fix), bool) if inlier is None else np.asarray(inlier, bool)[fix]
@@ -179,12 +194,17 @@ def gnss_consistency(timestamps_s: np.ndarray, poses_xyyaw_world: np.ndarray, gn
     # chi-square(2) survival is exp(-x/2): the per-window quantile of the shared false-alarm rate
     z_limit = math.sqrt(2.0 * math.log(n_w / params.INTEGRITY_FALSE_ALARM))
     return GnssConsistency(
-        np.asarray(starts), np.asarray(ends), np.asarray(zs), z_limit,
+        np.asarray(starts),
+        np.asarray(ends),
+        np.asarray(zs),
+        z_limit,
         median_offset_m=float(np.median(dist)),
         expected_median_m=RAYLEIGH_MEDIAN * float(np.median(gnss_sigma_m[fix])),
         median_factor=params.INTEGRITY_MEDIAN_FACTOR,
-        rejected_share=rejected, rejected_limit=params.INTEGRITY_MAX_REJECTED_SHARE,
-        rmse_to_gnss_m=float(np.sqrt(np.mean(dist**2))))
+        rejected_share=rejected,
+        rejected_limit=params.INTEGRITY_MAX_REJECTED_SHARE,
+        rmse_to_gnss_m=float(np.sqrt(np.mean(dist**2))),
+    )
 
 
 def _jumps(offset_xy: np.ndarray, kept: np.ndarray) -> np.ndarray:
@@ -221,26 +241,41 @@ def _why(check: GnssConsistency) -> str:
     """Why ``check`` failed, in words."""
     parts = []
     if not check.windows_passed:
-        parts.append(f"poses {check.worst_z:.1f} sigma off the trip's GNSS (limit {check.z_limit:.1f}) at "
-                     + _describe(check.failing_stretches_s()))
+        parts.append(
+            f"poses {check.worst_z:.1f} sigma off the trip's GNSS (limit {check.z_limit:.1f}) at "
+            + _describe(check.failing_stretches_s())
+        )
     if not check.median_passed:
-        parts.append(f"poses a median {check.median_offset_m:.2f} m from the trip's GNSS, more than "
-                     f"{check.median_factor:g} x the {check.expected_median_m:.2f} m its error model gives")
+        parts.append(
+            f"poses a median {check.median_offset_m:.2f} m from the trip's GNSS, more than "
+            f"{check.median_factor:g} x the {check.expected_median_m:.2f} m its error model gives"
+        )
     if not check.rejected_passed:
-        parts.append(f"{100 * check.rejected_share:.0f} % of the fixes rejected by the smoother (limit "
-                     f"{100 * check.rejected_limit:.0f} %)")
+        parts.append(
+            f"{100 * check.rejected_share:.0f} % of the fixes rejected by the smoother (limit "
+            f"{100 * check.rejected_limit:.0f} %)"
+        )
     return "; ".join(parts)
 
 
 def _badness(check: GnssConsistency) -> float:
     """How far ``check`` is past its worst limit (below 1: passed)."""
-    return max(check.worst_z / check.z_limit, check.median_offset_m / max(check.median_factor *
-               check.expected_median_m, 1e-9), check.rejected_share / max(check.rejected_limit, 1e-9))
+    return max(
+        check.worst_z / check.z_limit,
+        check.median_offset_m / max(check.median_factor * check.expected_median_m, 1e-9),
+        check.rejected_share / max(check.rejected_limit, 1e-9),
+    )
 
 
-def smooth_poses_checked(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_status: np.ndarray,
-                         gnss_std_m: np.ndarray, gnss_heading_deg: np.ndarray, odom_xyyaw: np.ndarray,
-                         params: SingleTripParams) -> tuple[SmoothedPoses, TripQuality]:
+def smooth_poses_checked(
+    timestamps_s: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    gnss_status: np.ndarray,
+    gnss_std_m: np.ndarray,
+    gnss_heading_deg: np.ndarray,
+    odom_xyyaw: np.ndarray,
+    params: SingleTripParams,
+) -> tuple[SmoothedPoses, TripQuality]:
     """Eq. 2 (:func:`smooth_poses`) with the integrity test, the repair and the GNSS-anchored
     fallback of the module docstring. Returns the poses kept and their verdict; of three
     solves that all fail, the one least past its limits is kept."""
@@ -249,12 +284,31 @@ def smooth_poses_checked(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gn
     has_fix = np.isfinite(sigma) & np.all(np.isfinite(gnss_xy_world), axis=1)
 
     def check(smoothed: SmoothedPoses) -> GnssConsistency:
-        return gnss_consistency(timestamps_s, smoothed.poses_xyyaw_world, gnss_xy_world, sigma, has_fix, params,
-                                smoothed.gnss_latency_s, inlier=smoothed.gnss_inlier)
+        return gnss_consistency(
+            timestamps_s,
+            smoothed.poses_xyyaw_world,
+            gnss_xy_world,
+            sigma,
+            has_fix,
+            params,
+            smoothed.gnss_latency_s,
+            inlier=smoothed.gnss_inlier,
+        )
 
-    def quality(verdict: TripVerdict, reason: str, first: GnssConsistency, kept: GnssConsistency) -> TripQuality:
-        return TripQuality(verdict, reason, tuple(first.failing_stretches_s()), kept.worst_z, kept.z_limit,
-                           kept.median_offset_m, kept.expected_median_m, kept.rejected_share, kept.rmse_to_gnss_m)
+    def quality(
+        verdict: TripVerdict, reason: str, first: GnssConsistency, kept: GnssConsistency
+    ) -> TripQuality:
+        return TripQuality(
+            verdict,
+            reason,
+            tuple(first.failing_stretches_s()),
+            kept.worst_z,
+            kept.z_limit,
+            kept.median_offset_m,
+            kept.expected_median_m,
+            kept.rejected_share,
+            kept.rmse_to_gnss_m,
+        )
 
     smoothed = smooth_poses(*args, params)
     first = check(smoothed)
@@ -264,30 +318,51 @@ def smooth_poses_checked(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gn
     log.info("trip poses off their GNSS (%s): repairing", why)
     # repair: no odometry yaw calibration, the heading and the distance loosely held (the GNSS
     # course and positions set them), hardly any fix rejected
-    repair_params = replace(params, CAL_ENABLED=False, GNSS_MIN_INLIER_SHARE=0.9,
-                            ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_REPAIR_YAW_FACTOR,
-                            ODOM_SIGMA_XY_PER_M=params.ODOM_SIGMA_XY_PER_M * params.INTEGRITY_REPAIR_XY_FACTOR)
+    repair_params = replace(
+        params,
+        CAL_ENABLED=False,
+        GNSS_MIN_INLIER_SHARE=0.9,
+        ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_REPAIR_YAW_FACTOR,
+        ODOM_SIGMA_XY_PER_M=params.ODOM_SIGMA_XY_PER_M * params.INTEGRITY_REPAIR_XY_FACTOR,
+    )
     repaired = smooth_poses(*args, repair_params)
     second = check(repaired)
     if second.passed:
-        return repaired, quality(TripVerdict.REPAIRED, why + "; repaired by a re-solve without the odometry "
-                                 "yaw calibration", first, second)
+        return repaired, quality(
+            TripVerdict.REPAIRED,
+            why + "; repaired by a re-solve without the odometry yaw calibration",
+            first,
+            second,
+        )
     # fallback: GNSS-anchored (odometry only smooths between fixes), marked degraded
-    anchored_params = replace(repair_params, GNSS_BIAS_STATE=False, GNSS_CORRELATION_S=0.0,
-                              ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_ANCHOR_YAW_FACTOR,
-                              ODOM_SIGMA_XY_PER_M=params.ODOM_SIGMA_XY_PER_M * params.INTEGRITY_ANCHOR_YAW_FACTOR)
+    anchored_params = replace(
+        repair_params,
+        GNSS_BIAS_STATE=False,
+        GNSS_CORRELATION_S=0.0,
+        ODOM_SIGMA_YAW_PER_S=params.ODOM_SIGMA_YAW_PER_S * params.INTEGRITY_ANCHOR_YAW_FACTOR,
+        ODOM_SIGMA_XY_PER_M=params.ODOM_SIGMA_XY_PER_M * params.INTEGRITY_ANCHOR_YAW_FACTOR,
+    )
     anchored = smooth_poses(*args, anchored_params)
     third = check(anchored)
-    candidates = [(smoothed, first, "the first solve's poses"), (repaired, second, "the repair's poses"),
-                  (anchored, third, "GNSS-anchored poses")]
+    candidates = [
+        (smoothed, first, "the first solve's poses"),
+        (repaired, second, "the repair's poses"),
+        (anchored, third, "GNSS-anchored poses"),
+    ]
     poses, kept, which = min(candidates, key=lambda c: _badness(c[1]))
     log.warning("trip degraded: %s; the repair failed too: %s kept", why, which)
     return poses, quality(TripVerdict.DEGRADED, f"{why}; the repair failed too: {which} kept", first, kept)
 
 
-def check_aligned_poses(trip: Any, single_poses_xyyaw: np.ndarray, aligned_poses_xyyaw: np.ndarray,
-                        frame: LocalFrame, params: SingleTripParams, gnss_latency_s: float = 0.0,
-                        gnss_inlier: np.ndarray | None = None) -> tuple[np.ndarray, str | None]:
+def check_aligned_poses(
+    trip: Any,
+    single_poses_xyyaw: np.ndarray,
+    aligned_poses_xyyaw: np.ndarray,
+    frame: LocalFrame,
+    params: SingleTripParams,
+    gnss_latency_s: float = 0.0,
+    gnss_inlier: np.ndarray | None = None,
+) -> tuple[np.ndarray, str | None]:
     """The same test on a trip's aligned poses (both arrays (N, 3) in ``frame``; ``gnss_inlier``
     the fixes the smoother kept): when they fail it and its single-trip poses do better, the
     alignment moved the trip by more than its GNSS error model allows; the single-trip poses are
@@ -301,12 +376,16 @@ def check_aligned_poses(trip: Any, single_poses_xyyaw: np.ndarray, aligned_poses
     # aligned poses sit near the truth, so their offsets are the fixes' whole error, bias
     # included (the single-trip poses follow the bias): the whole-trip median is bounded like
     # one window, at the error model's tail, and the smoother's rejections are not judged again
-    lenient = replace(params, INTEGRITY_MAX_REJECTED_SHARE=1.0,
-                      INTEGRITY_MEDIAN_FACTOR=params.INTEGRITY_ALIGNED_MEDIAN_FACTOR)
+    lenient = replace(
+        params,
+        INTEGRITY_MAX_REJECTED_SHARE=1.0,
+        INTEGRITY_MEDIAN_FACTOR=params.INTEGRITY_ALIGNED_MEDIAN_FACTOR,
+    )
 
     def check(poses: np.ndarray) -> GnssConsistency:
-        return gnss_consistency(trip.timestamps_s, poses, gnss_xy, sigma, has_fix, lenient, gnss_latency_s,
-                                inlier=gnss_inlier)
+        return gnss_consistency(
+            trip.timestamps_s, poses, gnss_xy, sigma, has_fix, lenient, gnss_latency_s, inlier=gnss_inlier
+        )
 
     aligned = check(aligned_poses_xyyaw)
     if aligned.passed:

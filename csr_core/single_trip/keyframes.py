@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def select_keyframes(poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, distance_m: float,
-                     period_s: float) -> np.ndarray:
+def select_keyframes(
+    poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, distance_m: float, period_s: float
+) -> np.ndarray:
     """Indices (K,) ascending: the first and last frame, and each frame at least ``distance_m`` of
     travel or ``period_s`` after the previous keyframe. Travel is summed along the path, so a
     vehicle driving back and forth still gets keyframes."""
@@ -19,8 +20,9 @@ def select_keyframes(poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, distance
     return every_travel_or_time(travel, np.asarray(timestamps_s, float), distance_m, period_s, keep_last=True)
 
 
-def every_travel_or_time(travel_m: np.ndarray, timestamps_s: np.ndarray, distance_m: float, period_s: float,
-           keep_last: bool) -> np.ndarray:
+def every_travel_or_time(
+    travel_m: np.ndarray, timestamps_s: np.ndarray, distance_m: float, period_s: float, keep_last: bool
+) -> np.ndarray:
     n = len(travel_m)
     out = [0]
     last_d, last_t = travel_m[0], timestamps_s[0]
@@ -39,8 +41,11 @@ def every_travel_or_time(travel_m: np.ndarray, timestamps_s: np.ndarray, distanc
     return np.asarray(out, dtype=np.int64)
 
 
-def select_tracking_frames(poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, step_m: float,
-                           step_s: float) -> np.ndarray:
+def select_tracking_frames(
+    poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, step_m: float, step_s: float
+) -> np.ndarray:
     """Frames fed to element tracking: one every ``step_m`` of travel or ``step_s`` of time."""
     step = np.r_[0.0, np.linalg.norm(np.diff(poses_xyyaw[:, :2], axis=0), axis=1)]
-    return every_travel_or_time(np.cumsum(step), np.asarray(timestamps_s, float), step_m, step_s, keep_last=False)
+    return every_travel_or_time(
+        np.cumsum(step), np.asarray(timestamps_s, float), step_m, step_s, keep_last=False
+    )

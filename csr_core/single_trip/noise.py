@@ -33,8 +33,11 @@ def robust_sigma(residuals: np.ndarray) -> float:
     return float(1.4826 * 0.5 * (dev[lo] + dev[hi]))
 
 
-def estimate_noise(lateral: dict[ElementType, list[np.ndarray]], along: dict[ElementType, list[np.ndarray]],
-                   params: SingleTripParams) -> dict[ElementType, ElementNoise]:
+def estimate_noise(
+    lateral: dict[ElementType, list[np.ndarray]],
+    along: dict[ElementType, list[np.ndarray]],
+    params: SingleTripParams,
+) -> dict[ElementType, ElementNoise]:
     """Per type: lateral sigma (normal to the element) and along-track sigma (element ends for
     lines, outline vertices along the heading for polygons), robust. Types with fewer than
     ``NOISE_MIN_SAMPLES`` residuals keep the prior (``n_samples`` says how many there were);
@@ -43,11 +46,16 @@ def estimate_noise(lateral: dict[ElementType, list[np.ndarray]], along: dict[Ele
     for etype in ElementType:
         lat = np.concatenate(lateral.get(etype, [])) if lateral.get(etype) else np.zeros(0)
         alo = np.concatenate(along.get(etype, [])) if along.get(etype) else np.zeros(0)
-        lat_sigma = robust_sigma(lat) if len(lat) >= params.NOISE_MIN_SAMPLES else params.NOISE_PRIOR_LATERAL_M
+        lat_sigma = (
+            robust_sigma(lat) if len(lat) >= params.NOISE_MIN_SAMPLES else params.NOISE_PRIOR_LATERAL_M
+        )
         if len(alo) >= params.NOISE_MIN_SAMPLES:
             along_sigma = robust_sigma(alo)
         else:
             along_sigma = max(params.NOISE_PRIOR_ALONG_M, lat_sigma)
-        out[etype] = ElementNoise(lateral_sigma_m=max(lat_sigma, 1e-3), along_sigma_m=max(along_sigma, 1e-3),
-                                  n_samples=int(len(lat)))
+        out[etype] = ElementNoise(
+            lateral_sigma_m=max(lat_sigma, 1e-3),
+            along_sigma_m=max(along_sigma, 1e-3),
+            n_samples=int(len(lat)),
+        )
     return out

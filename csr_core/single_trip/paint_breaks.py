@@ -28,8 +28,9 @@ import shapely
 from csr_core.single_trip.compiled import search
 
 
-def barrier_geometry(stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray],
-                     reach_m: float) -> shapely.Geometry | None:
+def barrier_geometry(
+    stop_lines_xy: list[np.ndarray], crosswalks_xy: list[np.ndarray], reach_m: float
+) -> shapely.Geometry | None:
     """The trip's stop lines and crosswalk outlines widened by ``reach_m``, as one prepared
     geometry (``None`` when the trip has neither)."""
     parts = [shapely.LineString(p) for p in stop_lines_xy if len(p) >= 2]
@@ -51,7 +52,9 @@ class ObservedPoints:
     (Karlsruhe, urban: 99.5 %); only for the rest are the steps densified, and only those with
     an end within the gate plus the step's length. Compiled (``search.seen_within``)."""
 
-    def __init__(self, points_w: np.ndarray, offsets: np.ndarray | None = None, step_m: float | None = None) -> None:
+    def __init__(
+        self, points_w: np.ndarray, offsets: np.ndarray | None = None, step_m: float | None = None
+    ) -> None:
         self.points_w = np.ascontiguousarray(points_w, dtype=float)
         self.offsets = np.array([0, len(points_w)]) if offsets is None else offsets
         self.step_m = step_m
@@ -63,15 +66,23 @@ class ObservedPoints:
         self._step_len = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
         self._sorted: tuple[bool, np.ndarray, np.ndarray] | None = None  # sort_along_wider_axis, once asked
 
-
     def seen(self, points_xy: np.ndarray, gate_m: float) -> np.ndarray:
         """``(M,)`` whether each of ``points_xy (M, 2)`` has an observed point within ``gate_m``."""
         if not len(self.points_w) or not len(points_xy):
             return np.zeros(len(points_xy), dtype=bool)
         if self._sorted is None:
-            self._sorted = search.sort_along_wider_axis(self.points_w[:, 0].copy(), self.points_w[:, 1].copy())
-        return search.seen_within(np.ascontiguousarray(points_xy, dtype=float), self.points_w, self._step,
-                                          self._step_len, float(self.step_m or 0.0), float(gate_m), *self._sorted)
+            self._sorted = search.sort_along_wider_axis(
+                self.points_w[:, 0].copy(), self.points_w[:, 1].copy()
+            )
+        return search.seen_within(
+            np.ascontiguousarray(points_xy, dtype=float),
+            self.points_w,
+            self._step,
+            self._step_len,
+            float(self.step_m or 0.0),
+            float(gate_m),
+            *self._sorted,
+        )
 
 
 def unseen_runs(points_xy: np.ndarray, observed: ObservedPoints, gate_m: float) -> list[tuple[int, int]]:
@@ -103,13 +114,19 @@ def cut_unseen(points_xy: np.ndarray, observed: ObservedPoints, gate_m: float) -
     return _without_runs(points_xy, unseen_runs(points_xy, observed, gate_m))
 
 
-def cut_at_paint_breaks(points_xy: np.ndarray, observed: ObservedPoints, barrier: shapely.Geometry | None,
-                        gate_m: float) -> list[np.ndarray]:
+def cut_at_paint_breaks(
+    points_xy: np.ndarray, observed: ObservedPoints, barrier: shapely.Geometry | None, gate_m: float
+) -> list[np.ndarray]:
     """``points_xy`` ``(M, 2)`` split where an unseen run (:func:`unseen_runs`), together with the
     segments joining it to its seen neighbours, meets ``barrier``; the run itself is dropped."""
     if barrier is None or len(points_xy) < 2:
         return [points_xy]
     n = len(points_xy)  # a run with its seen neighbours always spans at least two vertices here
-    return _without_runs(points_xy, [
-        (a, b) for a, b in unseen_runs(points_xy, observed, gate_m)
-        if barrier.intersects(shapely.LineString(points_xy[max(a - 1, 0):min(b + 1, n)]))])
+    return _without_runs(
+        points_xy,
+        [
+            (a, b)
+            for a, b in unseen_runs(points_xy, observed, gate_m)
+            if barrier.intersects(shapely.LineString(points_xy[max(a - 1, 0) : min(b + 1, n)]))
+        ],
+    )

@@ -68,7 +68,9 @@ class SingleTripParams:
     ODOM_SIGMA_XY_PER_M: float = 0.005  # metres per metre travelled (0.5 %)
     ODOM_SIGMA_XY_FLOOR_M: float = 0.002  # per increment (standing still)
     ODOM_SIGMA_YAW_PER_M: float = math.radians(0.01)  # radians per metre travelled
-    ODOM_SIGMA_YAW_PER_S: float = math.radians(0.01)  # gyro drift (random walk), beside the bias left after calibration
+    ODOM_SIGMA_YAW_PER_S: float = math.radians(
+        0.01
+    )  # gyro drift (random walk), beside the bias left after calibration
     ODOM_SIGMA_YAW_FLOOR_RAD: float = math.radians(0.002)  # per increment
 
     # per-trip odometry calibration against GNSS (scale error, constant yaw-rate bias)
@@ -106,7 +108,9 @@ class SingleTripParams:
     KEYFRAME_PERIOD_S: float = 5.0  # a keyframe at least this often, even standing still
 
     # --- tracking (Qiao et al.) ----------------------------------------------------------------------
-    TRACK_STEP_M: float = 5.0  # frames are tracked once the vehicle moved this far: 9 per pass of the 45 m BEV length
+    TRACK_STEP_M: float = (
+        5.0  # frames are tracked once the vehicle moved this far: 9 per pass of the 45 m BEV length
+    )
     TRACK_STEP_S: float = 1.0  # ... or this long
     TRACK_RESAMPLE_POINTS: int = 6  # points per detection in the association cost
     TRACK_DISTANCE_CAP_M: float = 3.0  # truncation of point distances in the Chamfer cost
@@ -184,7 +188,9 @@ class SingleTripParams:
     SPLICE_MODE_GATE_M: float = 0.6  # a mode continues the nearest chain within this (per step)
     SPLICE_GUIDE_EXTENSION_M: float = 40.0  # the path guide prolonged at both ends (BEV reach)
     SPLICE_ALONG_GUIDE_MIN: float = 0.9  # |d arclength on the path| / chord: element runs along the path
-    SPLICE_ACROSS_WINDOW_M: float = 2.5  # a splice is cut where, within this either side, its observations cross it
+    SPLICE_ACROSS_WINDOW_M: float = (
+        2.5  # a splice is cut where, within this either side, its observations cross it
+    )
     # a splice no part of which runs along its observations (it joined elements that meet at an
     # angle: a kerb's two legs round a traffic island) is regrouped like a mixture and each group
     # spliced on its own shape, instead of dropped (docs/single-trip.md)

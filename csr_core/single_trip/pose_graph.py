@@ -52,11 +52,14 @@ class SmoothedPoses:
         """``poses_xyyaw_world (N, 3)`` taken as they are, in place of the smoothing (the true
         poses, to measure the element stages alone): no sigma, every fix an inlier."""
         n = len(poses_xyyaw_world)
-        return cls(np.array(poses_xyyaw_world, dtype=float), np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))
+        return cls(
+            np.array(poses_xyyaw_world, dtype=float), np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3)
+        )
 
 
-def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams,
-                  floor_m: float | None = None) -> np.ndarray:
+def gnss_sigmas_m(
+    status: np.ndarray, std_m: np.ndarray, params: SingleTripParams, floor_m: float | None = None
+) -> np.ndarray:
     """Per-frame GNSS sigma (N,): the receiver's ``std_m`` when given, else the status table,
     at least ``floor_m`` (default ``GNSS_SIGMA_FLOOR_M``); ``inf`` where there is no fix."""
     table = np.asarray(params.GNSS_SIGMA_BY_STATUS_M, float)
@@ -67,8 +70,9 @@ def gnss_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParam
     return sigma
 
 
-def robust_rigid_fit(odom_xy: np.ndarray, world_xy: np.ndarray, sigma_m: np.ndarray,
-                     iterations: int = 8) -> np.ndarray:
+def robust_rigid_fit(
+    odom_xy: np.ndarray, world_xy: np.ndarray, sigma_m: np.ndarray, iterations: int = 8
+) -> np.ndarray:
     """world_T_odom ``(3,)`` minimising a Huber-weighted 2D Umeyama (no scale) over pairs (M, 2)."""
     w = 1.0 / np.square(sigma_m)
     pose = np.zeros(3)
@@ -94,14 +98,17 @@ def _odometry_speed_mps(odom_xyyaw: np.ndarray, timestamps_s: np.ndarray) -> np.
     n = len(timestamps_s)
     speed = np.zeros(n)
     if n > 1:
-        v = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1) / np.maximum(np.diff(timestamps_s), 1e-6)
+        v = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1) / np.maximum(
+            np.diff(timestamps_s), 1e-6
+        )
         speed[:-1] = v
         speed[1:] = np.maximum(speed[1:], v) if n > 2 else v
     return speed
 
 
-def _heading_yaw(heading_deg: np.ndarray, status: np.ndarray, speed_mps: np.ndarray,
-                 params: SingleTripParams) -> np.ndarray:
+def _heading_yaw(
+    heading_deg: np.ndarray, status: np.ndarray, speed_mps: np.ndarray, params: SingleTripParams
+) -> np.ndarray:
     """GNSS course as yaw (rad), NaN where absent, where the frame has no new fix (status none:
     a held frame repeats its epoch's course) or the vehicle is too slow for a course."""
     yaw = np.where(np.isfinite(heading_deg), se2.heading_deg_to_yaw_rad(np.nan_to_num(heading_deg)), np.nan)
@@ -109,7 +116,9 @@ def _heading_yaw(heading_deg: np.ndarray, status: np.ndarray, speed_mps: np.ndar
     return yaw
 
 
-def _optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, params: SingleTripParams) -> gtsam.Values:
+def _optimize(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, params: SingleTripParams
+) -> gtsam.Values:
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(params.LM_MAX_ITERATIONS)
     lm.setRelativeErrorTol(params.LM_RELATIVE_ERROR_TOL)
@@ -123,7 +132,9 @@ def _marginal_sigma_xy(gnss_var: np.ndarray, step_var: np.ndarray) -> np.ndarray
     n = len(gnss_var)
     big = 1e8
     # plain floats in the recursions (a numpy scalar per step costs ten times more)
-    gnss_info = np.where(np.isfinite(gnss_var), 1.0 / np.where(np.isfinite(gnss_var), gnss_var, 1.0), 0.0).tolist()
+    gnss_info = np.where(
+        np.isfinite(gnss_var), 1.0 / np.where(np.isfinite(gnss_var), gnss_var, 1.0), 0.0
+    ).tolist()
     steps = np.asarray(step_var, float).tolist()
     pf = [0.0] * n
     p = big
@@ -155,14 +166,25 @@ def integrate_increments(first_xyyaw: np.ndarray, incr_xyyaw: np.ndarray) -> np.
 def interpolate_poses(timestamps_s: np.ndarray, poses_xyyaw: np.ndarray, at_s: np.ndarray) -> np.ndarray:
     """Poses (M, 3) at times ``at_s`` by linear interpolation (yaw unwrapped), clamped at the ends."""
     yaw = np.unwrap(poses_xyyaw[:, 2])
-    return np.column_stack([np.interp(at_s, timestamps_s, poses_xyyaw[:, 0]),
-                            np.interp(at_s, timestamps_s, poses_xyyaw[:, 1]),
-                            se2.wrap_angle(np.interp(at_s, timestamps_s, yaw))])
+    return np.column_stack(
+        [
+            np.interp(at_s, timestamps_s, poses_xyyaw[:, 0]),
+            np.interp(at_s, timestamps_s, poses_xyyaw[:, 1]),
+            se2.wrap_angle(np.interp(at_s, timestamps_s, yaw)),
+        ]
+    )
 
 
-def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                       inlier: np.ndarray, window_s: float, max_s: float, step_s: float = 0.01,
-                       robust_z: float = 3.0) -> tuple[float, float]:
+def estimate_latency_s(
+    timestamps_s: np.ndarray,
+    odom_xyyaw: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    inlier: np.ndarray,
+    window_s: float,
+    max_s: float,
+    step_s: float = 0.01,
+    robust_z: float = 3.0,
+) -> tuple[float, float]:
     """GNSS latency L (s) and odometry distance scale: the fix stamped t is the position at t - L.
 
     For each candidate L, the odometry at t - L is fitted to the fixes in windows of
@@ -216,12 +238,15 @@ def estimate_latency_s(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy
     # the two tests of the docstring (chi-square(1) at 3 sigma, then windows as clusters)
     dof = max(2 * len(idx) - 4 * n_w - 2, 1)
     if cost[0] - cost[k] <= 9.0 * cost[k] / dof or (
-            n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb_g, h_g, aa_g, grid, step_s)):
+        n_w >= 2 and lat <= robust_z * _window_robust_sd_s(lat, k, bb_g, h_g, aa_g, grid, step_s)
+    ):
         return 0.0, float(scale[0])
     return lat, float(scale[k])
 
 
-def _shared_scale_and_cost(bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _shared_scale_and_cost(
+    bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per latency candidate (rows of ``h_w`` and ``aa_w``): the scale shared by all windows and
     the summed residual at it (closed form)."""
     scale = h_w.sum(1) / np.maximum(aa_w.sum(1), 1e-12)
@@ -248,8 +273,9 @@ def _refined_argmin(cost: np.ndarray, grid: np.ndarray, step_s: float) -> tuple[
     return lat, k
 
 
-def _window_robust_sd_s(lat: float, k: int, bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray,
-                       grid: np.ndarray, step_s: float) -> float:
+def _window_robust_sd_s(
+    lat: float, k: int, bb_w: np.ndarray, h_w: np.ndarray, aa_w: np.ndarray, grid: np.ndarray, step_s: float
+) -> float:
     """Standard deviation (s) of the latency estimate ``lat`` (grid index ``k``) with the windows as
     independent clusters (the sandwich, or cluster-robust, variance: sum of squared per-window
     scores over the squared summed curvature, times ``n / (n - 1)``). Each window's cost at the
@@ -259,7 +285,7 @@ def _window_robust_sd_s(lat: float, k: int, bb_w: np.ndarray, h_w: np.ndarray, a
     n_w = len(bb_w)
     kk = min(max(k, 1), len(grid) - 2)
     scale = h_w[kk].sum() / max(aa_w[kk].sum(), 1e-12)
-    cost_w = bb_w[None, :] - 2.0 * scale * h_w[kk - 1:kk + 2] + scale**2 * aa_w[kk - 1:kk + 2]
+    cost_w = bb_w[None, :] - 2.0 * scale * h_w[kk - 1 : kk + 2] + scale**2 * aa_w[kk - 1 : kk + 2]
     curvature_w = (cost_w[2] - 2.0 * cost_w[1] + cost_w[0]) / step_s**2
     score_w = (cost_w[2] - cost_w[0]) / (2.0 * step_s) + curvature_w * (lat - grid[kk])
     return float(np.sqrt(n_w / (n_w - 1) * np.sum(np.square(score_w))) / max(abs(curvature_w.sum()), 1e-12))
@@ -278,8 +304,14 @@ class YawRateBias:
     estimated: bool
 
 
-def calibrate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                            gnss_sigma_m: np.ndarray, inlier: np.ndarray, params: SingleTripParams) -> YawRateBias:
+def calibrate_yaw_rate_bias(
+    timestamps_s: np.ndarray,
+    odom_xyyaw: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    gnss_sigma_m: np.ndarray,
+    inlier: np.ndarray,
+    params: SingleTripParams,
+) -> YawRateBias:
     """The trip's odometry yaw-rate bias with its uncertainty: the chord estimate combined with
     the physical prior (a product of Gaussians: the estimate is shrunk towards 0 by how little
     the chords say). Not estimated (the prior alone) for a trip shorter than
@@ -290,15 +322,18 @@ def calibrate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gn
     travel = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1))]
     if timestamps_s[-1] - timestamps_s[0] < params.CAL_MIN_DURATION_S or travel[-1] < 2 * params.CAL_WINDOW_M:
         return YawRateBias(0.0, prior, 0, False)
-    bias, sigma, n_chords = estimate_yaw_rate_bias(timestamps_s, odom_xyyaw, gnss_xy_world, gnss_sigma_m, inlier,
-                                                   params.CAL_WINDOW_M)
+    bias, sigma, n_chords = estimate_yaw_rate_bias(
+        timestamps_s, odom_xyyaw, gnss_xy_world, gnss_sigma_m, inlier, params.CAL_WINDOW_M
+    )
     if n_chords < params.CAL_MIN_INDEPENDENT_CHORDS or not np.isfinite(sigma):
         return YawRateBias(0.0, prior, n_chords, False)
     info = 1.0 / prior**2 + 1.0 / sigma**2
     return YawRateBias(float(bias / sigma**2 / info), float(np.sqrt(1.0 / info)), n_chords, True)
 
 
-def _independent_chords(travel_m: np.ndarray, idx: np.ndarray, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _independent_chords(
+    travel_m: np.ndarray, idx: np.ndarray, window_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (a, b) of fix indices ``window_m`` of travel apart that share no stretch: each chord
     starts where the previous one ended, so no two measure the same piece of road."""
     starts, ends = [], []
@@ -314,9 +349,14 @@ def _independent_chords(travel_m: np.ndarray, idx: np.ndarray, window_m: float) 
     return np.asarray(starts, int), np.asarray(ends, int)
 
 
-def estimate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gnss_xy_world: np.ndarray,
-                           gnss_sigma_m: np.ndarray, inlier: np.ndarray, window_m: float
-                           ) -> tuple[float, float, int]:
+def estimate_yaw_rate_bias(
+    timestamps_s: np.ndarray,
+    odom_xyyaw: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    gnss_sigma_m: np.ndarray,
+    inlier: np.ndarray,
+    window_m: float,
+) -> tuple[float, float, int]:
     """Constant odometry yaw-rate bias (rad/s) from chords, with its standard deviation and the
     number of chords behind it: over pairs of GNSS inlier fixes ``window_m`` of travel apart
     that share no stretch (:func:`_independent_chords`), the odometry chord is the true chord
@@ -367,9 +407,15 @@ def estimate_yaw_rate_bias(timestamps_s: np.ndarray, odom_xyyaw: np.ndarray, gns
     return float(coef[1]), slope_sigma, int(keep.sum())
 
 
-def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_status: np.ndarray,
-                 gnss_std_m: np.ndarray, gnss_heading_deg: np.ndarray, odom_xyyaw: np.ndarray,
-                 params: SingleTripParams) -> SmoothedPoses:
+def smooth_poses(
+    timestamps_s: np.ndarray,
+    gnss_xy_world: np.ndarray,
+    gnss_status: np.ndarray,
+    gnss_std_m: np.ndarray,
+    gnss_heading_deg: np.ndarray,
+    odom_xyyaw: np.ndarray,
+    params: SingleTripParams,
+) -> SmoothedPoses:
     """Eq. 2 for one trip. Arrays (N,...) in upload order; returns world_T_vehicle per frame.
 
     Recipe: robust rigid fit (warm start) -> Huber LM -> reject GNSS jumps -> calibrate the
@@ -398,8 +444,11 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     spread = np.ptp(odom_xyyaw[fix_idx, :2], axis=0).max() if len(fix_idx) > 1 else 0.0
     speed = _odometry_speed_mps(odom_xyyaw, timestamps_s)
     heading_yaw = _heading_yaw(gnss_heading_deg, gnss_status, speed, params)
-    course = (course_noise(heading_yaw, odom_xyyaw[:, 2], speed, timestamps_s, params)
-              if params.GNSS_HEADING_PER_FIX else None)
+    course = (
+        course_noise(heading_yaw, odom_xyyaw[:, 2], speed, timestamps_s, params)
+        if params.GNSS_HEADING_PER_FIX
+        else None
+    )
     if spread > 3.0 * np.median(sigma[fix_idx]) + 1.0:
         world_T_odom = robust_rigid_fit(odom_xyyaw[fix_idx, :2], gnss_xy_world[fix_idx], sigma[fix_idx])
     else:
@@ -414,10 +463,25 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
     # graph nodes: every POSE_NODE_SPACING_M of travel (or POSE_NODE_PERIOD_S); frames in
     # between follow the odometry. Chosen once, on the uploaded odometry.
     dist0 = np.linalg.norm(np.diff(odom_xyyaw[:, :2], axis=0), axis=1)
-    nodes = every_travel_or_time(np.r_[0.0, np.cumsum(dist0)], timestamps_s, params.POSE_NODE_SPACING_M,
-                                 params.POSE_NODE_PERIOD_S, keep_last=True)
-    graph = _NodeGraph(nodes, timestamps_s, odom_xyyaw, gnss_xy_world, sigma, heading_yaw, course, params,
-                       factor_inflation=inflation, yaw_rate_bias_sigma_rad_s=params.CAL_YAW_RATE_BIAS_PRIOR_RAD_S)
+    nodes = every_travel_or_time(
+        np.r_[0.0, np.cumsum(dist0)],
+        timestamps_s,
+        params.POSE_NODE_SPACING_M,
+        params.POSE_NODE_PERIOD_S,
+        keep_last=True,
+    )
+    graph = _NodeGraph(
+        nodes,
+        timestamps_s,
+        odom_xyyaw,
+        gnss_xy_world,
+        sigma,
+        heading_yaw,
+        course,
+        params,
+        factor_inflation=inflation,
+        yaw_rate_bias_sigma_rad_s=params.CAL_YAW_RATE_BIAS_PRIOR_RAD_S,
+    )
     node_poses = se2.compose(world_T_odom[None, :], odom_xyyaw[nodes])
 
     # stage 1: Huber from the rigid fit (convex in position: safe from a rough start)
@@ -434,16 +498,33 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
         incr[:, 2] -= yaw_bias * np.diff(timestamps_s)
         corrected = integrate_increments(odom_xyyaw[0], incr)
         if timestamps_s[-1] - timestamps_s[0] >= params.CAL_MIN_DURATION_S:
-            latency, scale = estimate_latency_s(timestamps_s, corrected, gnss_xy_world, inlier,
-                                                params.GNSS_LATENCY_WINDOW_S, params.GNSS_LATENCY_MAX_S,
-                                                robust_z=params.GNSS_LATENCY_ROBUST_Z)
+            latency, scale = estimate_latency_s(
+                timestamps_s,
+                corrected,
+                gnss_xy_world,
+                inlier,
+                params.GNSS_LATENCY_WINDOW_S,
+                params.GNSS_LATENCY_MAX_S,
+                robust_z=params.GNSS_LATENCY_ROBUST_Z,
+            )
             if not params.GNSS_LATENCY_ESTIMATE:
                 latency = 0.0
             scale = float(np.clip(scale, 1.0 - params.CAL_MAX_SCALE_ERROR, 1.0 + params.CAL_MAX_SCALE_ERROR))
             incr[:, :2] *= scale
             corrected = integrate_increments(odom_xyyaw[0], incr)
-        graph = _NodeGraph(nodes, timestamps_s, corrected, gnss_xy_world, sigma, heading_yaw, course, params,
-                           latency, factor_inflation=inflation, yaw_rate_bias_sigma_rad_s=yaw_cal.sigma_rad_s)
+        graph = _NodeGraph(
+            nodes,
+            timestamps_s,
+            corrected,
+            gnss_xy_world,
+            sigma,
+            heading_yaw,
+            course,
+            params,
+            latency,
+            factor_inflation=inflation,
+            yaw_rate_bias_sigma_rad_s=yaw_cal.sigma_rad_s,
+        )
     # stage 2: hard rejection of GNSS jumps at a data-scaled threshold, Cauchy on the rest,
     # warm-started; repeated while the inlier set changes (GNC-like, with a warm start)
     node_poses = graph.solve("cauchy", np.flatnonzero(inlier), node_poses)
@@ -457,15 +538,23 @@ def smooth_poses(timestamps_s: np.ndarray, gnss_xy_world: np.ndarray, gnss_statu
         white_poses = graph.frame_poses(node_poses)
         # the bias's own sigma is the receiver's, unfloored: an RTK fix's 2 cm, not the white
         # stages' 5 cm floor (which would let the odometry move a fixed spell by that much)
-        bias_sigma = run_sigmas_m(gnss_status, gnss_sigmas_m(gnss_status, gnss_std_m, params,
-                                                            floor_m=params.GNSS_WHITE_SIGMA_MIN_M))
+        bias_sigma = run_sigmas_m(
+            gnss_status, gnss_sigmas_m(gnss_status, gnss_std_m, params, floor_m=params.GNSS_WHITE_SIGMA_MIN_M)
+        )
         node_poses = graph.solve_with_bias(node_poses, timestamps_s, gnss_status, bias_sigma, inlier)
     poses = graph.frame_poses(node_poses)
 
     gnss_var = np.where(inlier, np.square(sigma * inflation), np.inf)
     sigma_xy = _marginal_sigma_xy(gnss_var, graph.step_var)
-    log.debug("pose graph: %d frames, %d nodes, %d fixes, %d rejected, scale %.4f, yaw bias %.4f deg/s",
-              n, len(nodes), len(fix_idx), int((~inlier[fix_idx]).sum()), scale, np.degrees(yaw_bias))
+    log.debug(
+        "pose graph: %d frames, %d nodes, %d fixes, %d rejected, scale %.4f, yaw bias %.4f deg/s",
+        n,
+        len(nodes),
+        len(fix_idx),
+        int((~inlier[fix_idx]).sum()),
+        scale,
+        np.degrees(yaw_bias),
+    )
     log.debug("gnss latency %.3f s", latency)
     return SmoothedPoses(poses, sigma_xy, sigma, inlier, world_T_odom, scale, yaw_bias, latency, white_poses)
 
@@ -475,10 +564,20 @@ class _NodeGraph:
     the odometry lever node_T_frame (``PoseTranslationPrior2D`` takes no lever arm, so the fix
     is moved by it, with the node's current yaw); frames in between follow the odometry."""
 
-    def __init__(self, nodes: np.ndarray, timestamps_s: np.ndarray, odom_xyyaw: np.ndarray,
-                 gnss_xy_world: np.ndarray, sigma: np.ndarray, heading_yaw: np.ndarray, course: CourseNoise | None,
-                 params: SingleTripParams, gnss_latency_s: float = 0.0, factor_inflation: float = 1.0,
-                 yaw_rate_bias_sigma_rad_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        nodes: np.ndarray,
+        timestamps_s: np.ndarray,
+        odom_xyyaw: np.ndarray,
+        gnss_xy_world: np.ndarray,
+        sigma: np.ndarray,
+        heading_yaw: np.ndarray,
+        course: CourseNoise | None,
+        params: SingleTripParams,
+        gnss_latency_s: float = 0.0,
+        factor_inflation: float = 1.0,
+        yaw_rate_bias_sigma_rad_s: float = 0.0,
+    ) -> None:
         n = len(timestamps_s)
         self.params = params
         self.odom = odom_xyyaw
@@ -499,8 +598,14 @@ class _NodeGraph:
         self.node_of = np.searchsorted(nodes, np.arange(n), side="right") - 1
         self.node_T_frame = se2.between(odom_xyyaw[nodes[self.node_of]], odom_xyyaw)
         # a fix stamped t measured the position at t - latency: its lever goes to that instant
-        self.node_T_fix = (self.node_T_frame if gnss_latency_s == 0.0 else se2.between(
-            odom_xyyaw[nodes[self.node_of]], interpolate_poses(timestamps_s, odom_xyyaw, timestamps_s - gnss_latency_s)))
+        self.node_T_fix = (
+            self.node_T_frame
+            if gnss_latency_s == 0.0
+            else se2.between(
+                odom_xyyaw[nodes[self.node_of]],
+                interpolate_poses(timestamps_s, odom_xyyaw, timestamps_s - gnss_latency_s),
+            )
+        )
         self.node_incr = se2.between(odom_xyyaw[nodes[:-1]], odom_xyyaw[nodes[1:]])
         cum_xy = np.r_[0.0, np.cumsum(np.square(sig_xy))]
         cum_yaw = np.r_[0.0, np.cumsum(np.square(sig_yaw))]
@@ -520,7 +625,8 @@ class _NodeGraph:
             odometry = gtsam.NonlinearFactorGraph()
             for k in range(len(self.nodes) - 1):
                 model = gtsam.noiseModel.Diagonal.Sigmas(
-                    np.array([self.node_sig_xy[k], self.node_sig_xy[k], self.node_sig_yaw[k]]))
+                    np.array([self.node_sig_xy[k], self.node_sig_xy[k], self.node_sig_yaw[k]])
+                )
                 odometry.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*self.node_incr[k]), model))
             course = gtsam.NonlinearFactorGraph()
             head_est = gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_HEADING_CAUCHY_C_SIGMAS)
@@ -529,15 +635,24 @@ class _NodeGraph:
                 # instant the course refers to taken off (gnss_course.py)
                 frames = self.course.frames
                 measured = self.heading_yaw[frames] - self.node_T_fix[frames, 2]
-                for node, yaw, sig in zip(self.node_of[frames].tolist(), measured.tolist(),
-                                          self.course.sigma_rad.tolist(), strict=True):
+                for node, yaw, sig in zip(
+                    self.node_of[frames].tolist(),
+                    measured.tolist(),
+                    self.course.sigma_rad.tolist(),
+                    strict=True,
+                ):
                     one = gtsam.noiseModel.Robust.Create(head_est, gtsam.noiseModel.Isotropic.Sigma(1, sig))
                     course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(yaw), one))
             else:
                 head_model = gtsam.noiseModel.Robust.Create(
-                    head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD))
+                    head_est, gtsam.noiseModel.Isotropic.Sigma(1, p.GNSS_HEADING_SIGMA_RAD)
+                )
                 for node in np.flatnonzero(np.isfinite(self.node_heading)).tolist():
-                    course.add(gtsam.PoseRotationPrior2D(node, gtsam.Rot2(float(self.node_heading[node])), head_model))
+                    course.add(
+                        gtsam.PoseRotationPrior2D(
+                            node, gtsam.Rot2(float(self.node_heading[node])), head_model
+                        )
+                    )
             self._fixed = (odometry, course)
         return self._fixed
 
@@ -545,8 +660,10 @@ class _NodeGraph:
         """The robust (``kernel``: Huber or Cauchy) isotropic GNSS noise model of ``sigma``."""
         p = self.params
         est: gtsam.noiseModel.mEstimator.Base = (
-            gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS) if kernel == "huber"
-            else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS))
+            gtsam.noiseModel.mEstimator.Huber.Create(p.GNSS_HUBER_K_SIGMAS)
+            if kernel == "huber"
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(p.GNSS_CAUCHY_C_SIGMAS)
+        )
         return gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, sigma))
 
     def fix_at_node(self, gnss_idx: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
@@ -554,16 +671,21 @@ class _NodeGraph:
         yaw = node_poses[self.node_of[gnss_idx], 2]
         c, s = np.cos(yaw), np.sin(yaw)
         lever = self.node_T_fix[gnss_idx]
-        return self.gnss_xy[gnss_idx] - np.column_stack([c * lever[:, 0] - s * lever[:, 1],
-                                                         s * lever[:, 0] + c * lever[:, 1]])
+        return self.gnss_xy[gnss_idx] - np.column_stack(
+            [c * lever[:, 0] - s * lever[:, 1], s * lever[:, 0] + c * lever[:, 1]]
+        )
 
     def build(self, kernel: str, gnss_idx: np.ndarray, node_poses: np.ndarray) -> gtsam.NonlinearFactorGraph:
         odometry, course = self._fixed_factors()
         g = gtsam.NonlinearFactorGraph()
         g.push_back(odometry)
         z = self.fix_at_node(gnss_idx, node_poses)
-        models = self._gnss_models.setdefault(kernel, {})  # one noise model per distinct sigma, kept across solves
-        for zi, node, sig in zip(z, self.node_of[gnss_idx].tolist(), self.factor_sigma[gnss_idx].tolist(), strict=True):
+        models = self._gnss_models.setdefault(
+            kernel, {}
+        )  # one noise model per distinct sigma, kept across solves
+        for zi, node, sig in zip(
+            z, self.node_of[gnss_idx].tolist(), self.factor_sigma[gnss_idx].tolist(), strict=True
+        ):
             robust = models.get(sig)
             if robust is None:
                 robust = models[sig] = self._gnss_model(kernel, sig)
@@ -578,20 +700,38 @@ class _NodeGraph:
         values = _optimize(self.build(kernel, gnss_idx, node_poses), values, self.params)
         return gtsam.utilities.extractPose2(values)
 
-    def solve_with_bias(self, node_poses: np.ndarray, timestamps_s: np.ndarray, status: np.ndarray,
-                        bias_sigma: np.ndarray, inlier: np.ndarray) -> np.ndarray:
+    def solve_with_bias(
+        self,
+        node_poses: np.ndarray,
+        timestamps_s: np.ndarray,
+        status: np.ndarray,
+        bias_sigma: np.ndarray,
+        inlier: np.ndarray,
+    ) -> np.ndarray:
         """The kept fixes again, with the GNSS error as a Gauss-Markov bias state (gnss_bias.py);
         ``bias_sigma (N,)`` the bias's stationary sigma per frame."""
         idx = np.flatnonzero(inlier)
         run = np.r_[0, np.cumsum(np.diff(np.asarray(status, int)) != 0)]
-        white = white_sigmas_m(timestamps_s, status, self.fix_positions(node_poses), self.gnss_xy, inlier,
-                               self.params)
+        white = white_sigmas_m(
+            timestamps_s, status, self.fix_positions(node_poses), self.gnss_xy, inlier, self.params
+        )
         odometry, course = self._fixed_factors()
-        graph, values = build_bias_graph(odometry, course, node_poses, timestamps_s[self.nodes], run[self.nodes],
-                                         self.node_of[idx], self.fix_at_node(idx, node_poses), bias_sigma[idx],
-                                         white[idx], self.params)
+        graph, values = build_bias_graph(
+            odometry,
+            course,
+            node_poses,
+            timestamps_s[self.nodes],
+            run[self.nodes],
+            self.node_of[idx],
+            self.fix_at_node(idx, node_poses),
+            bias_sigma[idx],
+            white[idx],
+            self.params,
+        )
         result = _optimize(graph, values, self.params)
-        return np.array([[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(len(node_poses)))])
+        return np.array(
+            [[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(len(node_poses)))]
+        )
 
     def frame_poses(self, node_poses: np.ndarray) -> np.ndarray:
         """Every frame from its node by odometry; the small misclosure to the next node is
@@ -615,7 +755,9 @@ class _NodeGraph:
         """(N, 2) world positions of the instants the fixes refer to (frame time - latency)."""
         return se2.compose(node_poses[self.node_of], self.node_T_fix)[:, :2]
 
-    def reject(self, node_poses: np.ndarray, has_fix: np.ndarray, inlier: np.ndarray) -> tuple[np.ndarray, bool]:
+    def reject(
+        self, node_poses: np.ndarray, has_fix: np.ndarray, inlier: np.ndarray
+    ) -> tuple[np.ndarray, bool]:
         """GNSS fixes kept: normalised residual norm under ``GNSS_OUTLIER_SIGMAS`` x the trip's
         scale (median normalised residual over the Rayleigh median 1.1774)."""
         p = self.params

@@ -46,7 +46,7 @@ def _run_starts(ids: np.ndarray) -> np.ndarray:
     """Indices (R,) where the runs of equal consecutive ``ids`` start (the first is 0)."""
     change = np.empty(max(len(ids), 1), dtype=bool)
     change[0] = True
-    np.not_equal(ids[1:], ids[:-1], out=change[1:len(ids)])
+    np.not_equal(ids[1:], ids[:-1], out=change[1 : len(ids)])
     return np.flatnonzero(change)
 
 
@@ -94,7 +94,9 @@ def _project(points: np.ndarray, geom: _Geometry) -> tuple[np.ndarray, np.ndarra
     return polyline.project_at(points, nearest, geom.columns, geom.arclength)
 
 
-def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0) -> np.ndarray:
+def _extend_ends(
+    line: np.ndarray, length_m: float, spacing_m: float, curvature_m: float = 10.0
+) -> np.ndarray:
     """The polyline prolonged at both ends by ``length_m`` along a circular arc with the
     curvature of its last ``curvature_m`` (a straight line where that is unknown)."""
     if len(line) < 3:
@@ -112,7 +114,9 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
         th = head + kappa * q
         if abs(kappa) < 1e-6:
             return end + q[:, None] * np.array([math.cos(head), math.sin(head)])
-        return end + np.column_stack([(np.sin(th) - math.sin(head)) / kappa, -(np.cos(th) - math.cos(head)) / kappa])
+        return end + np.column_stack(
+            [(np.sin(th) - math.sin(head)) / kappa, -(np.cos(th) - math.cos(head)) / kappa]
+        )
 
     def heading(i: int, j: int) -> float:
         return math.atan2(float(line[j, 1] - line[i, 1]), float(line[j, 0] - line[i, 0]))
@@ -121,17 +125,25 @@ def _extend_ends(line: np.ndarray, length_m: float, spacing_m: float, curvature_
     span = min(curvature_m, s[-1] / 2)
     # tail: heading over the last segment vs the heading span metres earlier
     i_span = max(int(np.searchsorted(s, s[-1] - span)) - 1, 0)
-    tail = arc(line[-1], line[-2], s[-1] - s[i_span + 1] if i_span + 1 < n - 1 else span,
-               heading(i_span, i_span + 1))
+    tail = arc(
+        line[-1], line[-2], s[-1] - s[i_span + 1] if i_span + 1 < n - 1 else span, heading(i_span, i_span + 1)
+    )
     # head: the same on the reversed line
     j_span = min(int(np.searchsorted(s, span)) + 1, n - 1)
     head = arc(line[0], line[1], s[j_span - 1] if j_span - 1 > 0 else span, heading(j_span, j_span - 1))
     return np.concatenate([head[::-1], line, tail])
 
 
-def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float = 0.5, tangent_m: float = 4.0,
-                  lateral_gate_m: float = 1.0, lateral_gate_slope: float = 0.15, max_gap_m: float = 15.0,
-                  follow_bends: bool = False) -> np.ndarray:
+def grow_backbone(
+    points_w: np.ndarray,
+    obs_ends: np.ndarray,
+    min_step_m: float = 0.5,
+    tangent_m: float = 4.0,
+    lateral_gate_m: float = 1.0,
+    lateral_gate_slope: float = 0.15,
+    max_gap_m: float = 15.0,
+    follow_bends: bool = False,
+) -> np.ndarray:
     """An ordered polyline covering an element of any shape from its observations (each an
     ordered polyline, in time order): the first one, extended at either end by the points of
     later ones that lie beyond it along its end tangent (over the last ``tangent_m``) and near
@@ -144,9 +156,16 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float 
     ``2 tangent_m`` (``growth.kasa_circle``) within ``growth.BEND_SHAPE_TOL_M``, no
     tighter than ``BEND_MIN_RADIUS_M``, its nearest point within ``max_gap_m``. Compiled
     (``growth.grow_backbone``)."""
-    return growth.grow_backbone(np.ascontiguousarray(points_w, dtype=float), obs_ends.astype(np.int64, copy=False),
-                                        float(min_step_m), float(tangent_m), float(lateral_gate_m),
-                                        float(lateral_gate_slope), float(max_gap_m), bool(follow_bends))
+    return growth.grow_backbone(
+        np.ascontiguousarray(points_w, dtype=float),
+        obs_ends.astype(np.int64, copy=False),
+        float(min_step_m),
+        float(tangent_m),
+        float(lateral_gate_m),
+        float(lateral_gate_slope),
+        float(max_gap_m),
+        bool(follow_bends),
+    )
 
 
 def smooth_polyline(points: np.ndarray, spacing_m: float, sigma_m: float) -> np.ndarray:
@@ -186,9 +205,14 @@ def _binned_profile(s: np.ndarray, d: np.ndarray, bin_m: float) -> tuple[np.ndar
     return profile.binned_profile(s, d, float(bin_m))
 
 
-def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geometry, params: SingleTripParams,
-                 binned: tuple[np.ndarray, int, np.ndarray] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
+def _fit_profile(
+    s: np.ndarray,
+    d: np.ndarray,
+    obs_id: np.ndarray,
+    geom: _Geometry,
+    params: SingleTripParams,
+    binned: tuple[np.ndarray, int, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
     """Robust lateral profile d(s) of one element: per-bin median with outlier rejection,
     Gaussian smoothing along s, ends from the observations. Returns (line (M, 2), inlier mask,
     s_lo, s_hi, fitted d at each point) or None. ``binned``: ``_binned_profile(s, d)`` when
@@ -196,14 +220,26 @@ def _fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, geom: _Geomet
     bin_m = params.SPLICE_BIN_M
     bins, n_bins, med = binned if binned is not None else _binned_profile(s, d, bin_m)
     ok, line, inl, s_lo, s_hi, d_fit = profile.fit_profile(
-        s, d, obs_id, bins, n_bins, med, float(params.SPLICE_OUTLIER_SIGMAS), float(bin_m),
-        _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m), float(params.SPLICE_OUTPUT_SPACING_M),
-        geom.columns, geom.arclength)
+        s,
+        d,
+        obs_id,
+        bins,
+        n_bins,
+        med,
+        float(params.SPLICE_OUTLIER_SIGMAS),
+        float(bin_m),
+        _gaussian_kernel(params.SPLICE_SMOOTH_SIGMA_M / bin_m),
+        float(params.SPLICE_OUTPUT_SPACING_M),
+        geom.columns,
+        geom.arclength,
+    )
     return (line, inl, s_lo, s_hi, d_fit) if ok else None
 
 
 @functools.lru_cache(maxsize=8)
-def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extension_m: float) -> _Geometry | None:
+def _guide_geometry(
+    path_bytes: bytes, dtype: str, n: int, bin_m: float, extension_m: float
+) -> _Geometry | None:
     """The geometry of the guide of a splice: the vehicle path ``(n, 2)`` (given by its bytes, to
     be cached) resampled and prolonged at both ends; None when too short. Tracks seen over the
     same frames share their path (a quarter of them): the last few guides are kept."""
@@ -214,9 +250,16 @@ def _guide_geometry(path_bytes: bytes, dtype: str, n: int, bin_m: float, extensi
     return _geometry(guide)  # cached: shared by every caller, which only reads it
 
 
-def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
-                guide_xy: np.ndarray | None, params: SingleTripParams,
-                original: np.ndarray | None = None, follow_bends: bool = False) -> list[SplicedLine]:
+def splice_line(
+    points_w: np.ndarray,
+    obs_id: np.ndarray,
+    obs_ends: np.ndarray,
+    end_free: np.ndarray,
+    guide_xy: np.ndarray | None,
+    params: SingleTripParams,
+    original: np.ndarray | None = None,
+    follow_bends: bool = False,
+) -> list[SplicedLine]:
     """Observations of one track -> one smoothed polyline per element found in it (usually one).
 
     ``points_w (P, 2)`` all observation points (world), ``obs_id (P,)`` their observation,
@@ -236,8 +279,9 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
     guide_geom = None
     if guide_xy is not None and len(guide_xy) >= 2:
         guide_xy = np.ascontiguousarray(guide_xy)
-        guide_geom = _guide_geometry(guide_xy.tobytes(), guide_xy.dtype.str, len(guide_xy), bin_m,
-                                     params.SPLICE_GUIDE_EXTENSION_M)
+        guide_geom = _guide_geometry(
+            guide_xy.tobytes(), guide_xy.dtype.str, len(guide_xy), bin_m, params.SPLICE_GUIDE_EXTENSION_M
+        )
     if guide_geom is not None:
         # separate the elements of the track along the path; each element is then spliced on
         # the path if it runs along it, else on its own shape
@@ -246,8 +290,9 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
         if _runs_along(s_ends, points_w[ends], obs_id[ends]) < params.SPLICE_ALONG_GUIDE_MIN:
             # the track runs across the path (a dashed line crossed in a junction): the gaps
             # between its pieces are along its own shape, not along the path
-            return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params,
-                                     original, follow_bends)
+            return _splice_own_shape(
+                points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original, follow_bends
+            )
         s, d = _project(points_w, guide_geom)
         labels = _cluster_sd(s, d, params)
         out = []
@@ -264,13 +309,32 @@ def splice_line(points_w: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray, 
             if n_distinct(obs_id[sel]) < params.TRACK_MIN_FRAMES:
                 continue
             if _runs_along(s[sel], points_w[sel], obs_id[sel]) >= params.SPLICE_ALONG_GUIDE_MIN:
-                out.extend(_splice_on(points_w, sel, s[sel], d[sel], guide_geom, False, obs_id, obs_ends, end_free, params,
-                                      original, binned))
+                out.extend(
+                    _splice_on(
+                        points_w,
+                        sel,
+                        s[sel],
+                        d[sel],
+                        guide_geom,
+                        False,
+                        obs_id,
+                        obs_ends,
+                        end_free,
+                        params,
+                        original,
+                        binned,
+                    )
+                )
             else:
-                out.extend(_splice_own_shape(points_w, sel, obs_id, obs_ends, end_free, params, original, follow_bends))
+                out.extend(
+                    _splice_own_shape(
+                        points_w, sel, obs_id, obs_ends, end_free, params, original, follow_bends
+                    )
+                )
         return out
-    return _splice_own_shape(points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original,
-                             follow_bends)
+    return _splice_own_shape(
+        points_w, np.arange(len(points_w)), obs_id, obs_ends, end_free, params, original, follow_bends
+    )
 
 
 def _mixture_sigma(d: np.ndarray, binned: tuple[np.ndarray, int, np.ndarray]) -> float:
@@ -304,7 +368,9 @@ def split_modes(s: np.ndarray, d: np.ndarray, params: SingleTripParams) -> np.nd
     chains_bin: list[int] = []
     mode_chain = np.full(len(mode_start), -1)
     # the chaining walks the modes one by one: on plain Python numbers (numpy scalars cost ten times more)
-    for m, (size, at_bin, offset) in enumerate(zip(mode_n.tolist(), mode_bin.tolist(), mode_d.tolist(), strict=True)):
+    for m, (size, at_bin, offset) in enumerate(
+        zip(mode_n.tolist(), mode_bin.tolist(), mode_d.tolist(), strict=True)
+    ):
         if size < 2:
             continue
         best, best_dist = -1, params.SPLICE_MODE_GATE_M
@@ -334,9 +400,16 @@ def _runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float:
     return profile.runs_along(s, np.ascontiguousarray(points, dtype=float), obs_id)
 
 
-def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
-                      end_free: np.ndarray, params: SingleTripParams, original: np.ndarray,
-                      follow_bends: bool = False) -> list[SplicedLine]:
+def _splice_own_shape(
+    points_w: np.ndarray,
+    sel: np.ndarray,
+    obs_id: np.ndarray,
+    obs_ends: np.ndarray,
+    end_free: np.ndarray,
+    params: SingleTripParams,
+    original: np.ndarray,
+    follow_bends: bool = False,
+) -> list[SplicedLine]:
     """Splice the points ``sel`` on a backbone grown from their own observations (any shape),
     or their principal axis, refined by a second pass; clustered on it first."""
     bin_m = params.SPLICE_BIN_M
@@ -345,8 +418,13 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
     starts = _run_starts(ids)
     ends = np.append(starts[1:], len(ids)) - 1
     short = float((pts.max(0) - pts.min(0)).max()) < params.SPLICE_STRAIGHT_BELOW_M  # np.ptp
-    grown = pts[:1] if short else grow_backbone(pts, np.column_stack([starts, ends]), max_gap_m=params.SPLICE_MAX_GAP_M,
-                                                   follow_bends=follow_bends)
+    grown = (
+        pts[:1]
+        if short
+        else grow_backbone(
+            pts, np.column_stack([starts, ends]), max_gap_m=params.SPLICE_MAX_GAP_M, follow_bends=follow_bends
+        )
+    )
     if len(grown) >= 2 and _arclength(grown)[-1] > 2 * bin_m:
         backbone = smooth_polyline(grown, bin_m / 2, params.SPLICE_BACKBONE_SMOOTH_M)
     else:
@@ -361,15 +439,28 @@ def _splice_own_shape(points_w: np.ndarray, sel: np.ndarray, obs_id: np.ndarray,
         sub = np.flatnonzero(labels == lab)
         if n_distinct(ids[sub]) < params.TRACK_MIN_FRAMES:
             continue
-        out.extend(_splice_on(points_w, sel[sub], s[sub], d[sub], geom, True, obs_id, obs_ends, end_free, params,
-                              original))
+        out.extend(
+            _splice_on(
+                points_w, sel[sub], s[sub], d[sub], geom, True, obs_id, obs_ends, end_free, params, original
+            )
+        )
     return out
 
 
-def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: np.ndarray,
-               geom: _Geometry, refine: bool, obs_id: np.ndarray, obs_ends: np.ndarray, end_free: np.ndarray,
-               params: SingleTripParams, original: np.ndarray,
-               binned: tuple[np.ndarray, int, np.ndarray] | None = None) -> list[SplicedLine]:
+def _splice_on(
+    points_w: np.ndarray,
+    sel: np.ndarray,
+    s_sel: np.ndarray,
+    d_sel: np.ndarray,
+    geom: _Geometry,
+    refine: bool,
+    obs_id: np.ndarray,
+    obs_ends: np.ndarray,
+    end_free: np.ndarray,
+    params: SingleTripParams,
+    original: np.ndarray,
+    binned: tuple[np.ndarray, int, np.ndarray] | None = None,
+) -> list[SplicedLine]:
     """One element (points ``sel`` with backbone coordinates) -> its SplicedLine (or none).
     ``binned``: ``_binned_profile(s_sel, d_sel)`` when already computed."""
     bin_m = params.SPLICE_BIN_M
@@ -388,13 +479,32 @@ def _splice_on(points_w: np.ndarray, sel: np.ndarray, s_sel: np.ndarray, d_sel: 
     # lateral residuals against the fitted profile; along-track: observation ends that are
     # element ends against the instance ends (both in backbone arclength)
     lat, along_res, obs = profile.splice_residuals(
-        len(points_w), sel, inl, s_sel, d_sel, d_fit, original, obs_id, obs_ends, end_free, s_lo, s_hi,
-        float(params.NOISE_END_WINDOW_M))
+        len(points_w),
+        sel,
+        inl,
+        s_sel,
+        d_sel,
+        d_fit,
+        original,
+        obs_id,
+        obs_ends,
+        end_free,
+        s_lo,
+        s_hi,
+        float(params.NOISE_END_WINDOW_M),
+    )
     return [SplicedLine(line, lat, along_res, obs)]
 
 
-def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: np.ndarray, obs: np.ndarray,
-                            max_angle_rad: float, near_m: float, window_m: float) -> list[np.ndarray]:
+def runs_along_observations(
+    line_xy: np.ndarray,
+    points_w: np.ndarray,
+    obs_id: np.ndarray,
+    obs: np.ndarray,
+    max_angle_rad: float,
+    near_m: float,
+    window_m: float,
+) -> list[np.ndarray]:
     """The parts of the spliced ``line_xy`` that run along its own observations ``obs`` (values of
     ``obs_id``, the observation of each of the points ``points_w``); the whole line when all of
     it does.
@@ -414,18 +524,26 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
     if len(line_xy) < 2 or len(points_w) < 2:
         return [line_xy]
     whole, runs = checks.runs_along_observations(
-        np.ascontiguousarray(line_xy, dtype=float), points_w, obs_id, obs, math.cos(max_angle_rad), float(near_m),
-        float(window_m))
+        np.ascontiguousarray(line_xy, dtype=float),
+        points_w,
+        obs_id,
+        obs,
+        math.cos(max_angle_rad),
+        float(near_m),
+        float(window_m),
+    )
     return [line_xy] if whole else [line_xy[a:b] for a, b in runs.tolist()]
 
 
-def _robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float = profile.ROBUST_END_WINDOW_M
-                 ) -> tuple[float, float]:
+def _robust_ends(
+    s: np.ndarray, obs_id: np.ndarray, window_m: float = profile.ROBUST_END_WINDOW_M
+) -> tuple[float, float]:
     """The ends (s_lo, s_hi) of an element from its observations' arclengths: the median of the
     observations' lowest s within ``window_m`` of the lowest, the same for the highest (compiled,
     ``profile.robust_ends``)."""
-    return profile.robust_ends(np.ascontiguousarray(s, dtype=float),
-                                      np.ascontiguousarray(obs_id, dtype=np.int64), float(window_m))
+    return profile.robust_ends(
+        np.ascontiguousarray(s, dtype=float), np.ascontiguousarray(obs_id, dtype=np.int64), float(window_m)
+    )
 
 
 def unique_ids(ids: np.ndarray) -> np.ndarray:
@@ -475,8 +593,9 @@ def _edge_axes(polys: list[np.ndarray], inside: list[np.ndarray]) -> np.ndarray 
     return np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
 
 
-def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02,
-                      inside: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _robust_rectangle(
+    polys: list[np.ndarray], headings_rad: np.ndarray, q: float = 0.02, inside: list[np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An element never seen whole (a crosswalk wider than the BEV range): the rectangle spanning
     the q..1-q quantiles of all observed outline points along its axes. The axes are those of its
     observed sides (``_edge_axes``, ``inside`` (per outline, per vertex) marking the vertices
@@ -502,8 +621,12 @@ def _robust_rectangle(polys: list[np.ndarray], headings_rad: np.ndarray, q: floa
     return corners, lateral, along
 
 
-def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.ndarray,
-                   inside: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def splice_polygon(
+    polys: list[np.ndarray],
+    whole: np.ndarray,
+    headings_rad: np.ndarray,
+    inside: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observed outlines (world) -> one outline, lateral and along residuals (vehicle heading).
 
     ``whole`` (n_obs,) bool: the observation is not clipped by the BEV range; ``inside`` (per
@@ -526,7 +649,9 @@ def splice_polygon(polys: list[np.ndarray], whole: np.ndarray, headings_rad: np.
             continue
         shifts = p[roll]
         diff = shifts - ref[None]
-        err = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]).sum(1)  # np.linalg.norm(diff, axis=-1)
+        err = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]).sum(
+            1
+        )  # np.linalg.norm(diff, axis=-1)
         stack.append(shifts[int(np.argmin(err))])
         heads.append(headings_rad[i])
     arr = np.stack(stack)  # (n, m, 2)

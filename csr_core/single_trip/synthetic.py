@@ -94,7 +94,12 @@ def crossing_points_world(spec: SynthSpec, crossing: SynthCrossing) -> np.ndarra
     """World outline of a crosswalk ``(4, 2)``, or the two ends of a stop line ``(2, 2)``."""
     half = crossing.width_m / 2 if crossing.type == ElementType.CROSSWALK else 0.0
     out = []
-    for ds, offset in ((-half, crossing.from_m), (-half, crossing.to_m), (half, crossing.to_m), (half, crossing.from_m)):
+    for ds, offset in (
+        (-half, crossing.from_m),
+        (-half, crossing.to_m),
+        (half, crossing.to_m),
+        (half, crossing.from_m),
+    ):
         ref = _curve(np.array([crossing.s_m + ds]), spec.curvature_1pm, spec.heading_rad)[0]
         out.append(ref[:2] + offset * np.array([-np.sin(ref[2]), np.cos(ref[2])]))
     return np.array(out if half else out[:2])
@@ -124,9 +129,9 @@ def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
     gnss_xy = true[:, :2] + np.asarray(spec.gnss_bias_m) + rng.normal(size=(n, 2)) * spec.gnss_sigma_m
     status = np.full(n, int(spec.gnss_status), dtype=np.uint8)
     for a, b, dx, dy in spec.gnss_jumps:
-        gnss_xy[a:b + 1] += (dx, dy)
+        gnss_xy[a : b + 1] += (dx, dy)
     for a, b in spec.gnss_outages:
-        status[a:b + 1] = GnssStatus.NONE
+        status[a : b + 1] = GnssStatus.NONE
     std = np.full(n, max(spec.gnss_sigma_m, 0.02) if spec.report_std else np.nan)
     heading = np.full(n, np.nan)
 
@@ -142,8 +147,12 @@ def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
             line = spec.lines[j]
             pts = se2.transform_points(veh_T_world, lines_world[j])
             pts = pts + (0.0, shift)
-            inside = ((pts[:, 0] >= spec.bev_x_m[0]) & (pts[:, 0] <= spec.bev_x_m[1])
-                      & (pts[:, 1] >= spec.bev_y_m[0]) & (pts[:, 1] <= spec.bev_y_m[1]))
+            inside = (
+                (pts[:, 0] >= spec.bev_x_m[0])
+                & (pts[:, 0] <= spec.bev_x_m[1])
+                & (pts[:, 1] >= spec.bev_y_m[0])
+                & (pts[:, 1] <= spec.bev_y_m[1])
+            )
             if inside.sum() < 2:
                 continue
             idx = np.flatnonzero(inside)
@@ -168,16 +177,31 @@ def make_trip(spec: SynthSpec) -> tuple[Trip, np.ndarray, LocalFrame]:
                     frame_elems.append(PerceivedElement(line.type, c, style=line.style, score=0.9))
         for crossing in spec.crossings:
             pts = se2.transform_points(veh_T_world, crossing_points_world(spec, crossing))
-            if ((pts[:, 0] >= spec.bev_x_m[0]) & (pts[:, 0] <= spec.bev_x_m[1])
-                    & (pts[:, 1] >= spec.bev_y_m[0]) & (pts[:, 1] <= spec.bev_y_m[1])).all():
+            if (
+                (pts[:, 0] >= spec.bev_x_m[0])
+                & (pts[:, 0] <= spec.bev_x_m[1])
+                & (pts[:, 1] >= spec.bev_y_m[0])
+                & (pts[:, 1] <= spec.bev_y_m[1])
+            ).all():
                 pts = pts + rng.normal(size=pts.shape) * spec.element_sigma_m
                 frame_elems.append(PerceivedElement(crossing.type, pts, score=0.9))
         elements.append(tuple(frame_elems))
 
     lonlat = frame.to_lonlat(gnss_xy)
-    trip = Trip(vehicle_id="synth", trip_id=f"seed{spec.seed}", started_at="2026-11-21T00:00:00Z",
-                timestamps_s=t, gnss_lonlat_deg=lonlat, gnss_status=status, gnss_std_m=std,
-                gnss_heading_deg=frame.true_heading_deg(heading, lonlat), odom_xyyaw=odom, elements=tuple(elements),
-                sensor_setup={"bev_range_m": {"x": list(spec.bev_x_m), "y": list(spec.bev_y_m)},
-                              "rate_hz": spec.rate_hz})
+    trip = Trip(
+        vehicle_id="synth",
+        trip_id=f"seed{spec.seed}",
+        started_at="2026-11-21T00:00:00Z",
+        timestamps_s=t,
+        gnss_lonlat_deg=lonlat,
+        gnss_status=status,
+        gnss_std_m=std,
+        gnss_heading_deg=frame.true_heading_deg(heading, lonlat),
+        odom_xyyaw=odom,
+        elements=tuple(elements),
+        sensor_setup={
+            "bev_range_m": {"x": list(spec.bev_x_m), "y": list(spec.bev_y_m)},
+            "rate_hz": spec.rate_hz,
+        },
+    )
     return trip, true, frame

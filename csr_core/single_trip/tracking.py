@@ -37,8 +37,9 @@ _POLYGON_CODES = np.array([t.is_polygon for t in ElementType])
 #: lines perceived whole where seen: one piece continues another only end to end, one piece per end
 #: (a dashed divider's dashes are chained by dash_chaining)
 _CONTINUOUS_CODES = np.array([t in (ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE) for t in ElementType])
-_LATERAL_CODES = np.array([t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
-                           for t in ElementType])
+_LATERAL_CODES = np.array(
+    [t in (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE) for t in ElementType]
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,13 +88,19 @@ def resample_flat(points: np.ndarray, offsets: np.ndarray, k: int) -> np.ndarray
     return points[left] * (1.0 - w) + points[right] * w
 
 
-def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float) -> np.ndarray:
+def pair_distance(
+    points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float
+) -> np.ndarray:
     """Truncated distance of each point of ``points (M, P, 2)`` to the matching polyline of
     ``polys (M, K, 2)``, the polyline extended at both ends along its chord (first to last
     point: a noisy end segment of a short dash would swing) by up to ``max_extrapolation_m``;
     farther: ``cap_m``. Returns (M, P). Compiled (``observations.pair_distance``)."""
-    return observations.pair_distance(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(polys, dtype=float),
-                                        float(max_extrapolation_m), float(cap_m))
+    return observations.pair_distance(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(polys, dtype=float),
+        float(max_extrapolation_m),
+        float(cap_m),
+    )
 
 
 def lateral_at_vehicle(polys_vehicle: np.ndarray) -> np.ndarray:
@@ -108,12 +115,14 @@ def lateral_at_vehicle(polys_vehicle: np.ndarray) -> np.ndarray:
     rows = np.arange(len(x))
     x0, x1, y0, y1 = x[rows, i - 1], x[rows, i], y[rows, i - 1], y[rows, i]
     dx = x1 - x0
-    return np.where(np.abs(dx) > 1e-6, y0 + (0.0 - x0) * (y1 - y0) / np.where(np.abs(dx) > 1e-6, dx, 1.0),
-                    0.5 * (y0 + y1))
+    return np.where(
+        np.abs(dx) > 1e-6, y0 + (0.0 - x0) * (y1 - y0) / np.where(np.abs(dx) > 1e-6, dx, 1.0), 0.5 * (y0 + y1)
+    )
 
 
-def _pairs_between(keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def _pairs_between(
+    keys_sorted: np.ndarray, a_keys: np.ndarray, order_a: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """All (a, b) with b's key equal to ``a_keys[a]`` (b indexes the sorted array)."""
     lo = np.searchsorted(keys_sorted, a_keys, side="left")
     hi = np.searchsorted(keys_sorted, a_keys, side="right")
@@ -155,8 +164,20 @@ class _Shapes:
         def col(a: np.ndarray, k: int) -> np.ndarray:
             return np.ascontiguousarray(a[:, k])
 
-        return _Shapes(col(lo, 0), col(lo, 1), col(hi, 0), col(hi, 1), col(pw[:, 0], 0), col(pw[:, 0], 1),
-                       col(u, 0), col(u, 1), length, col(mid, 0), col(mid, 1), sag)
+        return _Shapes(
+            col(lo, 0),
+            col(lo, 1),
+            col(hi, 0),
+            col(hi, 1),
+            col(pw[:, 0], 0),
+            col(pw[:, 0], 1),
+            col(u, 0),
+            col(u, 1),
+            length,
+            col(mid, 0),
+            col(mid, 1),
+            sag,
+        )
 
 
 def _bbox_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, margin_m: float) -> np.ndarray:
@@ -167,8 +188,9 @@ def _bbox_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, margin_m: float) -> np
     return idx[(sh.lo_y[b] - sh.hi_y[a] <= margin_m) & (sh.lo_y[a] - sh.hi_y[b] <= margin_m)]
 
 
-def _coarse_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float,
-                 min_cos: float) -> np.ndarray:
+def _coarse_near(
+    sh: _Shapes, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m: float, min_cos: float
+) -> np.ndarray:
     """Cheap pre-test of pairs: bounding boxes within reach; chords nearly parallel (pieces
     shorter than 2 m exempt); the middle point of one within ``gate_m`` plus both pieces'
     sagitta (curvature) of the other's chord line. Returns a mask (n_pairs,)."""
@@ -181,7 +203,9 @@ def _coarse_near(sh: _Shapes, a: np.ndarray, b: np.ndarray, ext_m: float, gate_m
     cos = np.abs(ua_x * ub_x + ua_y * ub_y)
     sag_a, sag_b = sh.sag[a], sh.sag[b]
     short = (sh.length[a] < 2.0) | (sh.length[b] < 2.0)
-    ok = (np.minimum(lat1, lat2) <= gate_m + sag_a + sag_b) & ((cos >= min_cos) | short | (sag_a + sag_b > 1.0))
+    ok = (np.minimum(lat1, lat2) <= gate_m + sag_a + sag_b) & (
+        (cos >= min_cos) | short | (sag_a + sag_b > 1.0)
+    )
     keep[near[ok]] = True
     return keep
 
@@ -212,17 +236,25 @@ def collect_pieces(frames: np.ndarray, poses_xyyaw: np.ndarray, elements, k: int
     pv = resample_flat(raw, offsets, k)
     n_per_frame = np.fromiter(map(len, per_frame), dtype=np.int64, count=len(per_frame))
     f_arr = np.repeat(np.arange(len(per_frame), dtype=np.int64), n_per_frame)
-    e_idx = np.arange(len(flat), dtype=np.int64) - np.repeat(np.cumsum(n_per_frame) - n_per_frame, n_per_frame)
+    e_idx = np.arange(len(flat), dtype=np.int64) - np.repeat(
+        np.cumsum(n_per_frame) - n_per_frame, n_per_frame
+    )
     codes = np.fromiter((TYPE_CODES[e.type] for e in flat), dtype=np.int64, count=len(flat))
     pose = poses_xyyaw[frames[f_arr]]
     c, s = np.cos(pose[:, 2])[:, None], np.sin(pose[:, 2])[:, None]
-    pw = np.stack([c * pv[..., 0] - s * pv[..., 1] + pose[:, None, 0],
-                   s * pv[..., 0] + c * pv[..., 1] + pose[:, None, 1]], axis=-1)
+    pw = np.stack(
+        [
+            c * pv[..., 0] - s * pv[..., 1] + pose[:, None, 0],
+            s * pv[..., 0] + c * pv[..., 1] + pose[:, None, 1],
+        ],
+        axis=-1,
+    )
     return Pieces(f_arr, e_idx, codes, pv, pw, raw, offsets.astype(np.int64))
 
 
-def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray, elements,
-                   params: SingleTripParams) -> tuple[Pieces, list[Track]]:
+def track_elements(
+    frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.ndarray, elements, params: SingleTripParams
+) -> tuple[Pieces, list[Track]]:
     """Track the detections of the tracked ``frames`` (F,) through the trip.
 
     ``poses_xyyaw`` (N, 3) smoothed world_T_vehicle, ``travel_m`` (N,) path length, ``elements``
@@ -249,8 +281,14 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
     m = (a < b) & ~_POLYGON_CODES[pc.type_code[a]]
     a, b = a[m], b[m]
     shapes = _Shapes.of(pc.points_w)
-    m = _coarse_near(shapes, a, b, ext, params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
-                     np.cos(params.TRACK_MAX_ANGLE_RAD))
+    m = _coarse_near(
+        shapes,
+        a,
+        b,
+        ext,
+        params.TRACK_MERGE_GATE_M + params.TRACK_COARSE_MARGIN_M,
+        np.cos(params.TRACK_MAX_ANGLE_RAD),
+    )
     a, b = a[m], b[m]
     if len(a):
         # min(d_ab, d_ba) within the gate: each distance only where its lower bound is within
@@ -279,15 +317,21 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
         b = order[b_sorted]
         if len(a) == 0:
             continue
-        m = _coarse_near(shapes, a, b, ext, params.TRACK_GATE_M + params.TRACK_COARSE_MARGIN_M,
-                         np.cos(params.TRACK_MAX_ANGLE_RAD))
+        m = _coarse_near(
+            shapes,
+            a,
+            b,
+            ext,
+            params.TRACK_GATE_M + params.TRACK_COARSE_MARGIN_M,
+            np.cos(params.TRACK_MAX_ANGLE_RAD),
+        )
         a, b = a[m], b[m]
         if len(a) == 0:
             continue
         # pose uncertainty over the travel between the frames widens the gate
         gap_m = np.abs(travel_m[frames[pc.frame[b]]] - travel_m[frames[pc.frame[a]]])
         sig_rel = params.ODOM_SIGMA_XY_PER_M * gap_m + params.ODOM_SIGMA_YAW_PER_M * gap_m * 15.0
-        gate = np.sqrt(params.TRACK_GATE_M ** 2 + (params.TRACK_GATE_SIGMAS * sig_rel) ** 2)
+        gate = np.sqrt(params.TRACK_GATE_M**2 + (params.TRACK_GATE_SIGMAS * sig_rel) ** 2)
         near = _chamfer_lower_bound(pc.points_w[b], shapes, a, cap) <= gate + _BOUND_SLACK_M
         a, b, gate = a[near], b[near], gate[near]
         chamfer = pair_distance(pc.points_w[b], pc.points_w[a], ext, cap).mean(1)
@@ -345,13 +389,19 @@ def track_elements(frames: np.ndarray, poses_xyyaw: np.ndarray, travel_m: np.nda
     track_types = pc.type_code[by_label[bounds[:-1]]].tolist()
     tracks = []
     for i in range(n_comp):
-        tracks.append(Track(type=types[track_types[i]], pieces=by_label[bounds[i]:bounds[i + 1]],
-                            frames=distinct_frames[frame_bounds[i]:frame_bounds[i + 1]]))
+        tracks.append(
+            Track(
+                type=types[track_types[i]],
+                pieces=by_label[bounds[i] : bounds[i + 1]],
+                frames=distinct_frames[frame_bounds[i] : frame_bounds[i + 1]],
+            )
+        )
     return pc, tracks
 
 
-def one_continuation_per_end(points_w: np.ndarray, a: np.ndarray, b: np.ndarray, cost: np.ndarray,
-                              exempt: np.ndarray) -> np.ndarray:
+def one_continuation_per_end(
+    points_w: np.ndarray, a: np.ndarray, b: np.ndarray, cost: np.ndarray, exempt: np.ndarray
+) -> np.ndarray:
     """Which of the within-frame merges of pieces ``a`` and ``b`` (indices into ``points_w (Q, k,
     2)``, with their Chamfer ``cost``) to keep: the pieces must continue each other, lying on
     opposite sides of the joint of their nearest ends, and each must be the other's cheapest
@@ -408,8 +458,14 @@ def component_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([numbers.setdefault(root(x), len(numbers)) for x in range(n)], dtype=np.int32)
 
 
-def regroup_observations(points_w: np.ndarray, frame: np.ndarray, gate_m: float, max_angle_rad: float,
-                         max_skip_frames: int, max_extrapolation_m: float) -> np.ndarray:
+def regroup_observations(
+    points_w: np.ndarray,
+    frame: np.ndarray,
+    gate_m: float,
+    max_angle_rad: float,
+    max_skip_frames: int,
+    max_extrapolation_m: float,
+) -> np.ndarray:
     """Labels (m,) splitting a track's observations ``points_w (m, k, 2)`` (tracked frame
     ``frame (m,)``) into elements by a stricter, symmetric test than the tracker's: two
     observations at most ``max_skip_frames`` apart are one element when each one's mean distance
@@ -425,7 +481,9 @@ def regroup_observations(points_w: np.ndarray, frame: np.ndarray, gate_m: float,
     chord = points_w[:, -1] - points_w[:, 0]
     length = np.maximum(np.hypot(chord[:, 0], chord[:, 1]), 1e-9)
     u = chord / length[:, None]
-    parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(max_angle_rad)) | (np.minimum(length[a], length[b]) < 2.0)
+    parallel = (np.abs((u[a] * u[b]).sum(1)) >= np.cos(max_angle_rad)) | (
+        np.minimum(length[a], length[b]) < 2.0
+    )
     a, b = a[parallel], b[parallel]
     # both mean distances within the gate: d_ba only where d_ab is
     d_ab = pair_distance(points_w[b], points_w[a], max_extrapolation_m, 3.0 * gate_m).mean(1)

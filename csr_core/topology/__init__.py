@@ -46,16 +46,29 @@ from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT", "SUSPECT", "LaneGraph", "TileQuality", "TopologyParams", "TopologyResult", "ValidationFlag",
-           "generate_topology", "reposition_instances", "update_topology"]
+__all__ = [
+    "DEFAULT",
+    "SUSPECT",
+    "LaneGraph",
+    "TileQuality",
+    "TopologyParams",
+    "TopologyResult",
+    "ValidationFlag",
+    "generate_topology",
+    "reposition_instances",
+    "update_topology",
+]
 
 
-def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
-                      noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
-                      params: TopologyParams = DEFAULT, previous: TopologyResult | None = None,
-                      trip_times: Mapping[str, object] | None = None,
-                      match_pairs: Sequence = (),
-                      paths_xy_per_trip: Mapping[str, np.ndarray] | None = None) -> TopologyResult:
+def generate_topology(
+    instances_per_trip: Mapping[str, Sequence[TripInstance]],
+    noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
+    params: TopologyParams = DEFAULT,
+    previous: TopologyResult | None = None,
+    trip_times: Mapping[str, object] | None = None,
+    match_pairs: Sequence = (),
+    paths_xy_per_trip: Mapping[str, np.ndarray] | None = None,
+) -> TopologyResult:
     """Fuse the aligned instances of all trips into the map (paper III-E) and validate it.
 
     ``instances_per_trip``: trip key -> its instances in the world frame (after alignment);
@@ -80,15 +93,29 @@ def generate_topology(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     # 4. centreline directions from the trips that drove them, stable ids
     paths = path_probes(paths_xy_per_trip)
     features = orient_centerlines(features, paths, params)
-    features = assign_ids(features, (*previous.features, *previous.suppressed) if previous is not None else (),
-                          params)
+    features = assign_ids(
+        features, (*previous.features, *previous.suppressed) if previous is not None else (), params
+    )
     members = {f.feature_id: m for f, m in zip(features, member_lists, strict=True)}
     t2 = time.perf_counter()
     # 5.-7. ghosts held back, centrelines derived where none was perceived, validation, lane graph
-    result = finish(features, members, trip_probe_points(instances_per_trip), params, match_pairs,
-                    {"fuse": t1 - t0, "ids": t2 - t1}, trip_times, rejected, paths,
-                    (*previous.features, *previous.suppressed) if previous is not None else ())
-    log.info("topology: %d trips, %d features, %d flags in %.2f s", len(instances_per_trip),
-             len(result.features), len(result.flags), time.perf_counter() - t0)
+    result = finish(
+        features,
+        members,
+        trip_probe_points(instances_per_trip),
+        params,
+        match_pairs,
+        {"fuse": t1 - t0, "ids": t2 - t1},
+        trip_times,
+        rejected,
+        paths,
+        (*previous.features, *previous.suppressed) if previous is not None else (),
+    )
+    log.info(
+        "topology: %d trips, %d features, %d flags in %.2f s",
+        len(instances_per_trip),
+        len(result.features),
+        len(result.flags),
+        time.perf_counter() - t0,
+    )
     return result
-

@@ -119,8 +119,9 @@ def _first_min_per_group(group: np.ndarray, value: np.ndarray) -> np.ndarray:
     return index[at_min[first]]
 
 
-def neighbour_pairs(points_xy: np.ndarray, owner: np.ndarray, radius_m: float,
-                    tree: cKDTree | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def neighbour_pairs(
+    points_xy: np.ndarray, owner: np.ndarray, radius_m: float, tree: cKDTree | None = None
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Every ordered pair of samples ``(a, b)`` of different owners within ``radius_m``, with
     their distance, as ``(a, b, distance_m)`` arrays, block by block of ``a`` (ascending blocks of
     ``NEIGHBOUR_BLOCK_SAMPLES``). At ten trips a place a sample has a hundred or more neighbours,
@@ -128,16 +129,20 @@ def neighbour_pairs(points_xy: np.ndarray, owner: np.ndarray, radius_m: float,
     over ``points_xy`` if the caller has one."""
     tree = tree if tree is not None else cKDTree(points_xy)
     for lo in range(0, len(points_xy), NEIGHBOUR_BLOCK_SAMPLES):
-        block = (tree if len(points_xy) <= NEIGHBOUR_BLOCK_SAMPLES
-                 else cKDTree(points_xy[lo : lo + NEIGHBOUR_BLOCK_SAMPLES]))
+        block = (
+            tree
+            if len(points_xy) <= NEIGHBOUR_BLOCK_SAMPLES
+            else cKDTree(points_xy[lo : lo + NEIGHBOUR_BLOCK_SAMPLES])
+        )
         near = block.sparse_distance_matrix(tree, radius_m, output_type="ndarray")
         a, b = near["i"].astype(np.int64) + lo, near["j"].astype(np.int64)
         other = owner[a] != owner[b]  # pairs within one owner never count
         yield a[other], b[other], near["v"][other]
 
 
-def nearest_offsets(samples: LineSamples, reach_m: float, spacing_m: float, directed: bool,
-                    max_angle_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def nearest_offsets(
+    samples: LineSamples, reach_m: float, spacing_m: float, directed: bool, max_angle_rad: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For every sample ``a`` and every other member with a sample within ``reach_m``: that
     member, the lateral distance of ``a`` to it (along its nearest sample's tangent) and whether
     ``a`` lies inside its extent and is parallel to it. Returns ``(a, member, lateral_m, inside)``,
@@ -174,8 +179,9 @@ def _components(n: int, i: np.ndarray, j: np.ndarray) -> list[list[int]]:
     return list(groups.values())
 
 
-def associate_lines(members: Sequence[Member], element_type: ElementType,
-                    params: TopologyParams) -> list[list[int]]:
+def associate_lines(
+    members: Sequence[Member], element_type: ElementType, params: TopologyParams
+) -> list[list[int]]:
     """Groups (lists of member indices) of line instances that are the same element."""
     n = len(members)
     if n == 0:
@@ -183,13 +189,17 @@ def associate_lines(members: Sequence[Member], element_type: ElementType,
     spacing = params.SAMPLE_SPACING_M
     samples = sample_members(members, spacing)
     sigma = np.array([m.sigma_m for m in members])
-    max_gate = max(params.gate_m(s1, s2) for s1 in (sigma.min(), sigma.max()) for s2 in (sigma.min(), sigma.max()))
+    max_gate = max(
+        params.gate_m(s1, s2) for s1 in (sigma.min(), sigma.max()) for s2 in (sigma.min(), sigma.max())
+    )
     reach = params.WINDOW_GATES * max_gate + 0.5 * spacing
     # undirected for every type: a trip's instance runs the way the trip drove, not the lane
     a, mb, lateral, inside = nearest_offsets(samples, reach, spacing, False, params.MAX_ANGLE_RAD)
     ma = samples.owner[a]
-    gate = np.minimum(params.GATE_SIGMAS * np.hypot(sigma[ma], sigma[mb]),
-                      params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M)
+    gate = np.minimum(
+        params.GATE_SIGMAS * np.hypot(sigma[ma], sigma[mb]),
+        params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M,
+    )
     alongside = inside & (lateral <= params.WINDOW_GATES * gate)
     close = alongside & (lateral <= gate)
     key = ma * n + mb
@@ -217,7 +227,9 @@ def associate_polygons(members: Sequence[Member], params: TopologyParams) -> lis
     if n == 0:
         return []
     # outlines differ in vertex count: one Polygon each (a degenerate one as its points' hull)
-    polys = shapely.make_valid(np.array([_outline_polygon(m.instance.points_xy_world) for m in members], dtype=object))
+    polys = shapely.make_valid(
+        np.array([_outline_polygon(m.instance.points_xy_world) for m in members], dtype=object)
+    )
     tree = shapely.STRtree(polys)
     i, j = tree.query(polys, predicate="intersects")
     keep = i < j

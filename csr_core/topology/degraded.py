@@ -18,8 +18,9 @@ from csr_core.types import MapFeature
 DEGRADED_SUPPORT = "degraded_support"
 
 
-def hold_back_degraded(features: Sequence[MapFeature], held_back: Sequence[MapFeature], degraded: set[str]
-                       ) -> tuple[tuple[MapFeature, ...], tuple[MapFeature, ...]]:
+def hold_back_degraded(
+    features: Sequence[MapFeature], held_back: Sequence[MapFeature], degraded: set[str]
+) -> tuple[tuple[MapFeature, ...], tuple[MapFeature, ...]]:
     """``(published, held back)``: ``features`` of the trips in ``degraded`` flagged, those only
     they support moved to ``held_back`` (module docstring)."""
     if not degraded:
@@ -32,7 +33,10 @@ def hold_back_degraded(features: Sequence[MapFeature], held_back: Sequence[MapFe
         if not bad:
             kept.append(f)
             continue
-        props = {**f.properties, "flags": sorted({*f.properties.get("flags", ()), DEGRADED_SUPPORT}),
-                 "degraded_trips": len(bad)}
+        props = {
+            **f.properties,
+            "flags": sorted({*f.properties.get("flags", ()), DEGRADED_SUPPORT}),
+            "degraded_trips": len(bad),
+        }
         (back if bad == trips else kept).append(replace(f, properties=props))
     return tuple(kept), tuple(back)

@@ -86,7 +86,9 @@ class LaneCrossings:
         return (self.s_right_m < 0.0) & (self.s_left_m > 0.0)
 
 
-def _segments(features: Sequence[MapFeature], indices: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _segments(
+    features: Sequence[MapFeature], indices: Sequence[int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Start points, vectors and owner feature index of the bounding lines' 1 m segments."""
     starts, vecs, owner = [], [], []
     for i in indices:
@@ -101,8 +103,9 @@ def _segments(features: Sequence[MapFeature], indices: Sequence[int]) -> tuple[n
     return np.concatenate(starts), np.concatenate(vecs), np.concatenate(owner)
 
 
-def lane_crossings(features: Sequence[MapFeature], probes_xy_dir: np.ndarray, probe_trip: np.ndarray,
-                   params: TopologyParams) -> LaneCrossings:
+def lane_crossings(
+    features: Sequence[MapFeature], probes_xy_dir: np.ndarray, probe_trip: np.ndarray, params: TopologyParams
+) -> LaneCrossings:
     """Step 1: each probe's ray against the bounding lines; consecutive crossings that may bound
     a lane (``MIN_LANE_WIDTH_M`` to ``MAX_LANE_WIDTH_M`` plus two shoulders apart: the painted
     width is checked once the shoulder is known, ``painted_lanes``). ``probes_xy_dir (P, 4)``: x,
@@ -113,8 +116,9 @@ def lane_crossings(features: Sequence[MapFeature], probes_xy_dir: np.ndarray, pr
     if len(a) == 0 or len(probes_xy_dir) == 0:
         return LaneCrossings(empty, empty, empty, empty, np.zeros(0), np.zeros(0))
     reach = params.PASS_LATERAL_M
-    near = cKDTree(probes_xy_dir[:, :2]).sparse_distance_matrix(cKDTree(a + 0.5 * d), reach + SEGMENT_M,
-                                                                 output_type="ndarray")
+    near = cKDTree(probes_xy_dir[:, :2]).sparse_distance_matrix(
+        cKDTree(a + 0.5 * d), reach + SEGMENT_M, output_type="ndarray"
+    )
     pi, si = near["i"].astype(np.intp), near["j"].astype(np.intp)
     o, t = probes_xy_dir[pi, :2], probes_xy_dir[pi, 2:]
     n = np.column_stack([-t[:, 1], t[:, 0]])  # the probe's left
@@ -137,14 +141,21 @@ def lane_crossings(features: Sequence[MapFeature], probes_xy_dir: np.ndarray, pr
     pi, line, s = pi[order], line[order], s[order]
     pair = np.flatnonzero(pi[1:] == pi[:-1])
     width = s[pair + 1] - s[pair]
-    lane = pair[(width >= params.MIN_LANE_WIDTH_M) & (width <= params.MAX_LANE_WIDTH_M + 2.0 * SHOULDER_MAX_M)]
+    lane = pair[
+        (width >= params.MIN_LANE_WIDTH_M) & (width <= params.MAX_LANE_WIDTH_M + 2.0 * SHOULDER_MAX_M)
+    ]
     return LaneCrossings(pi[lane], probe_trip[pi[lane]], line[lane], line[lane + 1], s[lane], s[lane + 1])
 
 
 def thinned(probes_xy_dir: np.ndarray) -> np.ndarray:
     """Indices of the probes kept for the rays: at most ``THIN_PER_CELL`` per ``THIN_CELL_M``
     square and heading octant, the first ones in order."""
-    octant = np.floor((np.arctan2(probes_xy_dir[:, 3], probes_xy_dir[:, 2]) + np.pi) / (np.pi / 4)).astype(np.int64) % 8
+    octant = (
+        np.floor((np.arctan2(probes_xy_dir[:, 3], probes_xy_dir[:, 2]) + np.pi) / (np.pi / 4)).astype(
+            np.int64
+        )
+        % 8
+    )
     cell = np.floor(probes_xy_dir[:, :2] / THIN_CELL_M).astype(np.int64)
     _, group = np.unique(np.column_stack([cell, octant]), axis=0, return_inverse=True)
     order = np.argsort(group, kind="stable")
@@ -166,8 +177,9 @@ def shoulder_width_m(crossings: LaneCrossings, is_kerb: np.ndarray, params: Topo
     return float(np.clip(np.median(crossings.width_m[one_kerb] - 2.0 * d_from_divider), 0.0, SHOULDER_MAX_M))
 
 
-def painted_lanes(crossings: LaneCrossings, is_kerb: np.ndarray, shoulder_m: float,
-                  params: TopologyParams) -> np.ndarray:
+def painted_lanes(
+    crossings: LaneCrossings, is_kerb: np.ndarray, shoulder_m: float, params: TopologyParams
+) -> np.ndarray:
     """Step 2: the strips whose painted width (a shoulder less per kerb edge) is a lane's."""
     kerbs = is_kerb[crossings.right].astype(int) + is_kerb[crossings.left].astype(int)
     painted = crossings.width_m - kerbs * shoulder_m
@@ -179,12 +191,16 @@ def centre_offsets_m(crossings: LaneCrossings, is_kerb: np.ndarray, shoulder_m: 
     kr, kl = is_kerb[crossings.right], is_kerb[crossings.left]
     mid = 0.5 * (crossings.s_right_m + crossings.s_left_m)
     half_painted = 0.5 * np.maximum(crossings.width_m - shoulder_m, 0.0)
-    return np.where(kr & ~kl, crossings.s_left_m - half_painted,
-                    np.where(kl & ~kr, crossings.s_right_m + half_painted, mid))
+    return np.where(
+        kr & ~kl,
+        crossings.s_left_m - half_painted,
+        np.where(kl & ~kr, crossings.s_right_m + half_painted, mid),
+    )
 
 
-def _fused_runs(points_xy: np.ndarray, reference_xy: np.ndarray, params: TopologyParams
-                ) -> list[tuple[np.ndarray, np.ndarray]]:
+def _fused_runs(
+    points_xy: np.ndarray, reference_xy: np.ndarray, params: TopologyParams
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Step 5: centre points of one lane averaged per metre along ``reference_xy`` (its first
     bounding line), smoothed, cut at unsupported stretches of ``MAX_GAP_M``. Each run with the
     indices of the points it was made of."""
@@ -203,13 +219,22 @@ def _fused_runs(points_xy: np.ndarray, reference_xy: np.ndarray, params: Topolog
         dense = np.column_stack([np.interp(np.arange(b[0], b[-1] + 1), b, m[:, c]) for c in (0, 1)])
         if len(dense) >= 3:
             dense = smooth_point_reflected(dense, params.SMOOTH_SIGMA_M / params.BIN_M)
-        runs.append((resample_polyline(dense, params.OUTPUT_SPACING_M), np.flatnonzero((inverse >= j0) & (inverse < j1))))
+        runs.append(
+            (
+                resample_polyline(dense, params.OUTPUT_SPACING_M),
+                np.flatnonzero((inverse >= j0) & (inverse < j1)),
+            )
+        )
     return runs
 
 
-def derive_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray], params: TopologyParams,
-                       trip_times: Mapping[str, object] | None = None,
-                       previous: Sequence[MapFeature] = ()) -> list[MapFeature]:
+def derive_centerlines(
+    features: Sequence[MapFeature],
+    probes: Mapping[str, np.ndarray],
+    params: TopologyParams,
+    trip_times: Mapping[str, object] | None = None,
+    previous: Sequence[MapFeature] = (),
+) -> list[MapFeature]:
     """The derived centrelines of the map ``features``: lanes (steps 1-6 of the module
     docstring) and connectors (step 7). ``probes``: trip key -> ``(P, 4)`` path probes
     (``instances.path_probes``); ``previous``: the map's earlier derived centrelines, whose ids
@@ -222,8 +247,12 @@ def derive_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
     return assign_ids(lanes + connectors, previous, params)
 
 
-def derived_lanes(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray], params: TopologyParams,
-                  trip_times: Mapping[str, object] | None = None) -> list[MapFeature]:
+def derived_lanes(
+    features: Sequence[MapFeature],
+    probes: Mapping[str, np.ndarray],
+    params: TopologyParams,
+    trip_times: Mapping[str, object] | None = None,
+) -> list[MapFeature]:
     """Steps 1-6: a centreline for each lane between the bounding lines that the trips' rays
     crossed, that no perceived centreline covers and, beside a kerb, that a trip drove in (ids
     not set)."""
@@ -240,35 +269,62 @@ def derived_lanes(features: Sequence[MapFeature], probes: Mapping[str, np.ndarra
     s_c = centre_offsets_m(crossings, is_kerb, shoulder)
     o, t = all_probes[crossings.probe, :2], all_probes[crossings.probe, 2:]
     centre = o + s_c[:, None] * np.column_stack([-t[:, 1], t[:, 0]])
-    keep = painted_lanes(crossings, is_kerb, shoulder, params) & _away_from_perceived(centre, features, params)
-    lane_key = np.minimum(crossings.right, crossings.left) * len(features) + np.maximum(crossings.right,
-                                                                                       crossings.left)
+    keep = painted_lanes(crossings, is_kerb, shoulder, params) & _away_from_perceived(
+        centre, features, params
+    )
+    lane_key = np.minimum(crossings.right, crossings.left) * len(features) + np.maximum(
+        crossings.right, crossings.left
+    )
     lanes: list[MapFeature] = []
     for key in np.unique(lane_key[keep]):
         rows = np.flatnonzero(keep & (lane_key == key))
         i_a, i_b = divmod(int(key), len(features))
-        for run, members in _fused_runs(centre[rows], np.asarray(features[i_a].points_xy_world, float), params):
+        for run, members in _fused_runs(
+            centre[rows], np.asarray(features[i_a].points_xy_world, float), params
+        ):
             r = rows[members]
             if (is_kerb[i_a] or is_kerb[i_b]) and not crossings.driven[r].any():
                 continue  # a strip beside a kerb that nobody drove: parking, a cycle lane, a verge
-            lanes.append(_feature(run, centre[r], t[r], crossings.driven[r], [keys[i] for i in crossings.trip[r]],
-                                  (features[i_a], features[i_b]), shoulder, trip_times))
+            lanes.append(
+                _feature(
+                    run,
+                    centre[r],
+                    t[r],
+                    crossings.driven[r],
+                    [keys[i] for i in crossings.trip[r]],
+                    (features[i_a], features[i_b]),
+                    shoulder,
+                    trip_times,
+                )
+            )
     return lanes
 
 
-def _away_from_perceived(centre_xy: np.ndarray, features: Sequence[MapFeature], params: TopologyParams) -> np.ndarray:
+def _away_from_perceived(
+    centre_xy: np.ndarray, features: Sequence[MapFeature], params: TopologyParams
+) -> np.ndarray:
     """Step 4: centre points farther than half a narrow lane from every perceived centreline."""
-    perceived = [resample_polyline(np.asarray(f.points_xy_world, float), params.SAMPLE_SPACING_M)
-                 for f in features if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2]
+    perceived = [
+        resample_polyline(np.asarray(f.points_xy_world, float), params.SAMPLE_SPACING_M)
+        for f in features
+        if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2
+    ]
     if not perceived:
         return np.ones(len(centre_xy), bool)
     dist, _ = cKDTree(np.concatenate(perceived)).query(centre_xy)
     return dist > 0.5 * params.MIN_LANE_WIDTH_M
 
 
-def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, driven: np.ndarray,
-             probe_trips: Sequence[str], edges: tuple[MapFeature, MapFeature], shoulder_m: float,
-             trip_times: Mapping[str, object] | None) -> MapFeature:
+def _feature(
+    run_xy: np.ndarray,
+    centre_xy: np.ndarray,
+    probe_dir: np.ndarray,
+    driven: np.ndarray,
+    probe_trips: Sequence[str],
+    edges: tuple[MapFeature, MapFeature],
+    shoulder_m: float,
+    trip_times: Mapping[str, object] | None,
+) -> MapFeature:
     """Step 6 and the properties: direction from the trips that drove in the lane (else from
     those that saw it); ``trips``: those whose probes made the run; ``support_trips``: that of
     the less supported edge."""
@@ -281,13 +337,17 @@ def _feature(run_xy: np.ndarray, centre_xy: np.ndarray, probe_dir: np.ndarray, d
     u = [float(e.properties.get("uncertainty_m", 0.1)) for e in edges]
     kerbs = [e.type == ElementType.ROAD_BOUNDARY for e in edges]
     props = derived_properties(
-        probe_trips, trip_times,
+        probe_trips,
+        trip_times,
         # the lane is as well confirmed as the less confirmed of its edges (the validator's
         # low_support then says what it says of them)
         support_trips=min(int(e.properties.get("support_trips", len(set(probe_trips)))) for e in edges),
         support_observations=len(centre_xy),
         uncertainty_m=u[kerbs.index(False)] if kerbs[0] != kerbs[1] else 0.5 * math.hypot(*u),
-        derived="bounding_lines", derived_from=edges, direction="driven" if driven.any() else "assumed")
+        derived="bounding_lines",
+        derived_from=edges,
+        direction="driven" if driven.any() else "assumed",
+    )
     props["shoulder_m"] = round(shoulder_m, 3) if kerbs[0] != kerbs[1] else 0.0
     return MapFeature(ElementType.CENTERLINE, run_xy, None, "", props)
 

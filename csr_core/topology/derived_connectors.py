@@ -47,8 +47,9 @@ NEIGHBOURS = 4  # centreline samples considered per probe
 MAX_TURN_RAD = math.radians(135.0)  # a pass that turns further is a U-turn (turnaround), not a lane
 
 
-def _samples(centerlines: Sequence[MapFeature], spacing_m: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _samples(
+    centerlines: Sequence[MapFeature], spacing_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points, unit tangents, owner, arclength from the start and to the end of every
     centreline sample."""
     pts, tans, own, from_start, to_end = [], [], [], [], []
@@ -64,11 +65,18 @@ def _samples(centerlines: Sequence[MapFeature], spacing_m: float
         own.append(np.full(len(p), k))
         from_start.append(s)
         to_end.append(s[-1] - s)
-    return (np.concatenate(pts), np.concatenate(tans), np.concatenate(own), np.concatenate(from_start),
-            np.concatenate(to_end))
+    return (
+        np.concatenate(pts),
+        np.concatenate(tans),
+        np.concatenate(own),
+        np.concatenate(from_start),
+        np.concatenate(to_end),
+    )
 
 
-def _match(probes_xy_dir: np.ndarray, tree: cKDTree, tangents: np.ndarray, params: TopologyParams) -> np.ndarray:
+def _match(
+    probes_xy_dir: np.ndarray, tree: cKDTree, tangents: np.ndarray, params: TopologyParams
+) -> np.ndarray:
     """Step 1: index of the matched centreline sample per probe, -1 for none."""
     k = min(NEIGHBOURS, tree.n)
     dist, idx = tree.query(probes_xy_dir[:, :2], k=k, distance_upper_bound=0.5 * params.MIN_LANE_WIDTH_M)
@@ -81,8 +89,9 @@ def _match(probes_xy_dir: np.ndarray, tree: cKDTree, tangents: np.ndarray, param
     return np.where(ok.any(1), safe[np.arange(len(safe)), first], -1)
 
 
-def _passes(sample: np.ndarray, owner: np.ndarray, from_start: np.ndarray, to_end: np.ndarray,
-            spacing_m: float) -> list[tuple[int, int, int, int]]:
+def _passes(
+    sample: np.ndarray, owner: np.ndarray, from_start: np.ndarray, to_end: np.ndarray, spacing_m: float
+) -> list[tuple[int, int, int, int]]:
     """Step 2 for one trip: (A, B, last probe on A, first probe on B) of each pass. The trip left
     A at its end or joined B at its start (a lane change leaves one lane and joins another
     alongside it in their middles, where the map has lanes already)."""
@@ -90,14 +99,18 @@ def _passes(sample: np.ndarray, owner: np.ndarray, from_start: np.ndarray, to_en
     out = []
     for i, j in zip(matched[:-1], matched[1:], strict=True):
         si, sj = sample[i], sample[j]
-        if (owner[si] != owner[sj] and (to_end[si] <= END_REACH_M or from_start[sj] <= END_REACH_M)
-                and (j - i) * spacing_m <= CONNECTOR_MAX_M):
+        if (
+            owner[si] != owner[sj]
+            and (to_end[si] <= END_REACH_M or from_start[sj] <= END_REACH_M)
+            and (j - i) * spacing_m <= CONNECTOR_MAX_M
+        ):
             out.append((int(owner[si]), int(owner[sj]), int(i), int(j)))
     return out
 
 
-def _pass_path(probes_xy: np.ndarray, a_xy: np.ndarray, a_tan: np.ndarray, b_xy: np.ndarray,
-               b_tan: np.ndarray) -> np.ndarray:
+def _pass_path(
+    probes_xy: np.ndarray, a_xy: np.ndarray, a_tan: np.ndarray, b_xy: np.ndarray, b_tan: np.ndarray
+) -> np.ndarray:
     """Step 3: the trip's path from where it left A (``a_xy``, A's direction there ``a_tan``) to
     where it joined B; probes behind the one or beyond the other left out."""
     ahead = ((probes_xy - a_xy) @ a_tan > 0.0) & ((probes_xy - b_xy) @ b_tan < 0.0)
@@ -117,8 +130,12 @@ def _mean_path(paths: Sequence[np.ndarray], params: TopologyParams) -> np.ndarra
     return smooth_point_reflected(np.mean(resampled, axis=0), 1.0 / params.OUTPUT_SPACING_M)
 
 
-def derive_connectors(centerlines: Sequence[MapFeature], probes: Mapping[str, np.ndarray], params: TopologyParams,
-                      trip_times: Mapping[str, object] | None = None) -> list[MapFeature]:
+def derive_connectors(
+    centerlines: Sequence[MapFeature],
+    probes: Mapping[str, np.ndarray],
+    params: TopologyParams,
+    trip_times: Mapping[str, object] | None = None,
+) -> list[MapFeature]:
     """Connectors between the ``centerlines`` (perceived and derived, directed) from the trips'
     ``probes`` (trip key -> ``(P, 4)``); steps 1-4 of the module docstring. Ids are not set."""
     lines = [f for f in centerlines if len(f.points_xy_world) >= 2]
@@ -138,7 +155,7 @@ def derive_connectors(centerlines: Sequence[MapFeature], probes: Mapping[str, np
             pa, pb, ta, tb = pts[sample[i]], pts[sample[j]], tans[sample[i]], tans[sample[j]]
             if np.linalg.norm(pa - pb) <= params.CONNECT_M or float(ta @ tb) < math.cos(MAX_TURN_RAD):
                 continue
-            by_pair.setdefault((a, b), []).append((key, _pass_path(pr[i:j + 1, :2], pa, ta, pb, tb)))
+            by_pair.setdefault((a, b), []).append((key, _pass_path(pr[i : j + 1, :2], pa, ta, pb, tb)))
     out = []
     for (a, b), passes in sorted(by_pair.items()):
         path = _mean_path([p for _, p in passes], params)
@@ -158,8 +175,14 @@ def _onto_ends(path: np.ndarray, a_pts: np.ndarray, b_pts: np.ndarray) -> np.nda
     return path + np.outer(1.0 - u, start - path[0]) + np.outer(u, end - path[-1])
 
 
-def _covered(path: np.ndarray, tree: cKDTree, tans: np.ndarray, owner: np.ndarray, ends: tuple[int, int],
-             params: TopologyParams) -> bool:
+def _covered(
+    path: np.ndarray,
+    tree: cKDTree,
+    tans: np.ndarray,
+    owner: np.ndarray,
+    ends: tuple[int, int],
+    params: TopologyParams,
+) -> bool:
     """Step 4: more than half the connector within half a narrow lane of another centreline
     running its way (``tree``: every centreline sample, built once for all connectors)."""
     t = np.gradient(path, axis=0)
@@ -172,9 +195,17 @@ def _covered(path: np.ndarray, tree: cKDTree, tans: np.ndarray, owner: np.ndarra
     return bool(along.mean() > 0.5)
 
 
-def derived_properties(trips: Sequence[str], trip_times: Mapping[str, object] | None, *, support_trips: int,
-                       support_observations: int, uncertainty_m: float, derived: str,
-                       derived_from: Sequence[MapFeature], direction: str) -> dict:
+def derived_properties(
+    trips: Sequence[str],
+    trip_times: Mapping[str, object] | None,
+    *,
+    support_trips: int,
+    support_observations: int,
+    uncertainty_m: float,
+    derived: str,
+    derived_from: Sequence[MapFeature],
+    direction: str,
+) -> dict:
     """The properties of a derived centreline: those of a fused one (``instances.feature_from_fused``)
     with nothing rejected or scattered, plus ``derived``, ``derived_from`` (ids) and ``direction``."""
     trips = sorted(set(trips))
@@ -199,10 +230,20 @@ def derived_properties(trips: Sequence[str], trip_times: Mapping[str, object] | 
     }
 
 
-def _connector(path: np.ndarray, pass_trips: Sequence[str], ends: tuple[MapFeature, MapFeature],
-               trip_times: Mapping[str, object] | None) -> MapFeature:
-    props = derived_properties(pass_trips, trip_times, support_trips=len(set(pass_trips)),
-                               support_observations=len(pass_trips),
-                               uncertainty_m=max(float(e.properties.get("uncertainty_m", 0.1)) for e in ends),
-                               derived="trip_paths", derived_from=ends, direction="driven")
+def _connector(
+    path: np.ndarray,
+    pass_trips: Sequence[str],
+    ends: tuple[MapFeature, MapFeature],
+    trip_times: Mapping[str, object] | None,
+) -> MapFeature:
+    props = derived_properties(
+        pass_trips,
+        trip_times,
+        support_trips=len(set(pass_trips)),
+        support_observations=len(pass_trips),
+        uncertainty_m=max(float(e.properties.get("uncertainty_m", 0.1)) for e in ends),
+        derived="trip_paths",
+        derived_from=ends,
+        direction="driven",
+    )
     return MapFeature(ElementType.CENTERLINE, path, None, "", props)

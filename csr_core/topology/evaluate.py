@@ -59,7 +59,9 @@ CORRIDOR_INSIDE_M = 12.0  # truth is kept within 15 m of true frames; judge 3 m 
 LOCAL_RADIUS_M = 50.0  # diagnostic: the map offset shared by the instances this close
 
 
-def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_out: list | None = None) -> dict:
+def trip_instances(
+    scenario_dir: str | Path, poses: str = "truth", match_pairs_out: list | None = None
+) -> dict:
     """trip key -> (instances, noise, poses used (N, 3), true poses (N, 3), started_at).
 
     ``poses``: ``truth`` (pose smoothing replaced by the true poses), ``smoothed`` (each trip's
@@ -78,8 +80,9 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_o
     for tf in list_trip_files(scenario_dir):
         trip = load_trip(tf)
         pt = truth[tf.key]
-        true_poses = np.column_stack([frame.to_local(pt.lonlat_deg),
-                                          frame.yaw_rad(pt.heading_deg, pt.lonlat_deg)])
+        true_poses = np.column_stack(
+            [frame.to_local(pt.lonlat_deg), frame.yaw_rad(pt.heading_deg, pt.lonlat_deg)]
+        )
         if poses == "truth":
             rec = single_trip.reconstruct_trip(trip, frame, smoothed=SmoothedPoses.given(true_poses))
         else:
@@ -98,11 +101,19 @@ def trip_instances(scenario_dir: str | Path, poses: str = "truth", match_pairs_o
                 out.pop(k)
                 continue
             to = aligned.poses_xyyaw_world[k]
-            out[k] = (reposition_instances(rec.instances, rec.poses_xyyaw_world, to), rec.noise, to, out[k][3], out[k][4])
+            out[k] = (
+                reposition_instances(rec.instances, rec.poses_xyyaw_world, to),
+                rec.noise,
+                to,
+                out[k][3],
+                out[k][4],
+            )
     return out
 
 
-def judge_instances(result: TopologyResult, truth_map, true_xy: np.ndarray) -> list[tuple[MapFeature, bool, bool]]:
+def judge_instances(
+    result: TopologyResult, truth_map, true_xy: np.ndarray
+) -> list[tuple[MapFeature, bool, bool]]:
     """(instance, really wrong, wrong beyond the local map offset) for every judged instance
     (published or suppressed): only samples well inside the evaluated corridor
     (``CORRIDOR_INSIDE_M`` of a true frame: truth beyond 15 m is cut away) are judged;
@@ -172,23 +183,42 @@ def judged_rows(judged: list[tuple[MapFeature, bool, bool]]) -> list[dict]:
     for f, wrong, wrong_local in judged:
         pts = np.asarray(f.points_xy_world, float)
         flags = sorted(set(f.properties.get("flags", ())))
-        rows.append({"feature_id": f.feature_id, "type": f.type.value,
-                     "length_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0,
-                     "wrong": bool(wrong), "wrong_beyond_local_offset": bool(wrong_local),
-                     "suspect": bool(set(flags) & SUSPECT), "flags": flags,
-                     **{k: v for k, v in f.properties.items()
-                        if isinstance(v, (bool, int, float, str)) and k not in ("flags", "feature_id")}})
+        rows.append(
+            {
+                "feature_id": f.feature_id,
+                "type": f.type.value,
+                "length_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+                if len(pts) > 1
+                else 0.0,
+                "wrong": bool(wrong),
+                "wrong_beyond_local_offset": bool(wrong_local),
+                "suspect": bool(set(flags) & SUSPECT),
+                "flags": flags,
+                **{
+                    k: v
+                    for k, v in f.properties.items()
+                    if isinstance(v, (bool, int, float, str)) and k not in ("flags", "feature_id")
+                },
+            }
+        )
     return rows
 
 
 def _recall_precision(wrong: np.ndarray, flagged: np.ndarray) -> dict:
-    return {"wrong": int(wrong.sum()), "flagged": int(flagged.sum()),
-            "recall": float((wrong & flagged).sum() / max(wrong.sum(), 1)),
-            "precision": float((wrong & flagged).sum() / max(flagged.sum(), 1))}
+    return {
+        "wrong": int(wrong.sum()),
+        "flagged": int(flagged.sum()),
+        "recall": float((wrong & flagged).sum() / max(wrong.sum(), 1)),
+        "precision": float((wrong & flagged).sum() / max(flagged.sum(), 1)),
+    }
 
 
-def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray,
-                     judged: list[tuple[MapFeature, bool, bool]] | None = None) -> dict:
+def validator_scores(
+    result: TopologyResult,
+    truth_map,
+    true_xy: np.ndarray,
+    judged: list[tuple[MapFeature, bool, bool]] | None = None,
+) -> dict:
     """Recall and precision of the suspect flags against really wrong instances (module
     docstring). Diagnostics: per flag kind, how many judged instances carry it (``flagged``),
     how many of those are really wrong (``wrong``), and the same for the instances whose only
@@ -204,10 +234,18 @@ def validator_scores(result: TopologyResult, truth_map, true_xy: np.ndarray,
     for kind in sorted(set().union(*kinds)) if kinds else ():
         has = np.array([kind in k for k in kinds], bool)
         alone = np.array([(k & SUSPECT) == {kind} for k in kinds], bool)
-        per_flag[kind] = {"flagged": int(has.sum()), "wrong": int((has & w).sum()),
-                          "alone": int(alone.sum()), "alone_wrong": int((alone & w).sum())}
-    return {"instances": int(len(w)), **_recall_precision(w, fl), "per_flag": per_flag,
-            "beyond_local_offset": _recall_precision(w_local, fl)}
+        per_flag[kind] = {
+            "flagged": int(has.sum()),
+            "wrong": int((has & w).sum()),
+            "alone": int(alone.sum()),
+            "alone_wrong": int((alone & w).sum()),
+        }
+    return {
+        "instances": int(len(w)),
+        **_recall_precision(w, fl),
+        "per_flag": per_flag,
+        "beyond_local_offset": _recall_precision(w_local, fl),
+    }
 
 
 def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | None) -> tuple[dict, tuple]:
@@ -225,11 +263,17 @@ def cached_trip_instances(scenario_dir: str | Path, poses: str, cache: str | Non
     return data, tuple(pairs)
 
 
-def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str | None = None,
-                      lane_graph_figure: str | Path | None = None,
-                      figure_bbox_xy: tuple[float, float, float, float] | None = None,
-                      validator_figure: str | Path | None = None, params: TopologyParams = DEFAULT,
-                      instances_jsonl: str | Path | None = None, keep_instances: bool = False) -> dict:
+def evaluate_scenario(
+    scenario_dir: str | Path,
+    poses: str = "truth",
+    cache: str | None = None,
+    lane_graph_figure: str | Path | None = None,
+    figure_bbox_xy: tuple[float, float, float, float] | None = None,
+    validator_figure: str | Path | None = None,
+    params: TopologyParams = DEFAULT,
+    instances_jsonl: str | Path | None = None,
+    keep_instances: bool = False,
+) -> dict:
     """The figures of the module docstring; ``lane_graph_figure``: also a picture of the lane
     graph against the truth's there (``evaluate_lane_graph.plot_comparison``, zoomed to
     ``figure_bbox_xy`` in the scenario's local frame if given); ``validator_figure``: a picture
@@ -243,22 +287,40 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
     truth_map = geo_features_to_local(read_map_geojson(scenario_dir / "truth" / "map.geojson"), meta.frame)
     true_xy = np.concatenate([v[3][:, :2] for v in data.values()])
     t0 = time.perf_counter()
-    result = generate_topology({k: v[0] for k, v in data.items()}, {k: v[1] for k, v in data.items()}, params,
-                               trip_times={k: v[4] for k, v in data.items()},
-                               paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()},
-                               match_pairs=match_pairs)
+    result = generate_topology(
+        {k: v[0] for k, v in data.items()},
+        {k: v[1] for k, v in data.items()},
+        params,
+        trip_times={k: v[4] for k, v in data.items()},
+        paths_xy_per_trip={k: v[2][:, :2] for k, v in data.items()},
+        match_pairs=match_pairs,
+    )
     seconds = time.perf_counter() - t0
     # contract section 6 "aligned" figures: one rigid SE(2) of all poses onto truth, applied to the map
     truth_T_est = metrics.umeyama_se2(np.concatenate([v[2][:, :2] for v in data.values()]), true_xy)
-    result = replace(result, features=metrics.transform_features(truth_T_est, result.features),
-                     suppressed=metrics.transform_features(truth_T_est, result.suppressed))
+    result = replace(
+        result,
+        features=metrics.transform_features(truth_T_est, result.features),
+        suppressed=metrics.transform_features(truth_T_est, result.suppressed),
+    )
     fused = metrics.map_scores(result.features, truth_map, true_xy)
-    overlaid = metrics.map_scores(metrics.transform_features(truth_T_est, [
-        MapFeature(i.type, i.points_xy_world, i.style) for v in data.values() for i in v[0]]), truth_map, true_xy)
+    overlaid = metrics.map_scores(
+        metrics.transform_features(
+            truth_T_est, [MapFeature(i.type, i.points_xy_world, i.style) for v in data.values() for i in v[0]]
+        ),
+        truth_map,
+        true_xy,
+    )
 
     def table(ms: metrics.MapScores) -> dict:
-        return {"mcd": ms.mcd, **{t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
-                                  for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
+        return {
+            "mcd": ms.mcd,
+            **{
+                t.value: {"cd": s.cd, "completeness": s.completeness, "correctness": s.correctness}
+                for t, s in ms.per_type.items()
+                if np.isfinite(s.cd)
+            },
+        }
 
     lane_graph = compare_lane_graphs(result.features, truth_map, true_xy, CORRIDOR_INSIDE_M, params)
     if lane_graph_figure is not None:
@@ -271,15 +333,25 @@ def evaluate_scenario(scenario_dir: str | Path, poses: str = "truth", cache: str
         from csr_core.topology.validator_figure import plot_validator
 
         plot_validator(judged, truth_map, true_xy, validator_figure, meta.name, figure_bbox_xy)
-    return {"scenario": meta.name, "poses": poses, "truth_T_est": [round(float(v), 4) for v in truth_T_est],
-            "trips": len(data), "features": len(result.features), "rejected_members": len(result.rejected_members),
-            "topology_seconds": seconds, "fused": table(fused), "overlaid_instances": table(overlaid),
-            "validator": validator_scores(result, truth_map, true_xy, judged),
-            "lane_graph": {"lanes": result.lane_graph.graph.number_of_nodes(),
-                           "splits": len(result.lane_graph.split_points_xy),
-                           "merges": len(result.lane_graph.merge_points_xy),
-                           "against_truth": lane_graph.scores()},
-            **({"instances": rows} if keep_instances else {})}
+    return {
+        "scenario": meta.name,
+        "poses": poses,
+        "truth_T_est": [round(float(v), 4) for v in truth_T_est],
+        "trips": len(data),
+        "features": len(result.features),
+        "rejected_members": len(result.rejected_members),
+        "topology_seconds": seconds,
+        "fused": table(fused),
+        "overlaid_instances": table(overlaid),
+        "validator": validator_scores(result, truth_map, true_xy, judged),
+        "lane_graph": {
+            "lanes": result.lane_graph.graph.number_of_nodes(),
+            "splits": len(result.lane_graph.split_points_xy),
+            "merges": len(result.lane_graph.merge_points_xy),
+            "against_truth": lane_graph.scores(),
+        },
+        **({"instances": rows} if keep_instances else {}),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -288,13 +360,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", choices=("truth", "smoothed", "aligned"), default="truth")
     ap.add_argument("--cache", help="pickle of the trips' instances (written if missing)")
     ap.add_argument("--lane-graph-figure", metavar="PNG", help="also draw the lane graph against the truth's")
-    ap.add_argument("--validator-figure", metavar="PNG",
-                    help="also draw the judged instances: flagged and wrong, flagged and right, missed")
-    ap.add_argument("--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figures to this box (metres, local frame)")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="a TopologyParams field changed, e.g. DERIVE_CENTERLINES=false (repeatable)")
-    ap.add_argument("--instances-jsonl", metavar="FILE",
-                    help="also write every judged instance (verdicts, flags, support, ...) as JSON lines")
+    ap.add_argument(
+        "--validator-figure",
+        metavar="PNG",
+        help="also draw the judged instances: flagged and wrong, flagged and right, missed",
+    )
+    ap.add_argument(
+        "--bbox", metavar="X0,X1,Y0,Y1", help="zoom the figures to this box (metres, local frame)"
+    )
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a TopologyParams field changed, e.g. DERIVE_CENTERLINES=false (repeatable)",
+    )
+    ap.add_argument(
+        "--instances-jsonl",
+        metavar="FILE",
+        help="also write every judged instance (verdicts, flags, support, ...) as JSON lines",
+    )
     args = ap.parse_args(argv)
     try:
         params = replace_fields(DEFAULT, args.param)
@@ -307,8 +392,16 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             ap.error(f"--bbox must be four numbers X0,X1,Y0,Y1, got {args.bbox!r}")
         bbox = (x0, x1, y0, y1)
-    r = evaluate_scenario(args.scenario, args.poses, args.cache, args.lane_graph_figure, bbox, args.validator_figure,
-                          params, args.instances_jsonl)
+    r = evaluate_scenario(
+        args.scenario,
+        args.poses,
+        args.cache,
+        args.lane_graph_figure,
+        bbox,
+        args.validator_figure,
+        params,
+        args.instances_jsonl,
+    )
     print(json.dumps(r, indent=1))  # noqa: T201
     return 0
 

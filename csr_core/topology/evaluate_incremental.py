@@ -25,8 +25,12 @@ from csr_core.topology.evaluate import cached_trip_instances
 
 
 def _inputs(data: dict, keys: list[str]) -> dict:
-    return {"instances_per_trip": {k: data[k][0] for k in keys}, "noise_per_trip": {k: data[k][1] for k in keys},
-            "trip_times": {k: data[k][4] for k in keys}, "paths_xy_per_trip": {k: data[k][2][:, :2] for k in keys}}
+    return {
+        "instances_per_trip": {k: data[k][0] for k in keys},
+        "noise_per_trip": {k: data[k][1] for k in keys},
+        "trip_times": {k: data[k][4] for k in keys},
+        "paths_xy_per_trip": {k: data[k][2][:, :2] for k in keys},
+    }
 
 
 def compare(scenario_dir: str | Path, start: int = 5, cache: str | None = None) -> dict:
@@ -34,7 +38,9 @@ def compare(scenario_dir: str | Path, start: int = 5, cache: str | None = None) 
     data, _ = cached_trip_instances(scenario_dir, "aligned", cache)
     keys = sorted(data)
     if not 1 <= start < len(keys):
-        raise SystemExit(f"--start must be between 1 and {len(keys) - 1} (the scenario has {len(keys)} trips)")
+        raise SystemExit(
+            f"--start must be between 1 and {len(keys) - 1} (the scenario has {len(keys)} trips)"
+        )
     meta = read_scenario_meta(scenario_dir)
     truth = geo_features_to_local(read_map_geojson(scenario_dir / "truth" / "map.geojson"), meta.frame)
     true_xy = np.concatenate([data[k][3][:, :2] for k in keys])
@@ -42,10 +48,19 @@ def compare(scenario_dir: str | Path, start: int = 5, cache: str | None = None) 
 
     def score(result: TopologyResult) -> dict:
         ms = metrics.map_scores(metrics.transform_features(truth_T_est, result.features), truth, true_xy)
-        return {"mcd": round(ms.mcd, 4), "features": len(result.features),
-                **{t.value: {"cd": round(s.cd, 4), "completeness": round(s.completeness, 3),
-                             "correctness": round(s.correctness, 3)}
-                   for t, s in ms.per_type.items() if np.isfinite(s.cd)}}
+        return {
+            "mcd": round(ms.mcd, 4),
+            "features": len(result.features),
+            **{
+                t.value: {
+                    "cd": round(s.cd, 4),
+                    "completeness": round(s.completeness, 3),
+                    "correctness": round(s.correctness, 3),
+                }
+                for t, s in ms.per_type.items()
+                if np.isfinite(s.cd)
+            },
+        }
 
     t0 = time.perf_counter()
     batch = generate_topology(**_inputs(data, keys))
@@ -55,19 +70,33 @@ def compare(scenario_dir: str | Path, start: int = 5, cache: str | None = None) 
     for k in keys[start:]:
         t1 = time.perf_counter()
         one = _inputs(data, [k])
-        state = update_topology(state, one["instances_per_trip"], one["noise_per_trip"], trip_times=one["trip_times"],
-                                paths_xy_per_trip=one["paths_xy_per_trip"])
+        state = update_topology(
+            state,
+            one["instances_per_trip"],
+            one["noise_per_trip"],
+            trip_times=one["trip_times"],
+            paths_xy_per_trip=one["paths_xy_per_trip"],
+        )
         seconds.append(time.perf_counter() - t1)
-    return {"scenario": meta.name, "trips": len(keys), "start": start,
-            "batch": {**score(batch), "seconds": round(batch_s, 2)},
-            "incremental": {**score(state), "update_seconds_first5": [round(s, 3) for s in seconds[:5]],
-                            "update_seconds_last5": [round(s, 3) for s in seconds[-5:]]}}
+    return {
+        "scenario": meta.name,
+        "trips": len(keys),
+        "start": start,
+        "batch": {**score(batch), "seconds": round(batch_s, 2)},
+        "incremental": {
+            **score(state),
+            "update_seconds_first5": [round(s, 3) for s in seconds[:5]],
+            "update_seconds_last5": [round(s, 3) for s in seconds[-5:]],
+        },
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenario")
-    ap.add_argument("--start", type=int, default=5, help="trips fused in a batch before the one-by-one updates")
+    ap.add_argument(
+        "--start", type=int, default=5, help="trips fused in a batch before the one-by-one updates"
+    )
     ap.add_argument("--cache", help="pickle of the trips' aligned instances (written if missing)")
     args = ap.parse_args(argv)
     print(json.dumps(compare(args.scenario, args.start, args.cache), indent=2))  # noqa: T201

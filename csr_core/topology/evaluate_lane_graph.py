@@ -53,10 +53,14 @@ class _Ahead:
 
     def __init__(self, lane_graph: LaneGraph) -> None:
         self.graph = lane_graph.graph
-        self.lanes = {n: sampled_with_tangents(d["points_xy_world"], SPACING_M)[0]
-                      for n, d in self.graph.nodes(data=True)}
+        self.lanes = {
+            n: sampled_with_tangents(d["points_xy_world"], SPACING_M)[0]
+            for n, d in self.graph.nodes(data=True)
+        }
 
-    def points(self, lane: str, index: int, distance_m: float = LOOKAHEAD_M, depth: int = 0) -> list[np.ndarray]:
+    def points(
+        self, lane: str, index: int, distance_m: float = LOOKAHEAD_M, depth: int = 0
+    ) -> list[np.ndarray]:
         p = self.lanes[lane]
         k = int(round(distance_m / SPACING_M))
         if index + k < len(p):
@@ -65,7 +69,9 @@ class _Ahead:
         if not nxt or depth >= 4:
             return [p[-1]]
         rest = distance_m - (len(p) - 1 - index) * SPACING_M
-        return [q for v in nxt if len(self.lanes[v]) >= 2 for q in self.points(v, 0, rest, depth + 1)] or [p[-1]]
+        return [q for v in nxt if len(self.lanes[v]) >= 2 for q in self.points(v, 0, rest, depth + 1)] or [
+            p[-1]
+        ]
 
 
 def connections(lane_graph: LaneGraph, ahead: _Ahead | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -111,8 +117,14 @@ def _close(a: np.ndarray, b: np.ndarray) -> bool:
     return bool((np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2) <= MATCH_M).any())
 
 
-def _found(rows: np.ndarray, rows_on: list[np.ndarray], other_rows: np.ndarray, other_on: list[np.ndarray],
-           other: LaneGraph, other_ahead: _Ahead) -> np.ndarray:
+def _found(
+    rows: np.ndarray,
+    rows_on: list[np.ndarray],
+    other_rows: np.ndarray,
+    other_on: list[np.ndarray],
+    other: LaneGraph,
+    other_ahead: _Ahead,
+) -> np.ndarray:
     """Per connection of ``rows``: does the other graph go on the same way there (a connection
     there, or a lane through the point, heading in alike and ``LOOKAHEAD_M`` on at the same
     place)."""
@@ -122,15 +134,18 @@ def _found(rows: np.ndarray, rows_on: list[np.ndarray], other_rows: np.ndarray, 
         return out
     if len(other_rows):
         for i, hits in enumerate(cKDTree(other_rows[:, :2]).query_ball_point(rows[:, :2], MATCH_M)):
-            out[i] = any(other_rows[h, 2:4] @ rows[i, 2:4] >= cos_max and _close(other_on[h], rows_on[i])
-                         for h in hits)
+            out[i] = any(
+                other_rows[h, 2:4] @ rows[i, 2:4] >= cos_max and _close(other_on[h], rows_on[i]) for h in hits
+            )
     pts, tans, where, from_start = _lane_samples(other)
     if len(pts):
         for i, hits in enumerate(cKDTree(pts).query_ball_point(rows[:, :2], MATCH_M)):
             if out[i] or not hits:
                 continue
             hits = np.asarray(hits)
-            hits = hits[(from_start[hits] >= MATCH_M) & (tans[hits] @ rows[i, 2:4] >= cos_max)]  # through the point
+            hits = hits[
+                (from_start[hits] >= MATCH_M) & (tans[hits] @ rows[i, 2:4] >= cos_max)
+            ]  # through the point
             out[i] = any(_close(np.array(other_ahead.points(*where[h])), rows_on[i]) for h in hits)
     return out
 
@@ -164,10 +179,14 @@ class LaneGraphComparison:
     def scores(self) -> dict:
         """Connection precision and recall, split / merge point precision and recall."""
         right, got = self.right, self.got
-        out = {"lanes": self.ours.graph.number_of_nodes(), "truth_lanes": self.truth.graph.number_of_nodes(),
-               "connections": int(len(self.ours_rows)), "truth_connections": int(len(self.truth_rows)),
-               "connection_precision": float(right.mean()) if len(right) else float("nan"),
-               "connection_recall": float(got.mean()) if len(got) else float("nan")}
+        out = {
+            "lanes": self.ours.graph.number_of_nodes(),
+            "truth_lanes": self.truth.graph.number_of_nodes(),
+            "connections": int(len(self.ours_rows)),
+            "truth_connections": int(len(self.truth_rows)),
+            "connection_precision": float(right.mean()) if len(right) else float("nan"),
+            "connection_recall": float(got.mean()) if len(got) else float("nan"),
+        }
         for name, (a, b) in self.points_inside.items():
             out[f"{name}s"], out[f"truth_{name}s"] = int(len(a)), int(len(b))
             out[f"{name}_precision"] = float(_points_matched(a, b).mean()) if len(a) else float("nan")
@@ -175,8 +194,13 @@ class LaneGraphComparison:
         return out
 
 
-def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapFeature], inside_xy: np.ndarray,
-                        corridor_m: float, params: TopologyParams) -> LaneGraphComparison:
+def compare_lane_graphs(
+    features: Sequence[MapFeature],
+    truth_map: Sequence[MapFeature],
+    inside_xy: np.ndarray,
+    corridor_m: float,
+    params: TopologyParams,
+) -> LaneGraphComparison:
     """The lane graph of ``features`` against that of the truth's centrelines (both world
     frame). Only what lies within ``corridor_m`` of ``inside_xy`` (the true frames) counts:
     truth centrelines mostly inside it, and connections and split / merge points inside it."""
@@ -185,8 +209,13 @@ def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapF
     def inside(xy: np.ndarray) -> np.ndarray:
         return frames.query(xy)[0] <= corridor_m if len(xy) else np.zeros(0, dtype=bool)
 
-    truth_cl = [f for f in truth_map if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2
-                and inside(resample_polyline(np.asarray(f.points_xy_world, float), 2.0)).mean() >= 0.5]
+    truth_cl = [
+        f
+        for f in truth_map
+        if f.type == ElementType.CENTERLINE
+        and len(f.points_xy_world) >= 2
+        and inside(resample_polyline(np.asarray(f.points_xy_world, float), 2.0)).mean() >= 0.5
+    ]
     ours = build_lane_graph(features, params)
     truth = build_lane_graph(truth_cl, params)
     ahead_ours, ahead_truth = _Ahead(ours), _Ahead(truth)
@@ -203,8 +232,9 @@ def compare_lane_graphs(features: Sequence[MapFeature], truth_map: Sequence[MapF
     return LaneGraphComparison(ours, truth, c_ours, on_ours, c_truth, on_truth, right, got, truth_cl, points)
 
 
-def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
-                    bbox_xy: tuple[float, float, float, float] | None = None) -> None:
+def plot_comparison(
+    cmp: LaneGraphComparison, out_png: str | Path, bbox_xy: tuple[float, float, float, float] | None = None
+) -> None:
     """A picture of ``cmp``: the truth's centrelines (grey, wide), the map's lanes (blue, with
     their direction), the truth's connections the map misses (red crosses, dotted to where they
     go on) and the map's connections the truth does not have (orange circles, lines to where
@@ -222,17 +252,36 @@ def plot_comparison(cmp: LaneGraphComparison, out_png: str | Path,
         p = np.asarray(data["points_xy_world"], float)
         ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=0.9, zorder=2)
         if len(p) >= 2:
-            ax.annotate("", p[-1], p[-2], arrowprops=dict(arrowstyle="->", color="tab:blue", lw=0.9), zorder=2)
-    for rows, on, ok, color, ls in ((cmp.truth_rows, cmp.truth_on, cmp.got, "red", ":"),
-                                    (cmp.ours_rows, cmp.ours_on, cmp.right, "orange", "-")):
+            ax.annotate(
+                "", p[-1], p[-2], arrowprops=dict(arrowstyle="->", color="tab:blue", lw=0.9), zorder=2
+            )
+    for rows, on, ok, color, ls in (
+        (cmp.truth_rows, cmp.truth_on, cmp.got, "red", ":"),
+        (cmp.ours_rows, cmp.ours_on, cmp.right, "orange", "-"),
+    ):
         for r, ahead in zip(rows[~ok], [a for a, k in zip(on, ok, strict=True) if not k], strict=True):
             for q in ahead:
                 ax.plot([r[0], q[0]], [r[1], q[1]], lw=1.0, zorder=3, color=color, ls=ls)
     miss, false = cmp.truth_rows[~cmp.got], cmp.ours_rows[~cmp.right]
-    ax.scatter(miss[:, 0], miss[:, 1], marker="x", color="red", s=70, zorder=4,
-               label=f"truth connection the map misses ({len(miss)} of {len(cmp.got)})")
-    ax.scatter(false[:, 0], false[:, 1], marker="o", facecolors="none", edgecolors="orange", s=70, zorder=4,
-               label=f"map connection the truth does not have ({len(false)} of {len(cmp.right)})")
+    ax.scatter(
+        miss[:, 0],
+        miss[:, 1],
+        marker="x",
+        color="red",
+        s=70,
+        zorder=4,
+        label=f"truth connection the map misses ({len(miss)} of {len(cmp.got)})",
+    )
+    ax.scatter(
+        false[:, 0],
+        false[:, 1],
+        marker="o",
+        facecolors="none",
+        edgecolors="orange",
+        s=70,
+        zorder=4,
+        label=f"map connection the truth does not have ({len(false)} of {len(cmp.right)})",
+    )
     ax.plot([], [], color="0.8", lw=4, label="truth centrelines")
     ax.plot([], [], color="tab:blue", lw=0.9, label="map lanes")
     if bbox_xy is not None:

@@ -70,7 +70,9 @@ class FusedInstance:
     rejected_weight_share: float  # weight of trips the robust fit rejected / all
     outlier_members: tuple[int, ...]  # members mostly rejected by the robust fit
     max_internal_gap_m: float  # longest unsupported stretch spanned inside
-    member_scatter2: tuple[float, ...] = ()  # per member: mean (offset / sigma)^2 of its used samples (nan: none)
+    member_scatter2: tuple[
+        float, ...
+    ] = ()  # per member: mean (offset / sigma)^2 of its used samples (nan: none)
 
 
 def arclength(points: np.ndarray) -> np.ndarray:
@@ -110,7 +112,9 @@ def project_on_polyline(points: np.ndarray, line: np.ndarray) -> tuple[np.ndarra
     return project_on_frame(points, polyline_frame(line))
 
 
-def _weighted_median_per_bin(bins: np.ndarray, values: np.ndarray, weights: np.ndarray, n_bins: int) -> np.ndarray:
+def _weighted_median_per_bin(
+    bins: np.ndarray, values: np.ndarray, weights: np.ndarray, n_bins: int
+) -> np.ndarray:
     order = np.lexsort((values, bins))
     b, v, w = bins[order], values[order], weights[order]
     cw = np.cumsum(w)
@@ -126,12 +130,21 @@ def _weighted_median_per_bin(bins: np.ndarray, values: np.ndarray, weights: np.n
     return out
 
 
-def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int, sigma_bins: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def _smooth_profile(
+    bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int, sigma_bins: float
+) -> tuple[np.ndarray, np.ndarray]:
     # both sums smoothed in one call (row by row, as two calls would)
-    num, den = gaussian_filter1d(np.stack([np.bincount(bins, weights=w * d, minlength=n_bins),
-                                           np.bincount(bins, weights=w, minlength=n_bins)]),
-                                 sigma_bins, axis=1, mode="nearest")
+    num, den = gaussian_filter1d(
+        np.stack(
+            [
+                np.bincount(bins, weights=w * d, minlength=n_bins),
+                np.bincount(bins, weights=w, minlength=n_bins),
+            ]
+        ),
+        sigma_bins,
+        axis=1,
+        mode="nearest",
+    )
     prof = np.where(den > 1e-12, num / np.maximum(den, 1e-12), np.nan)
     good = np.isfinite(prof)
     if good.any() and not good.all():
@@ -140,8 +153,13 @@ def _smooth_profile(bins: np.ndarray, d: np.ndarray, w: np.ndarray, n_bins: int,
     return prof, den
 
 
-def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, weights: np.ndarray,
-                   anchored: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+def _grow_backbone(
+    lines: Sequence[np.ndarray],
+    gates: np.ndarray,
+    spacing: float,
+    weights: np.ndarray,
+    anchored: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
     """The backbone of a group: grown (``_grow_from_seed``) from the member most others agree
     with (x weight). Returns the backbone and the index of its seed member."""
     pts = np.concatenate(lines)
@@ -152,8 +170,16 @@ def _grow_backbone(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: floa
     return _grow_from_seed(lines, gates, spacing, seed, keep_seed, tree, own, np.ones(len(lines), bool)), seed
 
 
-def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: float, seed: int, keep_seed: bool,
-                    tree: cKDTree, own: np.ndarray, active: np.ndarray) -> np.ndarray:
+def _grow_from_seed(
+    lines: Sequence[np.ndarray],
+    gates: np.ndarray,
+    spacing: float,
+    seed: int,
+    keep_seed: bool,
+    tree: cKDTree,
+    own: np.ndarray,
+    active: np.ndarray,
+) -> np.ndarray:
     """Member ``seed``'s line prolonged at either end by the contiguous part of the ``active``
     member that runs on past it furthest (the member must be within its gate of the backbone
     near that end): partial overlaps chain, branches do not jump. The backbone is smoothed,
@@ -169,10 +195,17 @@ def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: flo
         if len(backbone) < 2:
             break
         # the members near either end (not yet used), projected on the backbone all at once
-        cands_per_end = [sorted({int(own[h]) for h in tree.query_ball_point(backbone[-1 if end else 0],
-                                                                            near_end + float(gates.max()))
-                                 if active[own[h]]} - used)
-                         for end in (0, 1)]
+        cands_per_end = [
+            sorted(
+                {
+                    int(own[h])
+                    for h in tree.query_ball_point(backbone[-1 if end else 0], near_end + float(gates.max()))
+                    if active[own[h]]
+                }
+                - used
+            )
+            for end in (0, 1)
+        ]
         if not any(len(lines[k]) >= 2 for k in (*cands_per_end[0], *cands_per_end[1])):
             break
         frame = polyline_frame(backbone)
@@ -185,8 +218,9 @@ def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: flo
                     continue
                 s, d = projected[k]
                 close = np.abs(d) <= gates[k]
-                cand = np.flatnonzero(close & ((s >= total - near_end) & (s <= total) if end
-                                               else (s <= near_end) & (s >= 0)))
+                cand = np.flatnonzero(
+                    close & ((s >= total - near_end) & (s <= total) if end else (s <= near_end) & (s >= 0))
+                )
                 if not len(cand):
                     continue
                 i0 = int(cand[np.argmax(s[cand])] if end else cand[np.argmin(s[cand])])
@@ -215,8 +249,9 @@ def _grow_from_seed(lines: Sequence[np.ndarray], gates: np.ndarray, spacing: flo
     return _extend_straight(backbone, 3.0, spacing)
 
 
-def _project_members(lines: Sequence[np.ndarray], members: Sequence[int], frame: PolylineFrame
-                     ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def _project_members(
+    lines: Sequence[np.ndarray], members: Sequence[int], frame: PolylineFrame
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """``project_on_frame`` of the lines of ``members`` (of at least 2 points), in one query."""
     members = [k for k in members if len(lines[k]) >= 2]
     if not members:
@@ -231,11 +266,11 @@ def smooth_point_reflected(points: np.ndarray, sigma_samples: float) -> np.ndarr
     point-reflected: a straight line stays straight, keeps its ends and its length, and a curve
     is not pulled in at its ends."""
     pad = int(np.ceil(3 * sigma_samples))
-    head = 2 * points[0] - points[1:pad + 1][::-1]
-    tail = 2 * points[-1] - points[-pad - 1:-1][::-1]
+    head = 2 * points[0] - points[1 : pad + 1][::-1]
+    tail = 2 * points[-1] - points[-pad - 1 : -1][::-1]
     padded = np.vstack([head, points, tail])
     smooth = gaussian_filter1d(padded, sigma_samples, axis=0, mode="nearest")  # x and y, column by column
-    return smooth[len(head):len(head) + len(points)]
+    return smooth[len(head) : len(head) + len(points)]
 
 
 def _smooth_around(backbone: np.ndarray, start: int, count: int, spacing: float) -> np.ndarray:
@@ -243,9 +278,11 @@ def _smooth_around(backbone: np.ndarray, start: int, count: int, spacing: float)
     the prolongations on either side smoothed (2 m Gaussian, rows about ``spacing`` apart)."""
     out = backbone.copy()
     if len(backbone) > count:
-        sm = np.column_stack([gaussian_filter1d(backbone[:, i], 2.0 / spacing, mode="nearest") for i in (0, 1)])
+        sm = np.column_stack(
+            [gaussian_filter1d(backbone[:, i], 2.0 / spacing, mode="nearest") for i in (0, 1)]
+        )
         out[:start] = sm[:start]
-        out[start + count:] = sm[start + count:]
+        out[start + count :] = sm[start + count :]
     return resample_polyline(out, spacing)
 
 
@@ -262,18 +299,22 @@ def _extend_straight(line: np.ndarray, length_m: float, spacing: float) -> np.nd
     return np.vstack([line[0] + q[::-1] * t0, line, line[-1] + q * t1])
 
 
-def _consensus(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
-               ) -> np.ndarray:
+def _consensus(
+    pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
+) -> np.ndarray:
     """Per member: over its samples, how many other members pass within the gate (the member
     most others agree with seeds the backbone, not the longest stray one). ``tree``: a KD-tree
     over ``pts`` if the caller has one."""
     if n == 1:
         return np.ones(1)
-    return np.asarray(_agreement(pts, own, gates, n, tree).sum(axis=1)).ravel() + 1e-3 * np.bincount(own, minlength=n)
+    return np.asarray(_agreement(pts, own, gates, n, tree).sum(axis=1)).ravel() + 1e-3 * np.bincount(
+        own, minlength=n
+    )
 
 
-def _agreement(pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
-               ) -> csc_matrix:
+def _agreement(
+    pts: np.ndarray, own: np.ndarray, gates: np.ndarray, n: int, tree: cKDTree | None = None
+) -> csc_matrix:
     """``(n, n)`` sparse: entry (i, j) the number of member i's samples with a sample of member
     j within i's gate."""
     rows, cols = [], []
@@ -308,8 +349,14 @@ def _runs_per_member(mask: np.ndarray, own: np.ndarray) -> tuple[list[int], list
     return member.tolist(), (starts - member_start).tolist(), (stops - member_start).tolist()
 
 
-def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.ndarray, weights: np.ndarray,
-                   spacing: float, params: TopologyParams) -> tuple[np.ndarray, int, np.ndarray]:
+def _straight_axis(
+    lines: Sequence[np.ndarray],
+    gates: np.ndarray,
+    sigma: np.ndarray,
+    weights: np.ndarray,
+    spacing: float,
+    params: TopologyParams,
+) -> tuple[np.ndarray, int, np.ndarray]:
     """Backbone of a short straight element (a stop line; a trip's instance is a view of all or
     part of it): the robust weighted principal axis of the members' samples. It starts from the
     chord of the member most others agree with; then IRLS with Tukey's biweight (c =
@@ -341,8 +388,11 @@ def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.nda
         z_member = np.sqrt(np.bincount(own, weights=z**2, minlength=n) / cnt)
         u_member = z_member / params.TUKEY_C_SIGMAS
         u = z / params.TUKEY_C_SIGMAS
-        w_new = (w0 * np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
-                 * np.where(u_member < 1.0, (1.0 - u_member**2) ** 2, 0.0)[own])
+        w_new = (
+            w0
+            * np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
+            * np.where(u_member < 1.0, (1.0 - u_member**2) ** 2, 0.0)[own]
+        )
         if w_new.sum() <= 0:
             break
         w, kept = w_new, u_member < 1.0
@@ -356,8 +406,9 @@ def _straight_axis(lines: Sequence[np.ndarray], gates: np.ndarray, sigma: np.nda
     return centre + q[:, None] * axis, seed, kept
 
 
-def _member_lines(members: Sequence[Member], params: TopologyParams, spacing: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+def _member_lines(
+    members: Sequence[Member], params: TopologyParams, spacing: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
     """Per member: lateral sigma, weight 1 / sigma^2, gate, its line resampled every
     ``spacing`` and whether it is an anchored map line."""
     sigma = np.array([m.sigma_m for m in members])
@@ -367,8 +418,12 @@ def _member_lines(members: Sequence[Member], params: TopologyParams, spacing: fl
     return sigma, 1.0 / sigma**2, gates, lines, anchored
 
 
-def fuse_lines(members: Sequence[Member], element_type: ElementType, params: TopologyParams,
-               backbone_seed: tuple[np.ndarray, int] | None = None) -> list[FusedInstance]:
+def fuse_lines(
+    members: Sequence[Member],
+    element_type: ElementType,
+    params: TopologyParams,
+    backbone_seed: tuple[np.ndarray, int] | None = None,
+) -> list[FusedInstance]:
     """A group of line members -> fused polylines (usually one; a gap longer than
     ``MAX_GAP_M`` splits). Shapes: each member's ``points_xy_world (M, 2)`` in metres.
 
@@ -399,8 +454,7 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     s, d = project_on_frame(points, frame)
     # only samples alongside the backbone (within the association window of it) speak for its
     # profile: in a group chained through splits and merges the other lanes may outnumber it
-    on_backbone = ((s >= -spacing) & (s <= s_b[-1] + spacing)
-                   & (np.abs(d) <= params.WINDOW_GATES * gate[own]))
+    on_backbone = (s >= -spacing) & (s <= s_b[-1] + spacing) & (np.abs(d) <= params.WINDOW_GATES * gate[own])
     fit = on_backbone & fits[own]
     s0 = float(s.min())
     bins = np.floor((s - s0) / params.BIN_M).astype(np.int64)
@@ -434,7 +488,9 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     off = ~on_backbone | (np.abs(r) > gate[own])
     close_share = np.bincount(own[~off], minlength=n_m) / np.maximum(cnt, 1)
     keep_m = close_share >= params.DETACH_CLOSE_SHARE if n_m > 1 else np.ones(1, bool)
-    if whole:  # every member observed this one element: an inconsistent one is an outlier, not another element
+    if (
+        whole
+    ):  # every member observed this one element: an inconsistent one is an outlier, not another element
         keep_m = np.ones(n_m, bool)
     if not keep_m.any():
         keep_m[int(np.argmax(close_share))] = True
@@ -444,8 +500,9 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
     for k, a, b in zip(*_runs_per_member(fits[own] & (off | ~keep_m[own]), own), strict=True):
         if b - a >= min_run or not keep_m[k]:
             m = members[k]
-            detached.append(Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]),
-                                   m.sigma_m))
+            detached.append(
+                Member(m.trip_key, m.index, replace(m.instance, points_xy_world=lines[k][a:b]), m.sigma_m)
+            )
     in_share = np.bincount(own[inlier & ~off], minlength=n_m) / np.maximum(cnt, 1)
     outliers = [k for k in range(n_m) if keep_m[k] and (in_share[k] < 0.5 * close_share[k] or not fits[k])]
     use = inlier & keep_m[own] & ~off
@@ -498,17 +555,27 @@ def fuse_lines(members: Sequence[Member], element_type: ElementType, params: Top
         gaps = np.diff(span) * params.BIN_M - params.BIN_M
         if element_type == ElementType.CENTERLINE:
             line = _orient(line, [members[k] for k in span_members], w_member[list(span_members)])
-        out.append(FusedInstance(
-            type=element_type, points_xy_world=line, style=style, members=span_members,
-            detached=tuple(detached), uncertainty_m=float(np.median(se[span[0]:span[-1] + 1][support[span[0]:span[-1] + 1]])),
-            scatter_ratio=scatter, rejected_weight_share=rejected_share,
-            outlier_members=tuple(k for k in outliers if k in span_members),
-            max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0, member_scatter2=member_scatter2))
+        out.append(
+            FusedInstance(
+                type=element_type,
+                points_xy_world=line,
+                style=style,
+                members=span_members,
+                detached=tuple(detached),
+                uncertainty_m=float(np.median(se[span[0] : span[-1] + 1][support[span[0] : span[-1] + 1]])),
+                scatter_ratio=scatter,
+                rejected_weight_share=rejected_share,
+                outlier_members=tuple(k for k in outliers if k in span_members),
+                max_internal_gap_m=float(gaps.max()) if len(gaps) else 0.0,
+                member_scatter2=member_scatter2,
+            )
+        )
     return out
 
 
-def fuse_group(members: Sequence[Member], element_type: ElementType, params: TopologyParams
-               ) -> tuple[list[FusedInstance], list[Member]]:
+def fuse_group(
+    members: Sequence[Member], element_type: ElementType, params: TopologyParams
+) -> tuple[list[FusedInstance], list[Member]]:
     """The lines of an associated group that one round can fuse, one ``fuse_lines`` pass per
     line: the line grown from the member most of the members left agree with and fitted to the
     members within reach of it. Every member within reach leaves the group: the ones the line
@@ -524,8 +591,11 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
     if element_type in params.WHOLE_ELEMENT_TYPES or len(members) == 1:
         fused = fuse_lines(members, element_type, params)
         if not fused and len(members) > 1:  # nothing fused: the members on their own
-            return [_in_group(f, np.array([k])) for k in range(len(members))
-                    for f in fuse_lines([members[k]], element_type, params)], []
+            return [
+                _in_group(f, np.array([k]))
+                for k in range(len(members))
+                for f in fuse_lines([members[k]], element_type, params)
+            ], []
         return fused, list(fused[0].detached) if fused else []
     n = len(members)
     spacing = 0.5 * params.BIN_M
@@ -550,11 +620,21 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
         near = cKDTree(backbone).sparse_distance_matrix(tree, reach, output_type="ndarray")["j"]
         within_reach = _unique_ints(own[near])
         local = np.union1d(within_reach[active[within_reach]], [seed])
-        fused = fuse_lines([members[k] for k in local], element_type, params,
-                           (backbone, int(np.searchsorted(local, seed)))) if len(backbone) >= 3 else []
+        fused = (
+            fuse_lines(
+                [members[k] for k in local],
+                element_type,
+                params,
+                (backbone, int(np.searchsorted(local, seed))),
+            )
+            if len(backbone) >= 3
+            else []
+        )
         if not fused:  # nothing alongside its backbone: the seed on its own
             leave(np.array([seed]))
-            out.extend(_in_group(f, np.array([seed])) for f in fuse_lines([members[seed]], element_type, params))
+            out.extend(
+                _in_group(f, np.array([seed])) for f in fuse_lines([members[seed]], element_type, params)
+            )
             continue
         # every member within reach was offered this line: the ones it took leave with their
         # pieces off it peeled, the others leave whole, to be associated again with those pieces
@@ -564,8 +644,9 @@ def fuse_group(members: Sequence[Member], element_type: ElementType, params: Top
     return out, detached
 
 
-def absorb_pieces(pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], params: TopologyParams
-                  ) -> tuple[list[tuple[int, int]], list[Member]]:
+def absorb_pieces(
+    pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], params: TopologyParams
+) -> tuple[list[tuple[int, int]], list[Member]]:
     """Pieces peeled off in one round that are views of a line already fused: a piece with at
     least ``DETACH_CLOSE_SHARE`` of its samples within its gate of one fused line, parallel to
     it, joins that line's support (its geometry, fitted to many trips, stays); its runs of at
@@ -599,8 +680,14 @@ def absorb_pieces(pieces: Sequence[Member], lines_xy: Sequence[np.ndarray], para
         points = smp.points_xy[mine]
         for _, a, b in zip(*_runs_per_member(labels != best, np.zeros(len(labels), np.int64)), strict=True):
             if b - a >= min_run:
-                rest.append(Member(piece.trip_key, piece.index, replace(piece.instance, points_xy_world=points[a:b]),
-                                   piece.sigma_m))
+                rest.append(
+                    Member(
+                        piece.trip_key,
+                        piece.index,
+                        replace(piece.instance, points_xy_world=points[a:b]),
+                        piece.sigma_m,
+                    )
+                )
     return absorbed, rest
 
 
@@ -609,13 +696,17 @@ def _in_group(fused: FusedInstance, local: np.ndarray) -> FusedInstance:
     n_group = int(local.max()) + 1
     scatter2 = np.full(n_group, np.nan)
     scatter2[local[: len(fused.member_scatter2)]] = fused.member_scatter2
-    return replace(fused, members=tuple(int(local[k]) for k in fused.members),
-                   outlier_members=tuple(int(local[k]) for k in fused.outlier_members),
-                   member_scatter2=tuple(float(v) for v in scatter2))
+    return replace(
+        fused,
+        members=tuple(int(local[k]) for k in fused.members),
+        outlier_members=tuple(int(local[k]) for k in fused.outlier_members),
+        member_scatter2=tuple(float(v) for v in scatter2),
+    )
 
 
-def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: PolylineFrame,
-                          spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _with_anchor_vertices(
+    q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray, backbone: PolylineFrame, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Output stations ``q`` and base points: inside the span of the anchored seed its own
     vertices (a curve sampled again at other stations would be cut a little inside at every
     update), the regular stations beyond it. ``backbone``: the fused line's backbone
@@ -627,8 +718,10 @@ def _with_anchor_vertices(q: np.ndarray, base: np.ndarray, anchor_xy: np.ndarray
     lo, hi = float(s_v[inside][0]), float(s_v[inside][-1])
     before = q < lo - 0.5 * spacing_m
     after = q > hi + 0.5 * spacing_m
-    return (np.r_[q[before], s_v[inside], q[after]],
-            np.vstack([base[before], anchor_xy[inside], base[after]]))
+    return (
+        np.r_[q[before], s_v[inside], q[after]],
+        np.vstack([base[before], anchor_xy[inside], base[after]]),
+    )
 
 
 def _orient(line: np.ndarray, members: Sequence[Member], weights: np.ndarray) -> np.ndarray:
@@ -675,8 +768,9 @@ def _corresponding_outlines(polys: Sequence[np.ndarray]) -> tuple[np.ndarray, np
     return np.stack(stack), np.array(used, dtype=np.intp)
 
 
-def _tukey_mean_per_vertex(stack: np.ndarray, sigma: np.ndarray, params: TopologyParams
-                           ) -> tuple[np.ndarray, np.ndarray]:
+def _tukey_mean_per_vertex(
+    stack: np.ndarray, sigma: np.ndarray, params: TopologyParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Robust weighted mean per vertex of corresponding outlines ``stack (k, m, 2)``: started from
     the per-vertex median, IRLS with Tukey's biweight on the vertex distance (c =
     ``TUKEY_C_SIGMAS`` x the larger of the member's ``sigma (k,)`` and the group's robust scatter),
@@ -692,11 +786,15 @@ def _tukey_mean_per_vertex(stack: np.ndarray, sigma: np.ndarray, params: Topolog
         u = dist / (params.TUKEY_C_SIGMAS * np.maximum(sigma[:, None], scale))
         w = w0[:, None] * np.where(u < 1.0, (1.0 - u**2) ** 2, 0.0)
         tot = w.sum(0)
-        fused = np.where(tot[:, None] > 0, (w[..., None] * stack).sum(0) / np.maximum(tot, 1e-12)[:, None], fused)
+        fused = np.where(
+            tot[:, None] > 0, (w[..., None] * stack).sum(0) / np.maximum(tot, 1e-12)[:, None], fused
+        )
     return fused, w
 
 
-def fuse_polygons(members: Sequence[Member], element_type: ElementType, params: TopologyParams) -> FusedInstance:
+def fuse_polygons(
+    members: Sequence[Member], element_type: ElementType, params: TopologyParams
+) -> FusedInstance:
     """A group of polygon members -> one outline (crosswalks, road markings).
 
     Vertices are put in correspondence (``_corresponding_outlines``; members with another vertex
@@ -726,19 +824,30 @@ def fuse_polygons(members: Sequence[Member], element_type: ElementType, params: 
     kept = inlier.mean(1) > 0.5  # members used at most of their vertices
     spread = 1.4826 * float(np.median(np.abs(res[inlier]))) if inlier.any() else 0.0
     n_kept = int(kept.sum())
-    se = max(float(np.sqrt(1.0 / np.sum(w0[kept] if kept.any() else w0))), spread / np.sqrt(max(n_kept - 1, 1)))
+    se = max(
+        float(np.sqrt(1.0 / np.sum(w0[kept] if kept.any() else w0))), spread / np.sqrt(max(n_kept - 1, 1))
+    )
     z = res[inlier] / sig[used][:, None, None].repeat(res.shape[1], 1)[inlier]
     scatter = float(np.sqrt(np.mean(z**2))) if n_kept >= 3 and len(z) else 1.0
     outliers = tuple(int(used[k]) for k in np.flatnonzero(~kept)) if len(used) >= 2 else ()
     w_all = 1.0 / sig**2
-    return FusedInstance(type=element_type, points_xy_world=fused, style=vote_style(members),
-                         members=tuple(range(n)), detached=(), uncertainty_m=se, scatter_ratio=scatter,
-                         rejected_weight_share=float(w_all[list(outliers)].sum() / w_all.sum()) if outliers else 0.0,
-                         outlier_members=outliers, max_internal_gap_m=0.0)
+    return FusedInstance(
+        type=element_type,
+        points_xy_world=fused,
+        style=vote_style(members),
+        members=tuple(range(n)),
+        detached=(),
+        uncertainty_m=se,
+        scatter_ratio=scatter,
+        rejected_weight_share=float(w_all[list(outliers)].sum() / w_all.sum()) if outliers else 0.0,
+        outlier_members=outliers,
+        max_internal_gap_m=0.0,
+    )
 
 
-def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], params: TopologyParams
-                ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
+def merge_twins(
+    fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], params: TopologyParams
+) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
     """One element fused twice, once per round, becomes one line. A member within reach of a
     round's line that the line did not take (less than ``DETACH_CLOSE_SHARE`` of it lies along
     it: a trip's centreline that follows a lane and then turns off) waits for the next round
@@ -760,11 +869,16 @@ def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], param
     gate_max = params.gate_m(float(sigma.max()), float(sigma.max()))
     pairs = cKDTree(smp.points_xy).query_pairs(gate_max, output_type="ndarray")
     pairs = pairs[smp.owner[pairs[:, 0]] != smp.owner[pairs[:, 1]]]
-    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]  # sample a of one line near sample b of another
+    a, b = (
+        np.r_[pairs[:, 0], pairs[:, 1]],
+        np.r_[pairs[:, 1], pairs[:, 0]],
+    )  # sample a of one line near sample b of another
     dist = np.linalg.norm(smp.points_xy[a] - smp.points_xy[b], axis=1)
     la, lb = smp.owner[a], smp.owner[b]
     line_pairs, pair_of = np.unique(la * n + lb, return_inverse=True)  # the gate once per pair of lines
-    gate = np.array([params.gate_m(float(sigma[p // n]), float(sigma[p % n])) for p in line_pairs.tolist()])[pair_of]
+    gate = np.array([params.gate_m(float(sigma[p // n]), float(sigma[p % n])) for p in line_pairs.tolist()])[
+        pair_of
+    ]
     parallel = np.abs((smp.tangents[a] * smp.tangents[b]).sum(1)) >= np.cos(params.MAX_ANGLE_RAD)
     near = (dist <= gate) & parallel
     a, la, lb, dist = a[near], la[near], lb[near], dist[near]
@@ -775,7 +889,7 @@ def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], param
     pieces: list[tuple[FusedInstance, tuple[Member, ...]]] = []
     min_run = max(int(round(params.MIN_OVERLAP_M / spacing)), 2)
     for k in sorted(range(n), key=lambda i: (-trips[i], -length[i])):
-        rows = by_line[starts[k]:starts[k + 1]]
+        rows = by_line[starts[k] : starts[k + 1]]
         rows = rows[kept[lb[rows]]]
         if not len(rows):
             kept[k] = True
@@ -794,7 +908,7 @@ def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], param
             continue
         f, mem = fused[k]
         merged_into.setdefault(best, []).extend(mem)
-        points = smp.points_xy[first_sample[k]:first_sample[k] + length[k]]
+        points = smp.points_xy[first_sample[k] : first_sample[k] + length[k]]
         for _, lo, hi in zip(*_runs_per_member(label != best, np.zeros(len(label), np.int64)), strict=True):
             if hi - lo >= min_run:
                 pieces.append((replace(f, points_xy_world=points[lo:hi]), mem))
@@ -802,6 +916,8 @@ def merge_twins(fused: Sequence[tuple[FusedInstance, tuple[Member, ...]]], param
     for k, (f, mem) in enumerate(fused):
         if kept[k]:
             seen = {(m.trip_key, m.index) for m in mem}
-            more = {(m.trip_key, m.index): m for m in merged_into.get(k, ()) if (m.trip_key, m.index) not in seen}
+            more = {
+                (m.trip_key, m.index): m for m in merged_into.get(k, ()) if (m.trip_key, m.index) not in seen
+            }
             out.append((f, (*mem, *more.values())))
     return out + pieces

@@ -21,8 +21,14 @@ from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.params import TopologyParams
 from csr_core.types import ElementType, MapFeature
 
-_PREFIX = {ElementType.LANE_DIVIDER: "ld", ElementType.ROAD_BOUNDARY: "rb", ElementType.CENTERLINE: "cl",
-           ElementType.STOP_LINE: "sl", ElementType.CROSSWALK: "cw", ElementType.ROAD_MARKING: "rm"}
+_PREFIX = {
+    ElementType.LANE_DIVIDER: "ld",
+    ElementType.ROAD_BOUNDARY: "rb",
+    ElementType.CENTERLINE: "cl",
+    ElementType.STOP_LINE: "sl",
+    ElementType.CROSSWALK: "cw",
+    ElementType.ROAD_MARKING: "rm",
+}
 
 
 def new_feature_id(element_type: ElementType, first_trip_key: str, anchor_xy: np.ndarray) -> str:
@@ -37,8 +43,13 @@ def _outline(points_xy: np.ndarray, closed: bool) -> np.ndarray:
     return np.vstack([p, p[:1]]) if closed and len(p) >= 3 else p
 
 
-def overlap_counts(new: Sequence[np.ndarray], old: Sequence[np.ndarray], gate_m: float, spacing_m: float,
-                   closed: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def overlap_counts(
+    new: Sequence[np.ndarray],
+    old: Sequence[np.ndarray],
+    gate_m: float,
+    spacing_m: float,
+    closed: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(counts (n_new, n_old), n_samples_new, n_samples_old)``: samples of each new geometry
     within ``gate_m`` of each old one."""
     ns = [resample_polyline(_outline(p, closed), spacing_m) for p in new]
@@ -62,8 +73,9 @@ def overlap_counts(new: Sequence[np.ndarray], old: Sequence[np.ndarray], gate_m:
     return counts, n_new, n_old
 
 
-def inherit_ids(new_features: Sequence[MapFeature], previous: Sequence[MapFeature],
-                params: TopologyParams) -> list[str | None]:
+def inherit_ids(
+    new_features: Sequence[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
+) -> list[str | None]:
     """For each new feature, the id of the previous feature of its type it continues, or None."""
     out: list[str | None] = [None] * len(new_features)
     gate = params.GATE_MAX_SHARE_OF_LANE * params.MIN_LANE_WIDTH_M
@@ -72,9 +84,13 @@ def inherit_ids(new_features: Sequence[MapFeature], previous: Sequence[MapFeatur
         oi = [j for j, f in enumerate(previous) if f.type == etype and f.feature_id]
         if not ni or not oi:
             continue
-        counts, n_new, n_old = overlap_counts([new_features[i].points_xy_world for i in ni],
-                                              [previous[j].points_xy_world for j in oi], gate,
-                                              0.5 * params.SAMPLE_SPACING_M, closed=etype.is_polygon)
+        counts, n_new, n_old = overlap_counts(
+            [new_features[i].points_xy_world for i in ni],
+            [previous[j].points_xy_world for j in oi],
+            gate,
+            0.5 * params.SAMPLE_SPACING_M,
+            closed=etype.is_polygon,
+        )
         share = counts / np.maximum(np.minimum(n_new[:, None], n_old[None, :]), 1.0)
         eligible = share >= params.ID_MIN_OVERLAP_SHARE
         if not eligible.any():
@@ -86,8 +102,9 @@ def inherit_ids(new_features: Sequence[MapFeature], previous: Sequence[MapFeatur
     return out
 
 
-def assign_ids(features: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
-               ) -> list[MapFeature]:
+def assign_ids(
+    features: list[MapFeature], previous: Sequence[MapFeature], params: TopologyParams
+) -> list[MapFeature]:
     """Inherited ids where a previous instance continues, new deterministic ids elsewhere;
     ``first_seen`` keeps the earliest of the previous and the new value."""
     inherited = inherit_ids(features, previous, params)

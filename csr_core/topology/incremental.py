@@ -48,11 +48,15 @@ from csr_core.types import ElementNoise, ElementType, MapFeature, TripInstance
 MIN_ANCHOR_SIGMA_M = 0.02  # a map instance never weighs more than one of 2 cm standard error
 
 
-def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[str, Sequence[TripInstance]],
-                    new_noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
-                    params: TopologyParams = DEFAULT, trip_times: Mapping[str, object] | None = None,
-                    match_pairs: Sequence = (),
-                    paths_xy_per_trip: Mapping[str, np.ndarray] | None = None) -> TopologyResult:
+def update_topology(
+    previous: TopologyResult,
+    new_instances_per_trip: Mapping[str, Sequence[TripInstance]],
+    new_noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
+    params: TopologyParams = DEFAULT,
+    trip_times: Mapping[str, object] | None = None,
+    match_pairs: Sequence = (),
+    paths_xy_per_trip: Mapping[str, np.ndarray] | None = None,
+) -> TopologyResult:
     """``previous`` map plus new trips (keys not in it) -> updated map; see the module docstring."""
     t0 = time.perf_counter()
     known = {m.trip_key for mem in previous.members.values() for m in mem} | set(previous.trip_points)
@@ -77,8 +81,9 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
         # 1. associate the map's instances (as pseudo-members) with the new trips' instances
         pseudo = [_anchor(k, f) for k, f in enumerate(old)]
         pool = pseudo + new
-        groups = (associate_polygons(pool, params) if etype.is_polygon
-                  else associate_lines(pool, etype, params))
+        groups = (
+            associate_polygons(pool, params) if etype.is_polygon else associate_lines(pool, etype, params)
+        )
         # 2. refit the touched groups: lines from the map's instance (standing for its members)
         #    plus the new ones; polygons from their stored members plus the new ones
         touched_members: list[Member] = []
@@ -89,8 +94,9 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
             for k in g:
                 if k < len(pseudo):
                     touched.add(k)
-                    touched_members.extend(previous.members.get(old[k].feature_id, ()) if etype.is_polygon
-                                           else (pool[k],))
+                    touched_members.extend(
+                        previous.members.get(old[k].feature_id, ()) if etype.is_polygon else (pool[k],)
+                    )
                 else:
                     touched_members.append(pool[k])
         kept.extend(f for k, f in enumerate(old) if k not in touched)
@@ -100,8 +106,9 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
             if anchors:
                 real = tuple(m for m in mem if m.trip_key != MAP_MEMBER_KEY)
                 refit.append(_continued_feature(fused, mem, anchors, times))
-                refit_members.append(tuple(m for a in anchors for m in previous.members.get(a.feature_id, ()))
-                                     + real)
+                refit_members.append(
+                    tuple(m for a in anchors for m in previous.members.get(a.feature_id, ())) + real
+                )
             else:
                 refit.append(feature_from_fused(fused, mem, times or None))
                 refit_members.append(mem)
@@ -118,9 +125,18 @@ def update_topology(previous: TopologyResult, new_instances_per_trip: Mapping[st
     members.update({f.feature_id: m for f, m in zip(refit, refit_members, strict=True)})
     trip_points = {**previous.trip_points, **trip_probe_points(new_instances_per_trip)}
     features = [_strip(f) for f in kept] + refit
-    return finish(features, members, trip_points, params, match_pairs,
-                  {"fuse": t1 - t0, "refit_features": float(len(refit))}, times,
-                  (*previous.rejected_members, *rejected), trip_paths, (*previous.features, *previous.suppressed))
+    return finish(
+        features,
+        members,
+        trip_points,
+        params,
+        match_pairs,
+        {"fuse": t1 - t0, "refit_features": float(len(refit))},
+        times,
+        (*previous.rejected_members, *rejected),
+        trip_paths,
+        (*previous.features, *previous.suppressed),
+    )
 
 
 def _strip(f: MapFeature) -> MapFeature:
@@ -136,8 +152,12 @@ def _anchor(k: int, f: MapFeature) -> Member:
     return Member(MAP_MEMBER_KEY, k, TripInstance(f.type, f.points_xy_world, f.style, n_obs), sigma)
 
 
-def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors: Sequence[MapFeature],
-                       trip_times: Mapping[str, object]) -> MapFeature:
+def _continued_feature(
+    fused: FusedInstance,
+    members: Sequence[Member],
+    anchors: Sequence[MapFeature],
+    trip_times: Mapping[str, object],
+) -> MapFeature:
     """The properties of a map instance refitted with new members (``feature_from_fused`` for
     the anchors' members and the new ones together): supports add up, the scatter and the
     rejected share are the trip-weighted means of the map's and the new members', times
@@ -145,27 +165,45 @@ def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors:
     real = [(k, m) for k, m in enumerate(members) if m.trip_key != MAP_MEMBER_KEY]
     old_trips = {t for a in anchors for t in a.properties.get("trips", ())}
     trips = sorted(old_trips | {m.trip_key for _, m in real})
-    outliers = {members[k].trip_key for k in fused.outlier_members
-                if k < len(members) and members[k].trip_key != MAP_MEMBER_KEY}
-    z2_old = sum(float(a.properties.get("scatter_ratio", 1.0)) ** 2 * int(a.properties.get("support_trips", 1))
-                 for a in anchors)
+    outliers = {
+        members[k].trip_key
+        for k in fused.outlier_members
+        if k < len(members) and members[k].trip_key != MAP_MEMBER_KEY
+    }
+    z2_old = sum(
+        float(a.properties.get("scatter_ratio", 1.0)) ** 2 * int(a.properties.get("support_trips", 1))
+        for a in anchors
+    )
     n_z_old = sum(int(a.properties.get("support_trips", 1)) for a in anchors)
-    z2_new = [fused.member_scatter2[k] for k, _ in real
-              if k < len(fused.member_scatter2) and np.isfinite(fused.member_scatter2[k])
-              and members[k].trip_key not in outliers]
+    z2_new = [
+        fused.member_scatter2[k]
+        for k, _ in real
+        if k < len(fused.member_scatter2)
+        and np.isfinite(fused.member_scatter2[k])
+        and members[k].trip_key not in outliers
+    ]
     scatter = float(np.sqrt((z2_old + sum(z2_new)) / max(n_z_old + len(z2_new), 1)))
-    rejected_old = sum(float(a.properties.get("rejected_weight_share", 0.0)) * int(a.properties.get(
-        "support_trips", 1)) for a in anchors)
+    rejected_old = sum(
+        float(a.properties.get("rejected_weight_share", 0.0)) * int(a.properties.get("support_trips", 1))
+        for a in anchors
+    )
     rejected = (rejected_old + len(outliers)) / max(n_z_old + len(real), 1)
     new_times = [trip_times.get(m.trip_key) for _, m in real]
-    seen: list[Any] = [t for t in [a.properties.get("first_seen") for a in anchors] + new_times if t is not None]
-    confirmed: list[Any] = [t for t in [a.properties.get("last_confirmed") for a in anchors] + new_times
-                            if t is not None]
-    first = min(anchors, key=lambda a: (a.properties.get("first_seen") is None, str(a.properties.get("first_seen"))))
+    seen: list[Any] = [
+        t for t in [a.properties.get("first_seen") for a in anchors] + new_times if t is not None
+    ]
+    confirmed: list[Any] = [
+        t for t in [a.properties.get("last_confirmed") for a in anchors] + new_times if t is not None
+    ]
+    first = min(
+        anchors, key=lambda a: (a.properties.get("first_seen") is None, str(a.properties.get("first_seen")))
+    )
     props = {
         "support_trips": len(trips),
-        "support_observations": int(sum(int(a.properties.get("support_observations", 0)) for a in anchors)
-                                    + sum(m.instance.n_observations for _, m in real)),
+        "support_observations": int(
+            sum(int(a.properties.get("support_observations", 0)) for a in anchors)
+            + sum(m.instance.n_observations for _, m in real)
+        ),
         "uncertainty_m": round(float(fused.uncertainty_m), 4),
         "first_seen": min(seen) if seen else None,
         "last_confirmed": max(confirmed) if confirmed else None,
@@ -173,9 +211,16 @@ def _continued_feature(fused: FusedInstance, members: Sequence[Member], anchors:
         "trips": trips,
         "scatter_ratio": round(scatter, 3),
         "rejected_weight_share": round(float(rejected), 3),
-        "outlier_trips": sorted({t for a in anchors for t in a.properties.get("outlier_trips", ())} | outliers),
+        "outlier_trips": sorted(
+            {t for a in anchors for t in a.properties.get("outlier_trips", ())} | outliers
+        ),
         "max_internal_gap_m": round(float(fused.max_internal_gap_m), 2),
         "first_trip": first.properties.get("first_trip", trips[0] if trips else ""),
     }
-    return MapFeature(type=fused.type, points_xy_world=fused.points_xy_world, style=fused.style, feature_id="",
-                      properties=props)
+    return MapFeature(
+        type=fused.type,
+        points_xy_world=fused.points_xy_world,
+        style=fused.style,
+        feature_id="",
+        properties=props,
+    )

@@ -88,9 +88,11 @@ def is_zigzag(points_xy: np.ndarray, params: TopologyParams) -> bool:
     return excess / length > params.ZIGZAG_TURN_RAD_PER_M
 
 
-def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
-                 noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
-                 params: TopologyParams) -> tuple[dict[ElementType, list[Member]], list[Member]]:
+def make_members(
+    instances_per_trip: Mapping[str, Sequence[TripInstance]],
+    noise_per_trip: Mapping[str, Mapping[ElementType, ElementNoise]],
+    params: TopologyParams,
+) -> tuple[dict[ElementType, list[Member]], list[Member]]:
     """Members per type, and the rejected ones (zig-zag lines, left out of fusion)."""
     out: dict[ElementType, list[Member]] = {t: [] for t in ElementType}
     rejected: list[Member] = []
@@ -107,8 +109,9 @@ def make_members(instances_per_trip: Mapping[str, Sequence[TripInstance]],
     return out, rejected
 
 
-def fuse_type(members: Sequence[Member], element_type: ElementType, params: TopologyParams
-              ) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
+def fuse_type(
+    members: Sequence[Member], element_type: ElementType, params: TopologyParams
+) -> list[tuple[FusedInstance, tuple[Member, ...]]]:
     """Associate and fuse all members of one type. In each round a group gives a line for each
     of its regions (``fusion.fuse_group``: a group chained through junctions holds many); what
     a line does not support (the other side of a corner a chain of boundaries went round, the
@@ -126,7 +129,9 @@ def fuse_type(members: Sequence[Member], element_type: ElementType, params: Topo
         if element_type.is_polygon:
             groups = associate_polygons(pending, params)
         else:
-            groups = [[k] for k in range(len(pending))] if last else associate_lines(pending, element_type, params)
+            groups = (
+                [[k] for k in range(len(pending))] if last else associate_lines(pending, element_type, params)
+            )
         detached: list[Member] = []
         done = len(out)
         pieces: list[Member]
@@ -160,8 +165,12 @@ def _times(members: Sequence[Member], trip_times: Mapping[str, object] | None) -
     return None, None, keys[0]
 
 
-def feature_from_fused(fused: FusedInstance, members: Sequence[Member], trip_times: Mapping[str, object] | None,
-             feature_id: str = "") -> MapFeature:
+def feature_from_fused(
+    fused: FusedInstance,
+    members: Sequence[Member],
+    trip_times: Mapping[str, object] | None,
+    feature_id: str = "",
+) -> MapFeature:
     first, last, first_trip = _times(members, trip_times)
     trips = sorted({m.trip_key for m in members})
     outlier_trips = sorted({members[k].trip_key for k in fused.outlier_members if k < len(members)})
@@ -179,22 +188,32 @@ def feature_from_fused(fused: FusedInstance, members: Sequence[Member], trip_tim
         "max_internal_gap_m": round(float(fused.max_internal_gap_m), 2),
         "first_trip": first_trip,
     }
-    return MapFeature(type=fused.type, points_xy_world=fused.points_xy_world, style=fused.style,
-                      feature_id=feature_id, properties=props)
+    return MapFeature(
+        type=fused.type,
+        points_xy_world=fused.points_xy_world,
+        style=fused.style,
+        feature_id=feature_id,
+        properties=props,
+    )
 
 
-def trip_probe_points(instances_per_trip: Mapping[str, Sequence[TripInstance]], spacing_m: float = 5.0
-                      ) -> dict[str, np.ndarray]:
+def trip_probe_points(
+    instances_per_trip: Mapping[str, Sequence[TripInstance]], spacing_m: float = 5.0
+) -> dict[str, np.ndarray]:
     out = {}
     for key, instances in instances_per_trip.items():
-        pts = [resample_polyline(np.asarray(i.points_xy_world, float), spacing_m)
-               for i in instances if len(i.points_xy_world) >= 2]
+        pts = [
+            resample_polyline(np.asarray(i.points_xy_world, float), spacing_m)
+            for i in instances
+            if len(i.points_xy_world) >= 2
+        ]
         out[key] = np.concatenate(pts) if pts else np.zeros((0, 2))
     return out
 
 
-def path_probes(paths_xy_per_trip: Mapping[str, np.ndarray] | None, spacing_m: float = 2.0
-                ) -> dict[str, np.ndarray]:
+def path_probes(
+    paths_xy_per_trip: Mapping[str, np.ndarray] | None, spacing_m: float = 2.0
+) -> dict[str, np.ndarray]:
     """Each trip's driven path as ``(P, 4)`` rows x, y, unit direction x, y every ``spacing_m``."""
     out = {}
     for key, xy in (paths_xy_per_trip or {}).items():
@@ -207,8 +226,9 @@ def path_probes(paths_xy_per_trip: Mapping[str, np.ndarray] | None, spacing_m: f
     return out
 
 
-def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.ndarray],
-                       params: TopologyParams) -> list[MapFeature]:
+def orient_centerlines(
+    features: Sequence[MapFeature], probes: Mapping[str, np.ndarray], params: TopologyParams
+) -> list[MapFeature]:
     """Centrelines point the way the trips that drove on them (path within a quarter lane)
     drove; without such trips they keep the direction most of their members had."""
     if not probes:
@@ -230,11 +250,18 @@ def orient_centerlines(features: Sequence[MapFeature], probes: Mapping[str, np.n
     return out
 
 
-def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]],
-           trip_points: dict[str, np.ndarray], params: TopologyParams, match_pairs: Sequence,
-           timings_s: dict[str, float], trip_times: Mapping[str, object] | None = None,
-           rejected_members: Sequence[Member] = (), trip_paths: Mapping[str, np.ndarray] | None = None,
-           previous: Sequence[MapFeature] = ()) -> TopologyResult:
+def finish(
+    features: Sequence[MapFeature],
+    members: dict[str, tuple[Member, ...]],
+    trip_points: dict[str, np.ndarray],
+    params: TopologyParams,
+    match_pairs: Sequence,
+    timings_s: dict[str, float],
+    trip_times: Mapping[str, object] | None = None,
+    rejected_members: Sequence[Member] = (),
+    trip_paths: Mapping[str, np.ndarray] | None = None,
+    previous: Sequence[MapFeature] = (),
+) -> TopologyResult:
     """Lines that at least ``SUPPRESS_MIN_PASSING`` trips drove alongside without seeing them,
     and that fewer than ``LOW_SUPPORT_SHARE`` of the trips with them in view saw, are held back
     (``suppressed``); centrelines are derived where the published lines have none
@@ -246,10 +273,14 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     if params.TRIM_UNSEEN_TAILS:
         features, _ = trim_unseen_tails(features, members, trip_paths or {}, params, params.END_WINDOW_M)
     passed = passing_counts(features, trip_paths or {}, params)
-    held = [seen_too_rarely(int(f.properties["support_trips"]), n, params) for f, n in zip(features, passed, strict=True)]
+    held = [
+        seen_too_rarely(int(f.properties["support_trips"]), n, params)
+        for f, n in zip(features, passed, strict=True)
+    ]
     published = [f for f, h in zip(features, held, strict=True) if not h]
-    derived = derive_centerlines(published, trip_paths or {}, params, trip_times,
-                                 [f for f in previous if is_derived(f)])
+    derived = derive_centerlines(
+        published, trip_paths or {}, params, trip_times, [f for f in previous if is_derived(f)]
+    )
     taken = {f.feature_id for f in features}
     for k, f in enumerate(derived):
         fid, n = f.feature_id, 2
@@ -267,17 +298,36 @@ def finish(features: Sequence[MapFeature], members: dict[str, tuple[Member, ...]
     for fl in flags:
         if fl.feature_id is not None:
             by_feature.setdefault(fl.feature_id, []).append(fl.kind)
-    final = [replace(f, properties={**f.properties, "coverage_trips": c, "passed_trips": n,
-                                    "flags": sorted(set(by_feature.get(f.feature_id, [])))})
-             for f, c, n in zip(features, cover, passed, strict=True)]
+    final = [
+        replace(
+            f,
+            properties={
+                **f.properties,
+                "coverage_trips": c,
+                "passed_trips": n,
+                "flags": sorted(set(by_feature.get(f.feature_id, []))),
+            },
+        )
+        for f, c, n in zip(features, cover, passed, strict=True)
+    ]
     published_final = tuple(f for f, h in zip(final, held, strict=True) if not h)
     suppressed = tuple(f for f, h in zip(final, held, strict=True) if h)
     t2 = time.perf_counter()
     lane_graph = build_lane_graph(published_final, params)
     t3 = time.perf_counter()
-    return TopologyResult(published_final, lane_graph, flags, quality, members, trip_points, dict(trip_times or {}),
-                          {**timings_s, "derive": t1 - t0, "validate": t2 - t1, "lane_graph": t3 - t2}, suppressed,
-                          tuple(rejected_members), dict(trip_paths or {}))
+    return TopologyResult(
+        published_final,
+        lane_graph,
+        flags,
+        quality,
+        members,
+        trip_points,
+        dict(trip_times or {}),
+        {**timings_s, "derive": t1 - t0, "validate": t2 - t1, "lane_graph": t3 - t2},
+        suppressed,
+        tuple(rejected_members),
+        dict(trip_paths or {}),
+    )
 
 
 def trip_sigmas(member_groups: Iterable[Sequence[Member]]) -> dict[str, float]:
@@ -290,8 +340,9 @@ def trip_sigmas(member_groups: Iterable[Sequence[Member]]) -> dict[str, float]:
     return {k: math.sqrt(sum(v * v for v in s.values()) / len(s)) for k, s in per_trip.items()}
 
 
-def reposition_instances(instances: Sequence[TripInstance], from_xyyaw: np.ndarray, to_xyyaw: np.ndarray
-                         ) -> tuple[TripInstance, ...]:
+def reposition_instances(
+    instances: Sequence[TripInstance], from_xyyaw: np.ndarray, to_xyyaw: np.ndarray
+) -> tuple[TripInstance, ...]:
     """A trip's instances placed with its poses ``from`` (world_T_vehicle ``(N, 3)``, e.g. the
     single-trip smoothed ones) re-placed with poses ``to`` (e.g. after alignment): each point
     moves with the correction ``to @ inv(from)`` of the frame, among the instance's frames,
@@ -305,6 +356,8 @@ def reposition_instances(instances: Sequence[TripInstance], from_xyyaw: np.ndarr
         corr = compose(to_xyyaw[fr], inverse(from_xyyaw[fr]))  # (P, 3) to_T_from per point
         c, s = np.cos(corr[:, 2]), np.sin(corr[:, 2])
         p = inst.points_xy_world
-        moved = np.column_stack([c * p[:, 0] - s * p[:, 1] + corr[:, 0], s * p[:, 0] + c * p[:, 1] + corr[:, 1]])
+        moved = np.column_stack(
+            [c * p[:, 0] - s * p[:, 1] + corr[:, 0], s * p[:, 0] + c * p[:, 1] + corr[:, 1]]
+        )
         out.append(replace(inst, points_xy_world=moved))
     return tuple(out)

@@ -72,11 +72,18 @@ def end_heading(points: np.ndarray, at_end: bool, span_m: float = 3.0) -> np.nda
 
 def build_lane_graph(features: Sequence[MapFeature], params: TopologyParams) -> LaneGraph:
     """Lanes of the centreline features (directed polylines, world frame, metres)."""
-    cls = [f for f in features if f.type == ElementType.CENTERLINE and len(f.points_xy_world) >= 2
-           and float(arclength(np.asarray(f.points_xy_world, float))[-1]) >= params.LANE_MIN_LENGTH_M]
+    cls = [
+        f
+        for f in features
+        if f.type == ElementType.CENTERLINE
+        and len(f.points_xy_world) >= 2
+        and float(arclength(np.asarray(f.points_xy_world, float))[-1]) >= params.LANE_MIN_LENGTH_M
+    ]
     cos_max = math.cos(params.CONNECT_MAX_ANGLE_RAD)
     lines = [resample_polyline(np.asarray(f.points_xy_world, float), 0.5) for f in cls]
-    lines = [ln if len(ln) >= 2 else np.asarray(f.points_xy_world, float) for ln, f in zip(lines, cls, strict=True)]
+    lines = [
+        ln if len(ln) >= 2 else np.asarray(f.points_xy_world, float) for ln, f in zip(lines, cls, strict=True)
+    ]
     total = [float(arclength(ln)[-1]) for ln in lines]
     starts = np.array([ln[0] for ln in lines]) if lines else np.zeros((0, 2))
     ends = np.array([ln[-1] for ln in lines]) if lines else np.zeros((0, 2))
@@ -147,10 +154,16 @@ def build_lane_graph(features: Sequence[MapFeature], params: TopologyParams) -> 
                 g.add_edge(piece_at[j][-1][2], piece(i, s, ending=False), kind=SUCCESSOR)
     # 4. left / right neighbours: same direction, lateral offset about a lane width
     _neighbours(g, params, cos_max)
-    splits = [g.nodes[n]["points_xy_world"][-1] for n in g.nodes
-              if sum(1 for v in g.successors(n) if g.edges[n, v]["kind"] == SUCCESSOR) > 1]
-    merges = [g.nodes[n]["points_xy_world"][0] for n in g.nodes
-              if sum(1 for u in g.predecessors(n) if g.edges[u, n]["kind"] == SUCCESSOR) > 1]
+    splits = [
+        g.nodes[n]["points_xy_world"][-1]
+        for n in g.nodes
+        if sum(1 for v in g.successors(n) if g.edges[n, v]["kind"] == SUCCESSOR) > 1
+    ]
+    merges = [
+        g.nodes[n]["points_xy_world"][0]
+        for n in g.nodes
+        if sum(1 for u in g.predecessors(n) if g.edges[u, n]["kind"] == SUCCESSOR) > 1
+    ]
     return LaneGraph(g, np.array(splits).reshape(-1, 2), np.array(merges).reshape(-1, 2))
 
 
@@ -205,8 +218,9 @@ def _neighbours(g: nx.DiGraph, params: TopologyParams, cos_max: float) -> None:
     a, b, lat = a[order], b[order], lat[order]
     first = np.r_[True, (a[1:] != a[:-1]) | (owner[b][1:] != owner[b][:-1])]
     a, b, lat = a[first], b[first], lat[first]
-    keys, inv, votes = np.unique(np.c_[owner[a], (lat > 0).astype(np.int64), owner[b]], axis=0,
-                                 return_inverse=True, return_counts=True)
+    keys, inv, votes = np.unique(
+        np.c_[owner[a], (lat > 0).astype(np.int64), owner[b]], axis=0, return_inverse=True, return_counts=True
+    )
     mean_d = np.bincount(inv.ravel(), weights=np.abs(lat), minlength=len(keys)) / votes
     best: dict[tuple[int, int], tuple[float, int]] = {}
     for (lane, left, other), v, dm in zip(keys.tolist(), votes.tolist(), mean_d.tolist(), strict=True):

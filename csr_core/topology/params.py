@@ -112,8 +112,10 @@ class TopologyParams:
 
     def gate_m(self, sigma_a_m: float, sigma_b_m: float) -> float:
         """Association gate between two trips' instances (metres)."""
-        return min(self.GATE_SIGMAS * math.hypot(sigma_a_m, sigma_b_m),
-                   self.GATE_MAX_SHARE_OF_LANE * self.MIN_LANE_WIDTH_M)
+        return min(
+            self.GATE_SIGMAS * math.hypot(sigma_a_m, sigma_b_m),
+            self.GATE_MAX_SHARE_OF_LANE * self.MIN_LANE_WIDTH_M,
+        )
 
 
 DEFAULT = TopologyParams()

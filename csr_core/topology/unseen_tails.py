@@ -68,15 +68,16 @@ class TypePoints:
         return np.array([len(t) for t in trips], dtype=int), trips
 
 
-def _end_run(points: TypePoints, line_xy: np.ndarray, from_head: bool, chunk: int = 16
-             ) -> tuple[int, list[str]] | None:
+def _end_run(
+    points: TypePoints, line_xy: np.ndarray, from_head: bool, chunk: int = 16
+) -> tuple[int, list[str]] | None:
     """The vertices at the head (or tail) of ``line_xy`` covered by at most one trip: how many,
     and the trips that cover them; None when no vertex has two. Walked from the end a ``chunk``
     at a time (most lines have two trips within a few metres of their ends)."""
     order = np.arange(len(line_xy)) if from_head else np.arange(len(line_xy))[::-1]
     seen: set[str] = set()
     for start in range(0, len(order), chunk):
-        idx = order[start:start + chunk]
+        idx = order[start : start + chunk]
         support, trips = points.support(line_xy[idx])
         above = np.flatnonzero(support > 1)
         stop = int(above[0]) if len(above) else len(idx)
@@ -87,9 +88,13 @@ def _end_run(points: TypePoints, line_xy: np.ndarray, from_head: bool, chunk: in
     return None
 
 
-def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequence[Member]],
-                      trip_paths: Mapping[str, np.ndarray], params: TopologyParams,
-                      min_length_m: float) -> tuple[list[MapFeature], int]:
+def trim_unseen_tails(
+    features: Sequence[MapFeature],
+    members: Mapping[str, Sequence[Member]],
+    trip_paths: Mapping[str, np.ndarray],
+    params: TopologyParams,
+    min_length_m: float,
+) -> tuple[list[MapFeature], int]:
     """``features`` with the end stretches of their lines that one trip alone covered and that
     other trips drove past unseen cut off (module docstring); stretches shorter than
     ``min_length_m`` are left (the ends of members scatter by that much). Returns the features
@@ -106,20 +111,33 @@ def trim_unseen_tails(features: Sequence[MapFeature], members: Mapping[str, Sequ
     for k, f in enumerate(features):
         group = members.get(f.feature_id, ())
         p = np.asarray(f.points_xy_world, float)
-        if (f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 3 or "derived" in f.properties
-                or len({m.trip_key for m in group}) < 2 or f.type not in type_points):
+        if (
+            f.type.is_polygon
+            or f.type in params.WHOLE_ELEMENT_TYPES
+            or len(p) < 3
+            or "derived" in f.properties
+            or len({m.trip_key for m in group}) < 2
+            or f.type not in type_points
+        ):
             continue
         for at_head in (True, False):
             run = _end_run(type_points[f.type], p, at_head)
             if run is None:
                 break  # no vertex that two trips cover: the whole line is the ghost test's
             n, seen_by = run
-            part = p[:n + 1] if at_head else p[len(p) - n - 1:]
+            part = p[: n + 1] if at_head else p[len(p) - n - 1 :]
             if n < 1 or arclength(part)[-1] < min_length_m:
                 continue
             stretches.append((k, at_head, n))
-            probes.append(MapFeature(f.type, part, f.style, f"{f.feature_id}-tail",
-                                     {"trips": seen_by, "support_trips": len(seen_by)}))
+            probes.append(
+                MapFeature(
+                    f.type,
+                    part,
+                    f.style,
+                    f"{f.feature_id}-tail",
+                    {"trips": seen_by, "support_trips": len(seen_by)},
+                )
+            )
     if not probes:
         return list(features), 0
     passed = passing_counts(probes, trip_paths, params)

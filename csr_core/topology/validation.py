@@ -56,8 +56,16 @@ from csr_core.types import ElementType, MapFeature
 # make an instance suspect (a gap is spanned by the fit or is a break between two pieces: on the
 # hard and standard profiles an instance flagged by it alone was really wrong less often than the
 # map's average instance)
-SEVERITY = {"low_support": 1.0, "trips_disagree": 1.0, "implausible_lane_width": 1.0, "high_variance": 0.7,
-            "high_residual_pair": 0.7, "gap": 0.0, "outlier_trip": 0.0, "low_support_marking": 0.0}
+SEVERITY = {
+    "low_support": 1.0,
+    "trips_disagree": 1.0,
+    "implausible_lane_width": 1.0,
+    "high_variance": 0.7,
+    "high_residual_pair": 0.7,
+    "gap": 0.0,
+    "outlier_trip": 0.0,
+    "low_support_marking": 0.0,
+}
 SUSPECT = frozenset(k for k, v in SEVERITY.items() if v > 0)
 PAIR_RADIUS_M = 30.0  # a match pair speaks for the instances within this of its centre
 #: crossed, not driven along: their ``low_support`` is reported as ``low_support_marking``
@@ -120,8 +128,9 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         if len(idx) < 2:
             continue
         pts, tans, own = _samples([features[i] for i in idx], spacing)
-        unc = np.array([float(features[i].properties.get("uncertainty_m", params.DEFAULT_LATERAL_SIGMA_M))
-                        for i in idx])
+        unc = np.array(
+            [float(features[i].properties.get("uncertainty_m", params.DEFAULT_LATERAL_SIGMA_M)) for i in idx]
+        )
         tree = cKDTree(pts)
         pairs = tree.query_pairs(params.MAX_LANE_WIDTH_M, output_type="ndarray")
         if not len(pairs):
@@ -165,7 +174,9 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
         length = np.bincount(own, minlength=len(idx)) * spacing
         key = own[a] * len(idx) + own[b]  # ascending (sorted by own[a], own[b] above)
         keys, starts = np.unique(key, return_index=True)
-        for k, start, stop in zip(keys.tolist(), starts.tolist(), [*starts[1:].tolist(), len(key)], strict=True):
+        for k, start, stop in zip(
+            keys.tolist(), starts.tolist(), [*starts[1:].tolist(), len(key)], strict=True
+        ):
             sel = slice(start, stop)  # this pair of features
             fa, fb = divmod(k, len(idx))
             run = float(stop - start) * spacing
@@ -183,8 +194,11 @@ def _narrow_spacing(features: Sequence[MapFeature], params: TopologyParams) -> d
 def _breaks(features: Sequence[MapFeature], params: TopologyParams) -> set[int]:
     """Line features whose end is a short break from a collinear same-type line."""
     out: set[int] = set()
-    lines = [(i, np.asarray(f.points_xy_world, float)) for i, f in enumerate(features)
-             if not f.type.is_polygon and len(f.points_xy_world) >= 3]
+    lines = [
+        (i, np.asarray(f.points_xy_world, float))
+        for i, f in enumerate(features)
+        if not f.type.is_polygon and len(f.points_xy_world) >= 3
+    ]
     for etype in ElementType:
         sel = [(i, p) for i, p in lines if features[i].type == etype]
         if len(sel) < 2:
@@ -213,8 +227,9 @@ def _breaks(features: Sequence[MapFeature], params: TopologyParams) -> set[int]:
     return out
 
 
-def expected_pair_residual_m(trip_key_i: str, trip_key_j: str, trip_sigma_m: Mapping[str, float],
-                             params: TopologyParams) -> float:
+def expected_pair_residual_m(
+    trip_key_i: str, trip_key_j: str, trip_sigma_m: Mapping[str, float], params: TopologyParams
+) -> float:
     """The RMS residual a registration of two trips' sub-maps has from noise alone: their
     lateral sigmas combined (``trip_sigma_m``: trip key -> RMS over its element types of
     ``TopologyParams.trip_sigma_m``). A side not in it (the pre-built map) counts as the other."""
@@ -225,9 +240,13 @@ def expected_pair_residual_m(trip_key_i: str, trip_key_j: str, trip_sigma_m: Map
     return math.hypot(a, b)
 
 
-def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], params: TopologyParams,
-             match_pairs: Sequence = (), trip_sigma_m: Mapping[str, float] | None = None
-             ) -> tuple[tuple[ValidationFlag, ...], dict[tuple[int, int], TileQuality]]:
+def validate(
+    features: Sequence[MapFeature],
+    coverage_trips: Sequence[int],
+    params: TopologyParams,
+    match_pairs: Sequence = (),
+    trip_sigma_m: Mapping[str, float] | None = None,
+) -> tuple[tuple[ValidationFlag, ...], dict[tuple[int, int], TileQuality]]:
     """Flags per instance and quality per tile.
 
     ``features`` carry the fusion statistics in ``properties`` (support_trips, scatter_ratio,
@@ -247,8 +266,13 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
         p = np.asarray(f.points_xy_world, float)
         tx, ty = tile_of(p[len(p) // 2], params.TILE_SIZE_M)
         home[k] = (int(tx), int(ty))
-    bad_pairs = [mp for mp in match_pairs if float(mp.residual_rms_m) > params.HIGH_RESIDUAL_SIGMAS
-                 * expected_pair_residual_m(mp.trip_key_i, mp.trip_key_j, trip_sigma_m or {}, params)]
+    bad_pairs = [
+        mp
+        for mp in match_pairs
+        if float(mp.residual_rms_m)
+        > params.HIGH_RESIDUAL_SIGMAS
+        * expected_pair_residual_m(mp.trip_key_i, mp.trip_key_j, trip_sigma_m or {}, params)
+    ]
     for k, f in enumerate(features):
         pr = f.properties
         tile = home[k]
@@ -261,8 +285,15 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
         if support >= 2 and pr.get("scatter_ratio", 0.0) > params.HIGH_VARIANCE_RATIO:
             flags.append(ValidationFlag("high_variance", fid, tile, value=float(pr["scatter_ratio"])))
         if pr.get("rejected_weight_share", 0.0) >= params.DISAGREE_WEIGHT_SHARE:
-            flags.append(ValidationFlag("trips_disagree", fid, tile, tuple(pr.get("outlier_trips", ())),
-                                        float(pr["rejected_weight_share"])))
+            flags.append(
+                ValidationFlag(
+                    "trips_disagree",
+                    fid,
+                    tile,
+                    tuple(pr.get("outlier_trips", ())),
+                    float(pr["rejected_weight_share"]),
+                )
+            )
         elif pr.get("outlier_trips"):
             flags.append(ValidationFlag("outlier_trip", fid, tile, tuple(pr["outlier_trips"])))
         if pr.get("max_internal_gap_m", 0.0) >= params.GAP_MIN_M or k in breaks:
@@ -273,10 +304,18 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
             trips = set(pr.get("trips", ()))
             p = np.asarray(f.points_xy_world, float)
             for mp in bad_pairs:
-                if {mp.trip_key_i, mp.trip_key_j} & trips and \
-                        float(np.min(np.linalg.norm(p - np.asarray(mp.centre_xy_world), axis=1))) <= PAIR_RADIUS_M:
-                    flags.append(ValidationFlag("high_residual_pair", fid, tile, (mp.trip_key_i, mp.trip_key_j),
-                                                float(mp.residual_rms_m)))
+                if {mp.trip_key_i, mp.trip_key_j} & trips and float(
+                    np.min(np.linalg.norm(p - np.asarray(mp.centre_xy_world), axis=1))
+                ) <= PAIR_RADIUS_M:
+                    flags.append(
+                        ValidationFlag(
+                            "high_residual_pair",
+                            fid,
+                            tile,
+                            (mp.trip_key_i, mp.trip_key_j),
+                            float(mp.residual_rms_m),
+                        )
+                    )
                     break
     # tiles: severity-weighted share of sample length flagged
     worst = np.zeros(len(features))
@@ -297,8 +336,12 @@ def validate(features: Sequence[MapFeature], coverage_trips: Sequence[int], para
             tk = (int(key[0]), int(key[1]))
             n_feat = n_features[t]
             c = per_tile_flags.get(tk, Counter())
-            quality[tk] = TileQuality(tk, float(1.0 - bad[t] / max(total[t], 1)),
-                                      tuple(f"{kind}:{n}" for kind, n in sorted(c.items())), n_feat)
+            quality[tk] = TileQuality(
+                tk,
+                float(1.0 - bad[t] / max(total[t], 1)),
+                tuple(f"{kind}:{n}" for kind, n in sorted(c.items())),
+                n_feat,
+            )
     return tuple(flags), quality
 
 
@@ -330,8 +373,9 @@ def _ball_hits(tree: cKDTree, points: np.ndarray, radius_m: float) -> tuple[np.n
     return counts, np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
 
 
-def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np.ndarray],
-                    radius_m: float) -> list[int]:
+def coverage_counts(
+    features: Sequence[MapFeature], trip_points: Mapping[str, np.ndarray], radius_m: float
+) -> list[int]:
     """For each feature, how many trips have some element point within ``radius_m`` of it
     (``trip_points``: each trip's element points, a few metres apart). All features' probes
     (every 5 m) at once, trip after trip (a count per probe, no lists of the points)."""
@@ -354,8 +398,9 @@ def coverage_counts(features: Sequence[MapFeature], trip_points: Mapping[str, np
 PASS_PROBE_SPACING_M = 5.0  # a line is checked every this many metres
 
 
-def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.ndarray],
-                   params: TopologyParams) -> list[int]:
+def passing_counts(
+    features: Sequence[MapFeature], trip_paths: Mapping[str, np.ndarray], params: TopologyParams
+) -> list[int]:
     """For each line feature, how many trips that did not see it drove alongside it: the
     negative evidence against a ghost (``PASS_LATERAL_M``, ``PASS_MAX_ANGLE_RAD``,
     ``PASS_MIN_SHARE``). ``trip_paths``: each trip's driven path as ``(P, 4)`` rows x, y, unit
@@ -370,7 +415,12 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     lines, probes, tangents = [], [], []
     for k, f in enumerate(features):
         p = np.asarray(f.points_xy_world, float)
-        if f.type.is_polygon or f.type in params.WHOLE_ELEMENT_TYPES or len(p) < 2 or "derived" in f.properties:
+        if (
+            f.type.is_polygon
+            or f.type in params.WHOLE_ELEMENT_TYPES
+            or len(p) < 2
+            or "derived" in f.properties
+        ):
             continue  # derived centrelines (``derived_centerlines``) are never seen, so never passed unseen
         probe = resample_polyline(p, PASS_PROBE_SPACING_M)
         tangent = np.gradient(probe, axis=0)
@@ -386,12 +436,16 @@ def passing_counts(features: Sequence[MapFeature], trip_paths: Mapping[str, np.n
     along = np.abs(np.einsum("ij,ij->i", rows[idx, 2:], np.concatenate(tangents)[at])) >= cos_max
     probe_trip = np.unique(at[along] * n_keys + label[idx[along]])  # (probe, trip) with a pass
     line_of_probe = np.repeat(np.arange(len(lines)), [len(p) for p in probes])
-    per_line_trip = np.bincount(line_of_probe[probe_trip // n_keys] * n_keys + probe_trip % n_keys,
-                                minlength=len(lines) * n_keys).reshape(len(lines), n_keys)
+    per_line_trip = np.bincount(
+        line_of_probe[probe_trip // n_keys] * n_keys + probe_trip % n_keys, minlength=len(lines) * n_keys
+    ).reshape(len(lines), n_keys)
     for j, k in enumerate(lines):
         seen_by = set(features[k].properties.get("trips", ()))
-        out[k] = sum(1 for i, key in enumerate(keys)
-                     if per_line_trip[j, i] >= params.PASS_MIN_SHARE * len(probes[j]) and key not in seen_by)
+        out[k] = sum(
+            1
+            for i, key in enumerate(keys)
+            if per_line_trip[j, i] >= params.PASS_MIN_SHARE * len(probes[j]) and key not in seen_by
+        )
     return out
 
 
@@ -400,5 +454,8 @@ def seen_too_rarely(support_trips: int, passed_trips: int, params: TopologyParam
     fewer than ``LOW_SUPPORT_SHARE`` of all the trips that had it in view saw it. A real line is
     seen on nearly every pass (tens of frames in view), so this is what ghosts and one trip's
     mis-spliced lines look like."""
-    return (params.SUPPRESS_MIN_PASSING > 0 and passed_trips >= params.SUPPRESS_MIN_PASSING
-            and support_trips < params.LOW_SUPPORT_SHARE * (support_trips + passed_trips))
+    return (
+        params.SUPPRESS_MIN_PASSING > 0
+        and passed_trips >= params.SUPPRESS_MIN_PASSING
+        and support_trips < params.LOW_SUPPORT_SHARE * (support_trips + passed_trips)
+    )

@@ -37,9 +37,14 @@ def _busiest_window(judged: Sequence[tuple[MapFeature, bool, bool]]) -> tuple[fl
     return (cx - h, cx + h, cy - h, cy + h)
 
 
-def plot_validator(judged: Sequence[tuple[MapFeature, bool, bool]], truth_map: Sequence[MapFeature],
-                   true_xy: np.ndarray, path: str | Path, title: str = "",
-                   bbox_xy: tuple[float, float, float, float] | None = None) -> Path:
+def plot_validator(
+    judged: Sequence[tuple[MapFeature, bool, bool]],
+    truth_map: Sequence[MapFeature],
+    true_xy: np.ndarray,
+    path: str | Path,
+    title: str = "",
+    bbox_xy: tuple[float, float, float, float] | None = None,
+) -> Path:
     """Draw ``judged`` ((instance, really wrong, ...) as ``judge_instances`` returns) over the
     truth (light grey) and the true paths (dotted); legend counts per kind; zoomed to
     ``bbox_xy`` (x0, x1, y0, y1, local metres), else to the ``AUTO_WINDOW_M`` square where the
@@ -68,7 +73,9 @@ def plot_validator(judged: Sequence[tuple[MapFeature, bool, bool]], truth_map: S
     caught = counts[(True, True)]
     n_wrong = caught + counts[(True, False)]
     n_flagged = caught + counts[(False, True)]
-    ax.set_title(f"{title}  validator recall {caught / max(n_wrong, 1):.2f}, precision {caught / max(n_flagged, 1):.2f}")
+    ax.set_title(
+        f"{title}  validator recall {caught / max(n_wrong, 1):.2f}, precision {caught / max(n_flagged, 1):.2f}"
+    )
     ax.legend(loc="upper right", fontsize=9)
     ax.set_aspect("equal")
     if bbox_xy is None and judged:

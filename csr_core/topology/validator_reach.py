@@ -37,8 +37,15 @@ ONE_TRIP, TRIPS_DISAGREE, TRIPS_AGREE = "one trip", "trips disagree", "trips agr
 EVIDENCE_CLASSES = (ONE_TRIP, TRIPS_DISAGREE, TRIPS_AGREE)
 #: the served scalar properties a classifier sees (``judged_rows``); lengths and counts of
 #: observations on a log scale
-NUMERIC_PROPERTIES = ("support_trips", "coverage_trips", "passed_trips", "uncertainty_m", "scatter_ratio",
-                      "rejected_weight_share", "max_internal_gap_m")
+NUMERIC_PROPERTIES = (
+    "support_trips",
+    "coverage_trips",
+    "passed_trips",
+    "uncertainty_m",
+    "scatter_ratio",
+    "rejected_weight_share",
+    "max_internal_gap_m",
+)
 LOG_PROPERTIES = ("length_m", "support_observations")
 #: models of :func:`learned_reach`
 MODELS = ("logistic regression", "boosted trees")
@@ -49,8 +56,10 @@ def evidence_class(row: dict, params: TopologyParams = DEFAULT) -> str:
     (module docstring; the thresholds are the validator's own)."""
     if int(row.get("support_trips", 1)) <= 1:
         return ONE_TRIP
-    if (float(row.get("scatter_ratio") or 0.0) > params.HIGH_VARIANCE_RATIO
-            or float(row.get("rejected_weight_share") or 0.0) >= params.DISAGREE_WEIGHT_SHARE):
+    if (
+        float(row.get("scatter_ratio") or 0.0) > params.HIGH_VARIANCE_RATIO
+        or float(row.get("rejected_weight_share") or 0.0) >= params.DISAGREE_WEIGHT_SHARE
+    ):
         return TRIPS_DISAGREE
     return TRIPS_AGREE
 
@@ -85,8 +94,13 @@ def feature_matrix(rows: Sequence[dict]) -> np.ndarray:
         numeric = [float(r.get(k) or 0.0) for k in NUMERIC_PROPERTIES]
         logs = [np.log1p(max(float(r.get(k) or 0.0), 0.0)) for k in LOG_PROPERTIES]
         density = float(r.get("support_observations") or 0.0) / max(float(r.get("length_m") or 0.0), 1.0)
-        out[i] = [*numeric, *logs, density, *(float(r["type"] == t) for t in types),
-                  *(float(k in r.get("flags", ())) for k in flags)]
+        out[i] = [
+            *numeric,
+            *logs,
+            density,
+            *(float(r["type"] == t) for t in types),
+            *(float(k in r.get("flags", ())) for k in flags),
+        ]
     return out
 
 
@@ -136,7 +150,9 @@ def _model(name: str, seed: int):
     if name == "boosted trees":
         from sklearn.ensemble import HistGradientBoostingClassifier
 
-        return HistGradientBoostingClassifier(max_depth=3, max_iter=200, learning_rate=0.05, random_state=seed)
+        return HistGradientBoostingClassifier(
+            max_depth=3, max_iter=200, learning_rate=0.05, random_state=seed
+        )
     raise ValueError(f"unknown model {name!r}; one of {MODELS}")
 
 
@@ -157,8 +173,9 @@ def held_out_scores(rows: Sequence[dict], fleets: Sequence[str], model: str, see
     return scores
 
 
-def learned_reach(rows: Sequence[dict], fleets: Sequence[str], recall: float, precision: float,
-                  seed: int = 0) -> dict[str, dict]:
+def learned_reach(
+    rows: Sequence[dict], fleets: Sequence[str], recall: float, precision: float, seed: int = 0
+) -> dict[str, dict]:
     """Per model of ``MODELS``, from the pooled held-out scores (``held_out_scores``): the best
     precision at ``recall`` (``precision_at_recall``), the best recall at ``precision``
     (``recall_at_precision``; both NaN where no fleet could be scored) and the whole curve
@@ -169,10 +186,15 @@ def learned_reach(rows: Sequence[dict], fleets: Sequence[str], recall: float, pr
         scores = held_out_scores(rows, fleets, model, seed)
         ok = np.isfinite(scores)
         if not ok.any():
-            out[model] = {"precision_at_recall": float("nan"), "recall_at_precision": float("nan"),
-                          "curve": (np.zeros(0), np.zeros(0))}
+            out[model] = {
+                "precision_at_recall": float("nan"),
+                "recall_at_precision": float("nan"),
+                "curve": (np.zeros(0), np.zeros(0)),
+            }
             continue
-        out[model] = {"precision_at_recall": best_precision_at_recall(scores[ok], wrong[ok], recall),
-                      "recall_at_precision": best_recall_at_precision(scores[ok], wrong[ok], precision),
-                      "curve": precision_recall_points(scores[ok], wrong[ok])}
+        out[model] = {
+            "precision_at_recall": best_precision_at_recall(scores[ok], wrong[ok], recall),
+            "recall_at_precision": best_recall_at_precision(scores[ok], wrong[ok], precision),
+            "curve": precision_recall_points(scores[ok], wrong[ok]),
+        }
     return out

@@ -101,8 +101,12 @@ def upgrade() -> None:
     op.create_table(
         "map_features",
         sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
-        sa.Column("tile_version_id", sa.Integer, sa.ForeignKey("tile_versions.id", ondelete="CASCADE"),
-                  nullable=False),
+        sa.Column(
+            "tile_version_id",
+            sa.Integer,
+            sa.ForeignKey("tile_versions.id", ondelete="CASCADE"),
+            nullable=False,
+        ),
         sa.Column("feature_id", sa.String(96), nullable=False),
         sa.Column("type", sa.String(24), nullable=False),
         sa.Column("style", sa.String(16)),
@@ -133,6 +137,13 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    for table in ("corrections", "map_features", "tile_heads", "tile_versions", "match_pairs", "trip_poses",
-                  "trip_tile_alignments"):
+    for table in (
+        "corrections",
+        "map_features",
+        "tile_heads",
+        "tile_versions",
+        "match_pairs",
+        "trip_poses",
+        "trip_tile_alignments",
+    ):
         op.drop_table(table)

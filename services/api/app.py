@@ -87,10 +87,25 @@ def create_app(settings: Settings) -> FastAPI:
             stop_context(app.state.ctx)
 
     # every route's path and query parameters pass one check first (services.api.params)
-    app = FastAPI(title="CSR", version="0.1.0", lifespan=lifespan, dependencies=[Depends(check_request_params)])
+    app = FastAPI(
+        title="CSR", version="0.1.0", lifespan=lifespan, dependencies=[Depends(check_request_params)]
+    )
     install_error_handlers(app)
-    for module in (ops, trips, keys, jobs, map_read, tiles, versions, corrections, export, web, ops_jobs,
-                   trip_geometry, held_back):
+    for module in (
+        ops,
+        trips,
+        keys,
+        jobs,
+        map_read,
+        tiles,
+        versions,
+        corrections,
+        export,
+        web,
+        ops_jobs,
+        trip_geometry,
+        held_back,
+    ):
         app.include_router(module.router)
     # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)
     app.add_middleware(TileFastPath, fastapi_app=app)

@@ -28,8 +28,9 @@ class _JobCollector:
             counts = repo.job_counts(session)
             summary = repo.job_summary(session)
             durations = repo.job_duration_stats(session, buckets=JOB_DURATION_BUCKETS_S)
-            heads = session.execute(select(TileHead.z, TileHead.x, TileHead.y, TileHead.latest_version,
-                                           TileHead.updated_at)).all()
+            heads = session.execute(
+                select(TileHead.z, TileHead.x, TileHead.y, TileHead.latest_version, TileHead.updated_at)
+            ).all()
         depth = GaugeMetricFamily("csr_queue_depth", "Jobs waiting to run, per queue", labels=["queue"])
         queued = {q: 0 for q in repo.QUEUES}
         jobs = GaugeMetricFamily("csr_jobs", "Jobs per queue and state", labels=["queue", "state"])
@@ -51,8 +52,11 @@ class _JobCollector:
             ]
             hist.add_metric([kind], buckets, total)
         yield hist
-        updated = GaugeMetricFamily("csr_tile_last_update_timestamp_seconds",
-                                    "When each tile last got a new version (Unix time)", labels=["tile"])
+        updated = GaugeMetricFamily(
+            "csr_tile_last_update_timestamp_seconds",
+            "When each tile last got a new version (Unix time)",
+            labels=["tile"],
+        )
         version = GaugeMetricFamily("csr_tile_version", "Each tile's latest version number", labels=["tile"])
         for z, x, y, latest, at in heads:
             tile = f"{z}/{x}/{y}"

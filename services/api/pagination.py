@@ -25,7 +25,9 @@ from sqlalchemy import ColumnExpressionArgument, Select, tuple_
 from services.api.errors import ApiError
 from services.api.params import fits_db_int, has_control_characters
 
-DEFAULT_LIMIT = 1000  # a page holds all of the busiest tile seen (259 pairs): clients that do not page keep working
+DEFAULT_LIMIT = (
+    1000  # a page holds all of the busiest tile seen (259 pairs): clients that do not page keep working
+)
 MAX_LIMIT = 5000
 
 Limit = Annotated[int, Query(ge=1, le=MAX_LIMIT, description=f"rows per page (default {DEFAULT_LIMIT})")]
@@ -91,7 +93,7 @@ def keyset_page(
     if len(rows) <= limit:
         return Page(rows, None)
     rows = rows[:limit]
-    return Page(rows, encode_cursor(tuple(rows[-1])[-len(key):]))
+    return Page(rows, encode_cursor(tuple(rows[-1])[-len(key) :]))
 
 
 def page_response(request: Request, body: dict[str, Any], page: Page) -> Response:

@@ -20,7 +20,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
 
     p.add_argument(
-        "--set", dest="set_name", default="quick", choices=SCENARIO_SETS,
+        "--set",
+        dest="set_name",
+        default="quick",
+        choices=SCENARIO_SETS,
         help="standard: the five worlds, 10 trips x 1.5 km, seed 1; standard-seeds: the same at seeds 1-3; "
         "dense: 20-70 trips per world, >= 10 trips per place (the targets' condition)",
     )
@@ -36,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--methods", default="pipeline,gnss_only,roadmap_icp", help="comma-separated methods")
     p.add_argument(
-        "--no-ablation", dest="ablation", action="store_false",
+        "--no-ablation",
+        dest="ablation",
+        action="store_false",
         help="skip the coarse-only and fine-only runs of the pipeline (Table I)",
     )
     p.set_defaults(func=_run)
@@ -98,7 +103,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.write:
         doc = Path(args.write)
         run_s = sum(r.run.wall_s for r in records)
-        write_section(doc, render_section(records, args.set_name, figures, doc.parent, elapsed, run_s), args.set_name)
+        write_section(
+            doc, render_section(records, args.set_name, figures, doc.parent, elapsed, run_s), args.set_name
+        )
         print(f"csr bench: wrote the bench section of {doc}", file=sys.stderr)
     failed = [r for r in records if not r.ok]
     print(f"csr bench: {len(records)} runs on set {args.set_name!r}, {len(failed)} failed, {elapsed:.0f} s")

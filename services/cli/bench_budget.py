@@ -28,10 +28,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
 
     p = sub.add_parser("bench-budget", help="the mCD split into what the poses and the element stages leave")
-    p.add_argument("--set", dest="set_name", default="standard-seeds", choices=SCENARIO_SETS,
-                   help="scenario set (default standard-seeds: the standard profile)")
-    add_output_arguments(p, "work folder: scenarios cache and budget/ (single-trip results)",
-                         "rewrite the set's error-budget section of this file")
+    p.add_argument(
+        "--set",
+        dest="set_name",
+        default="standard-seeds",
+        choices=SCENARIO_SETS,
+        help="scenario set (default standard-seeds: the standard profile)",
+    )
+    add_output_arguments(
+        p,
+        "work folder: scenarios cache and budget/ (single-trip results)",
+        "rewrite the set's error-budget section of this file",
+    )
     p.set_defaults(func=_run)
 
 
@@ -51,13 +59,20 @@ def _run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out_root = Path(args.out)
     try:
-        results = run_budget_bench(out_root / "scenarios", out_root / "budget", args.set_name, jobs=args.jobs,
-                                   progress=progress_printer(t0))
+        results = run_budget_bench(
+            out_root / "scenarios",
+            out_root / "budget",
+            args.set_name,
+            jobs=args.jobs,
+            progress=progress_printer(t0),
+        )
     except CsrError as exc:
         print(f"csr bench-budget: {exc}", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - t0
-    (out_root / "budget" / f"results-{args.set_name}.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2))
+    (out_root / "budget" / f"results-{args.set_name}.json").write_bytes(
+        orjson.dumps(results, option=orjson.OPT_INDENT_2)
+    )
     figure = plot_budget(results, Path(args.figures) / figure_name(args.set_name), args.set_name)
     section = render_section(results, figure, doc_dir(args.write), elapsed, args.set_name)
     publish(section, args.write, section_name(args.set_name), "bench-budget")

@@ -15,8 +15,12 @@ from pathlib import Path
 STAGE_LOGGERS = ("csr_core.single_trip", "csr_core.alignment", "csr_core.topology")
 
 
-def add_output_arguments(p: argparse.ArgumentParser, out_help: str, write_help: str,
-                         jobs_help: str = "scenarios evaluated in parallel (processes; default 2)") -> None:
+def add_output_arguments(
+    p: argparse.ArgumentParser,
+    out_help: str,
+    write_help: str,
+    jobs_help: str = "scenarios evaluated in parallel (processes; default 2)",
+) -> None:
     """``--out``, ``--jobs``, ``--write MARKDOWN`` and ``--figures``."""
     p.add_argument("--out", default="bench-out", help=out_help)
     p.add_argument("--jobs", type=int, default=2, help=jobs_help)

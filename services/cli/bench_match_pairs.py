@@ -39,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
-def write_pairs(db_url: str, n: int, *, tile: tuple[int, int, int] = TILE, seed: int = 1, decimals: int = 6) -> list[str]:
+def write_pairs(
+    db_url: str, n: int, *, tile: tuple[int, int, int] = TILE, seed: int = 1, decimals: int = 6
+) -> list[str]:
     """``n`` active match pairs in ``tile``, as the align job stores them (confidences rounded to
     ``decimals``: few decimals make ties); returns their ids."""
     import numpy as np
@@ -59,20 +61,37 @@ def write_pairs(db_url: str, n: int, *, tile: tuple[int, int, int] = TILE, seed:
     for i in range(n):
         confidence = round(rng.random(), decimals)
         record = {
-            "submap_i": i, "submap_j": i + 1, "trip_key_i": f"veh-1__t{i}@{i}", "trip_key_j": f"veh-2__t{i}@0",
-            "frames_i": [0, 40], "frames_j": [5, 55],
+            "submap_i": i,
+            "submap_j": i + 1,
+            "trip_key_i": f"veh-1__t{i}@{i}",
+            "trip_key_j": f"veh-2__t{i}@0",
+            "frames_i": [0, 40],
+            "frames_j": [5, 55],
             "centre_xy_world": [rng.uniform(x_min, x_max), rng.uniform(y_min, y_max)],
             "relative_pose_xyyaw": [rng.gauss(0, 1), rng.gauss(0, 1), rng.gauss(0, 0.02)],
-            "confidence": confidence, "residual_rms_m": rng.uniform(0.05, 0.5),
-            "instance_matches": [[k, k] for k in range(12)], "match_confidences": [0.9] * 12,
-            "pose_graph_inlier": True, "human": False,
+            "confidence": confidence,
+            "residual_rms_m": rng.uniform(0.05, 0.5),
+            "instance_matches": [[k, k] for k in range(12)],
+            "match_confidences": [0.9] * 12,
+            "pose_graph_inlier": True,
+            "human": False,
         }
-        rows.append({
-            "id": f"{seed:04d}-{i:08d}-{rng.getrandbits(32):08x}", "z": tile[0], "x": tile[1], "y": tile[2],
-            "job_id": "bench",
-            "trip_pk_i": f"trip-{i}", "trip_pk_j": f"trip-{i + 1}", "confidence": confidence,
-            "residual_rms_m": record["residual_rms_m"], "status": "active", "record": record, "created_at": utcnow(),
-        })
+        rows.append(
+            {
+                "id": f"{seed:04d}-{i:08d}-{rng.getrandbits(32):08x}",
+                "z": tile[0],
+                "x": tile[1],
+                "y": tile[2],
+                "job_id": "bench",
+                "trip_pk_i": f"trip-{i}",
+                "trip_pk_j": f"trip-{i + 1}",
+                "confidence": confidence,
+                "residual_rms_m": record["residual_rms_m"],
+                "status": "active",
+                "record": record,
+                "created_at": utcnow(),
+            }
+        )
     with make_session_factory(engine).begin() as session:
         session.execute(insert(MatchPair), rows)
     engine.dispose()
@@ -83,8 +102,12 @@ def _serve(env: dict[str, str], port: int) -> subprocess.Popen:
     import httpx
 
     csr = Path(sys.executable).parent / "csr"
-    proc = subprocess.Popen([str(csr), "serve", "--port", str(port), "--no-access-log"],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [str(csr), "serve", "--port", str(port), "--no-access-log"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         try:
@@ -130,8 +153,9 @@ def measure(name: str, db_url: str, data_dir: Path, args: argparse.Namespace) ->
     port = _free_port()
     server = _serve(env, port)
     try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"},
-                          timeout=120) as http:
+        with httpx.Client(
+            base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"}, timeout=120
+        ) as http:
             url = "/v1/tiles/{}/{}/{}/match-pairs".format(*TILE)
             whole, n = _timed(http, url, {"limit": args.pairs}, args.repeat)
             page, _ = _timed(http, url, {"limit": PAGE}, args.repeat)
@@ -139,16 +163,21 @@ def measure(name: str, db_url: str, data_dir: Path, args: argparse.Namespace) ->
     finally:
         server.terminate()
         server.wait(timeout=30)
-    return (f"| {name} | {n} | {_percentile(whole, 0.5) * 1e3:.1f} / {max(whole) * 1e3:.1f} | "
-            f"{_percentile(page, 0.5) * 1e3:.1f} / {max(page) * 1e3:.1f} | {walk_s * 1e3:.0f} ({pages} pages, {walked}) |")
+    return (
+        f"| {name} | {n} | {_percentile(whole, 0.5) * 1e3:.1f} / {max(whole) * 1e3:.1f} | "
+        f"{_percentile(page, 0.5) * 1e3:.1f} / {max(page) * 1e3:.1f} | {walk_s * 1e3:.0f} ({pages} pages, {walked}) |"
+    )
 
 
 def _run(args: argparse.Namespace) -> int:
     import logging
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    lines = ["| deployment | pairs in one page | one page of all: median / max ms | a page of 100: median / max ms "
-             "| every page of 100 via next: ms |", "| --- | ---: | ---: | ---: | ---: |"]
+    lines = [
+        "| deployment | pairs in one page | one page of all: median / max ms | a page of 100: median / max ms "
+        "| every page of 100 via next: ms |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
     with tempfile.TemporaryDirectory(prefix="csr-bench-pairs-") as tmp:
         sqlite_url = f"sqlite:///{Path(tmp) / 'data' / 'csr.sqlite3'}"
         lines.append(measure("embedded (SQLite)", sqlite_url, Path(tmp) / "data", args))

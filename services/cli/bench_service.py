@@ -26,31 +26,61 @@ PG_ADMIN_URL = os.environ.get("CSR_BENCH_PG_ADMIN_URL", "postgresql://postgres@1
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench-service", help="the per-tile pipeline over HTTP: accuracy vs csr reconstruct, "
-                                             "incremental cost, scale-out")
+    p = sub.add_parser(
+        "bench-service",
+        help="the per-tile pipeline over HTTP: accuracy vs csr reconstruct, incremental cost, scale-out",
+    )
     p.add_argument("--world", default="urban")
     p.add_argument("--trips", type=int, default=10)
     p.add_argument("--trip-length-m", type=float, default=1000.0)
     p.add_argument("--seed", type=int, default=31, help="seed of the incremental and scale-out fleets")
-    p.add_argument("--accuracy-seeds", default="31,32,33",
-                   help="seeds of the accuracy fleets (comma-separated); the first also runs distributed")
+    p.add_argument(
+        "--accuracy-seeds",
+        default="31,32,33",
+        help="seeds of the accuracy fleets (comma-separated); the first also runs distributed",
+    )
     p.add_argument("--parts", default="accuracy,incremental,scaleout", help="which parts to run")
-    p.add_argument("--scaleout-world", default="highway",
-                   help="world of the scale-out part (highway: 10 x 1.5 km trips make about a dozen dirty tiles)")
+    p.add_argument(
+        "--scaleout-world",
+        default="highway",
+        help="world of the scale-out part (highway: 10 x 1.5 km trips make about a dozen dirty tiles)",
+    )
     p.add_argument("--pg-admin-url", default=PG_ADMIN_URL, help="PostgreSQL admin URL (scratch databases)")
     p.add_argument("--redis-url", default=os.environ.get("CSR_BENCH_REDIS_URL", "redis://127.0.0.1:6379/12"))
-    p.add_argument("--env", action="append", default=[], metavar="CSR_NAME=VALUE",
-                   help="a setting for the deployments' processes (repeatable), e.g. CSR_TILE_HALO_M=150 "
-                        "(the deployments do not inherit CSR_* from this shell)")
-    p.add_argument("--write", type=Path, default=None, help="update this BENCHMARKS.md between the service markers")
+    p.add_argument(
+        "--env",
+        action="append",
+        default=[],
+        metavar="CSR_NAME=VALUE",
+        help="a setting for the deployments' processes (repeatable), e.g. CSR_TILE_HALO_M=150 "
+        "(the deployments do not inherit CSR_* from this shell)",
+    )
+    p.add_argument(
+        "--write", type=Path, default=None, help="update this BENCHMARKS.md between the service markers"
+    )
     p.set_defaults(func=_run)
 
 
 def _simulate(world: str, trips: int, length_m: float, seed: int, out: Path) -> Path:
     from services.cli import build_parser
 
-    args = build_parser().parse_args(["simulate", "--world", world, "--trips", str(trips), "--profile", "standard",
-                                      "--seed", str(seed), "--trip-length-m", str(length_m), "--out", str(out)])
+    args = build_parser().parse_args(
+        [
+            "simulate",
+            "--world",
+            world,
+            "--trips",
+            str(trips),
+            "--profile",
+            "standard",
+            "--seed",
+            str(seed),
+            "--trip-length-m",
+            str(length_m),
+            "--out",
+            str(out),
+        ]
+    )
     args.func(args)
     return out
 
@@ -79,8 +109,13 @@ def _scores(scenario: Path, out: Path) -> dict:
 
     ev = evaluate_output(scenario, out)
     e = ev.evaluation
-    return {"ate": e.aligned.ate.rmse, "rpe": e.aligned.rpe.rmse, "mcd": e.map_aligned.mcd, "coverage": e.coverage,
-            "km": ev.trip_length_km}
+    return {
+        "ate": e.aligned.ate.rmse,
+        "rpe": e.aligned.rpe.rmse,
+        "mcd": e.map_aligned.mcd,
+        "coverage": e.coverage,
+        "km": ev.trip_length_km,
+    }
 
 
 def _through_service(dep, scenario: Path, out: Path) -> dict:
@@ -103,8 +138,11 @@ def part_accuracy(scenarios: list[tuple[int, Path]], work: Path, args) -> list[s
     from csr_core.scenario import list_trip_files, load_trip, write_reconstruction
     from services.local_deployment import LocalDeployment, scratch_postgis
 
-    lines = ["| seed | run | ATE RMSE m | RPE RMSE m | mCD m | coverage | processing s/km | wall s (process -> idle) "
-             "| ATE / reconstruct |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| seed | run | ATE RMSE m | RPE RMSE m | mCD m | coverage | processing s/km | wall s (process -> idle) "
+        "| ATE / reconstruct |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     ate: dict[str, list[float]] = {"reconstruct": [], "service": []}
     mcd: dict[str, list[float]] = {"reconstruct": [], "service": []}
     for n, (seed, scenario) in enumerate(scenarios):
@@ -116,22 +154,30 @@ def part_accuracy(scenarios: list[tuple[int, Path]], work: Path, args) -> list[s
         rows = [("csr reconstruct (one process)", _scores(scenario, work / f"reconstruct-{seed}"), cpu, None)]
         for kind in ("embedded", "distributed") if n == 0 else ("embedded",):
             url = scratch_postgis(args.pg_admin_url, "csr_bench_service") if kind == "distributed" else None
-            with LocalDeployment(kind, database_url=url, redis_url=args.redis_url, extra_env=_extra_env(args)) as dep:
+            with LocalDeployment(
+                kind, database_url=url, redis_url=args.redis_url, extra_env=_extra_env(args)
+            ) as dep:
                 run = _through_service(dep, scenario, work / f"{kind}-{seed}")
-            rows.append((f"service, {kind}", _scores(scenario, work / f"{kind}-{seed}"), run["job_s"], run["wall_s"]))
+            rows.append(
+                (f"service, {kind}", _scores(scenario, work / f"{kind}-{seed}"), run["job_s"], run["wall_s"])
+            )
         base = rows[0][1]
         for name, s, seconds, wall in rows:
-            lines.append(f"| {seed} | {name} | {s['ate']:.3f} | {s['rpe']:.3f} | {s['mcd']:.3f} | {s['coverage']:.2f} | "
-                         f"{seconds / s['km']:.2f} | {'' if wall is None else f'{wall:.0f}'} | "
-                         f"{s['ate'] / base['ate']:.2f} |")
+            lines.append(
+                f"| {seed} | {name} | {s['ate']:.3f} | {s['rpe']:.3f} | {s['mcd']:.3f} | {s['coverage']:.2f} | "
+                f"{seconds / s['km']:.2f} | {'' if wall is None else f'{wall:.0f}'} | "
+                f"{s['ate'] / base['ate']:.2f} |"
+            )
         ate["reconstruct"].append(base["ate"])
         mcd["reconstruct"].append(base["mcd"])
         ate["service"].append(rows[1][1]["ate"])
         mcd["service"].append(rows[1][1]["mcd"])
     pooled = sum(ate["service"]) / sum(ate["reconstruct"])
-    lines.append(f"\nPooled over the {len(scenarios)} fleets (embedded): ATE **{pooled:.2f}x** `csr reconstruct`'s "
-                 f"(mean {sum(ate['service']) / len(scenarios):.3f} against {sum(ate['reconstruct']) / len(scenarios):.3f} m; "
-                 f"target at most 1.10x), mCD {sum(mcd['service']) / sum(mcd['reconstruct']):.2f}x.")
+    lines.append(
+        f"\nPooled over the {len(scenarios)} fleets (embedded): ATE **{pooled:.2f}x** `csr reconstruct`'s "
+        f"(mean {sum(ate['service']) / len(scenarios):.3f} against {sum(ate['reconstruct']) / len(scenarios):.3f} m; "
+        f"target at most 1.10x), mCD {sum(mcd['service']) / sum(mcd['reconstruct']):.2f}x."
+    )
     return lines
 
 
@@ -144,8 +190,11 @@ def part_incremental(work: Path, args) -> list[str]:
 
     full = _simulate("roundabout", 51, 400.0, args.seed, work / "incremental-all")
     keys = [tf.key for tf in list_trip_files(full)]
-    lines = ["| trips already in the map | job s to add one trip (align + merge) | of which align | of which merge "
-             "| tiles touched |", "|---|---|---|---|---|"]
+    lines = [
+        "| trips already in the map | job s to add one trip (align + merge) | of which align | of which merge "
+        "| tiles touched |",
+        "|---|---|---|---|---|",
+    ]
     costs = {}
     for n in (5, 50):
         base = _subset(full, keys[:n], work / f"inc-{n}")
@@ -176,8 +225,13 @@ def part_scaleout(work: Path, args) -> list[str]:
     walls = {}
     for workers in (1, 2):
         url = scratch_postgis(args.pg_admin_url, "csr_bench_service")
-        with LocalDeployment("distributed", database_url=url, redis_url=args.redis_url, workers=workers,
-                             extra_env=_extra_env(args)) as dep:
+        with LocalDeployment(
+            "distributed",
+            database_url=url,
+            redis_url=args.redis_url,
+            workers=workers,
+            extra_env=_extra_env(args),
+        ) as dep:
             from services import fleet
 
             with fleet.client_for(dep.base_url, dep.admin_key) as http:
@@ -199,8 +253,10 @@ def part_scaleout(work: Path, args) -> list[str]:
                     time.sleep(0.25)
                 walls[workers] = time.perf_counter() - t0
             after = dep.job_seconds()
-        lines.append(f"| {workers} | {dirty} | {walls[workers]:.1f} | "
-                     f"{sum(after.get(k, 0) - before.get(k, 0) for k in after):.1f} |")
+        lines.append(
+            f"| {workers} | {dirty} | {walls[workers]:.1f} | "
+            f"{sum(after.get(k, 0) - before.get(k, 0) for k in after):.1f} |"
+        )
     lines.append(f"\nRatio 2 / 1 workers: **{walls[2] / walls[1]:.2f}x** (target at most 0.55x; 2 cores).")
     return lines
 
@@ -215,17 +271,27 @@ def _run(args: argparse.Namespace) -> int:
         work = Path(tmp)
         if "accuracy" in parts:
             seeds = [int(v) for v in args.accuracy_seeds.split(",") if v.strip()]
-            scenarios = [(seed, _simulate(args.world, args.trips, args.trip_length_m, seed, work / f"scenario-{seed}"))
-                         for seed in seeds]
-            out += [f"### Service over HTTP vs `csr reconstruct` ({args.world}, {args.trips} trips x "
-                    f"{args.trip_length_m / 1000:.1f} km, seeds {', '.join(map(str, seeds))})", ""] + part_accuracy(
-                scenarios, work, args)
+            scenarios = [
+                (seed, _simulate(args.world, args.trips, args.trip_length_m, seed, work / f"scenario-{seed}"))
+                for seed in seeds
+            ]
+            out += [
+                f"### Service over HTTP vs `csr reconstruct` ({args.world}, {args.trips} trips x "
+                f"{args.trip_length_m / 1000:.1f} km, seeds {', '.join(map(str, seeds))})",
+                "",
+            ] + part_accuracy(scenarios, work, args)
         if "incremental" in parts:
-            out += ["", "### Incremental cost (roundabout world, 400 m trips, embedded)", ""] + part_incremental(
-                work, args)
+            out += [
+                "",
+                "### Incremental cost (roundabout world, 400 m trips, embedded)",
+                "",
+            ] + part_incremental(work, args)
         if "scaleout" in parts:
-            out += ["", f"### Scale-out (distributed; {args.scaleout_world}, 10 trips x 1.5 km)", ""] + part_scaleout(
-                work, args)
+            out += [
+                "",
+                f"### Scale-out (distributed; {args.scaleout_world}, 10 trips x 1.5 km)",
+                "",
+            ] + part_scaleout(work, args)
     table = "\n".join(out)
     print(table)
     if args.write is not None:

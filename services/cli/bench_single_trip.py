@@ -26,10 +26,16 @@ from services.cli.bench_common import (
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench-single-trip", help="the single-trip targets on the benchmark's fleets")
-    p.add_argument("--sets", default="standard-seeds,hard",
-                   help="comma-separated scenario sets (default standard-seeds,hard; hard gives the GNSS-jump rows)")
-    add_output_arguments(p, "work folder: scenarios cache and single-trip/results.json",
-                         "rewrite the single-trip section of this file")
+    p.add_argument(
+        "--sets",
+        default="standard-seeds,hard",
+        help="comma-separated scenario sets (default standard-seeds,hard; hard gives the GNSS-jump rows)",
+    )
+    add_output_arguments(
+        p,
+        "work folder: scenarios cache and single-trip/results.json",
+        "rewrite the single-trip section of this file",
+    )
     p.set_defaults(func=_run)
 
 
@@ -48,15 +54,19 @@ def _run(args: argparse.Namespace) -> int:
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     unknown = [s for s in sets if s not in SCENARIO_SETS]
     if unknown or not sets:
-        print(f"csr bench-single-trip: unknown set(s) {unknown or sets} (known: {', '.join(SCENARIO_SETS)})",
-              file=sys.stderr)
+        print(
+            f"csr bench-single-trip: unknown set(s) {unknown or sets} (known: {', '.join(SCENARIO_SETS)})",
+            file=sys.stderr,
+        )
         return 2
     quiet_stage_logs(("csr_core.single_trip",))  # one line per trip otherwise
     t0 = time.perf_counter()
     out_root = Path(args.out)
     try:
         results = run_single_trip_bench(
-            out_root / "scenarios", sets=sets, jobs=args.jobs,
+            out_root / "scenarios",
+            sets=sets,
+            jobs=args.jobs,
             progress=progress_printer(t0),
         )
     except CsrError as exc:
@@ -65,7 +75,8 @@ def _run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     (out_root / "single-trip").mkdir(parents=True, exist_ok=True)
     (out_root / "single-trip" / "results.json").write_bytes(
-        orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY))
+        orjson.dumps(results, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY)
+    )
     figure = plot_instances_by_world(results, Path(args.figures) / "bench_single_trip_instances.png")
     section = render_section(results, figure, doc_dir(args.write), elapsed, sets)
     publish(section, args.write, SECTION, "bench-single-trip")

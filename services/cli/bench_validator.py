@@ -27,11 +27,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.sets import SCENARIO_SETS
 
     p = sub.add_parser("bench-validator", help="the validator's recall / precision on the hard profile")
-    p.add_argument("--set", dest="set_name", default="validator", choices=SCENARIO_SETS,
-                   help="scenario set (default validator: six hard fleets of 8 trips)")
-    add_output_arguments(p, "work folder: scenarios cache and validator/ (alignments)",
-                         "rewrite the validator section of this file",
-                         jobs_help="fleets evaluated in parallel (processes; default 2)")
+    p.add_argument(
+        "--set",
+        dest="set_name",
+        default="validator",
+        choices=SCENARIO_SETS,
+        help="scenario set (default validator: six hard fleets of 8 trips)",
+    )
+    add_output_arguments(
+        p,
+        "work folder: scenarios cache and validator/ (alignments)",
+        "rewrite the validator section of this file",
+        jobs_help="fleets evaluated in parallel (processes; default 2)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -47,7 +55,10 @@ def _run(args: argparse.Namespace) -> int:
     figure_dir = Path(args.figures)
     try:
         results = run_validator_bench(
-            out_root / "scenarios", out_root / "validator", args.set_name, jobs=args.jobs,
+            out_root / "scenarios",
+            out_root / "validator",
+            args.set_name,
+            jobs=args.jobs,
             figure_dir=figure_dir,
             progress=progress_printer(t0),
         )
@@ -57,7 +68,13 @@ def _run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     (out_root / "validator" / "results.json").write_bytes(orjson.dumps(results, option=orjson.OPT_INDENT_2))
     figure = next((Path(r["figure"]) for r in results if r["figure"]), None)
-    section = render_section(results, figure, doc_dir(args.write), elapsed, args.set_name,
-                             reach_figure=figure_dir / "bench_validator_reach.png")
+    section = render_section(
+        results,
+        figure,
+        doc_dir(args.write),
+        elapsed,
+        args.set_name,
+        reach_figure=figure_dir / "bench_validator_reach.png",
+    )
     publish(section, args.write, SECTION, "bench-validator")
     return 0

@@ -22,11 +22,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     from csr_core.bench.variants import VARIANTS
 
     p = sub.add_parser("bench-variants", help="the pipeline on contract-valid fleets unlike the simulator's")
-    p.add_argument("--set", dest="set_name", default="variants", choices=SCENARIO_SETS,
-                   help="the source fleets (default variants: urban and roundabout, 6 trips x 800 m)")
-    p.add_argument("--variants", default="", help=f"comma-separated subset of: {', '.join(VARIANTS)} (default all)")
-    add_output_arguments(p, "work folder: scenarios cache and variants/", "rewrite the variants section of this file",
-                         jobs_help="runs in parallel (processes; default 2)")
+    p.add_argument(
+        "--set",
+        dest="set_name",
+        default="variants",
+        choices=SCENARIO_SETS,
+        help="the source fleets (default variants: urban and roundabout, 6 trips x 800 m)",
+    )
+    p.add_argument(
+        "--variants", default="", help=f"comma-separated subset of: {', '.join(VARIANTS)} (default all)"
+    )
+    add_output_arguments(
+        p,
+        "work folder: scenarios cache and variants/",
+        "rewrite the variants section of this file",
+        jobs_help="runs in parallel (processes; default 2)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -54,7 +65,9 @@ def _run(args: argparse.Namespace) -> int:
     import orjson
 
     (out_root / "variants" / "results.json").write_bytes(orjson.dumps(rows, option=orjson.OPT_INDENT_2))
-    regenerate = "csr bench-variants --write BENCHMARKS.md" + ("" if args.set_name == "variants" else f" --set {args.set_name}")
+    regenerate = "csr bench-variants --write BENCHMARKS.md" + (
+        "" if args.set_name == "variants" else f" --set {args.set_name}"
+    )
     figure = plot_variants(rows, Path(args.figures) / "bench_variants.png")
     section = render_section(rows, time.perf_counter() - t0, regenerate, figure, doc_dir(args.write))
     publish(section, args.write, SECTION, "bench-variants")

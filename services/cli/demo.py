@@ -66,20 +66,40 @@ def register(sub: argparse._SubParsersAction) -> None:
         "keep serving until Ctrl-C (--exit: stop there). Everything goes under --data-dir; a rerun with the "
         "same parameters reuses it (same trips, same ids, nothing new to process).",
     )
-    p.add_argument("--world", default="karlsruhe", choices=WORLDS, help="world to simulate (default: karlsruhe, real Lanelet2)")
+    p.add_argument(
+        "--world",
+        default="karlsruhe",
+        choices=WORLDS,
+        help="world to simulate (default: karlsruhe, real Lanelet2)",
+    )
     p.add_argument("--trips", type=int, default=DEFAULT_TRIPS, help=f"fleet size (default {DEFAULT_TRIPS})")
-    p.add_argument("--trip-length-m", type=float, default=DEFAULT_TRIP_LENGTH_M,
-                   help=f"length of each trip in metres (default {DEFAULT_TRIP_LENGTH_M:.0f})")
-    p.add_argument("--profile", default="standard", choices=PROFILES, help="sensor error profile (default standard)")
+    p.add_argument(
+        "--trip-length-m",
+        type=float,
+        default=DEFAULT_TRIP_LENGTH_M,
+        help=f"length of each trip in metres (default {DEFAULT_TRIP_LENGTH_M:.0f})",
+    )
+    p.add_argument(
+        "--profile", default="standard", choices=PROFILES, help="sensor error profile (default standard)"
+    )
     p.add_argument("--seed", type=int, default=1, help="scenario seed (same seed: same trips)")
-    p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
-                   help=f"everything the demo writes (default ./{DEFAULT_DATA_DIR})")
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        default=DEFAULT_DATA_DIR,
+        help=f"everything the demo writes (default ./{DEFAULT_DATA_DIR})",
+    )
     p.add_argument("--host", default="127.0.0.1", help="bind address of the service (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; a free one if taken; 0: any)")
     p.add_argument("--no-baseline", action="store_true", help="skip the GNSS-only baseline column")
     p.add_argument("--fresh", action="store_true", help="start from an empty data dir")
-    p.add_argument("--exit", "--no-serve", dest="exit", action="store_true",
-                   help="stop the service after printing the results (tests, CI)")
+    p.add_argument(
+        "--exit",
+        "--no-serve",
+        dest="exit",
+        action="store_true",
+        help="stop the service after printing the results (tests, CI)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -91,8 +111,14 @@ def _stamp(args: argparse.Namespace) -> dict[str, Any]:
     a hash of ``csr_core/sim``)."""
     from csr_core.bench.runner import simulator_fingerprint
 
-    return {"world": args.world, "trips": args.trips, "trip_length_m": args.trip_length_m,
-            "profile": args.profile, "seed": args.seed, "simulator": simulator_fingerprint()}
+    return {
+        "world": args.world,
+        "trips": args.trips,
+        "trip_length_m": args.trip_length_m,
+        "profile": args.profile,
+        "seed": args.seed,
+        "simulator": simulator_fingerprint(),
+    }
 
 
 def algorithm_fingerprint() -> str:
@@ -119,7 +145,9 @@ def _locked_data_dir(data_dir: Path) -> Iterator[None]:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise SystemExit(f"csr demo: another csr demo is running on {data_dir} (use --data-dir)") from None
+            raise SystemExit(
+                f"csr demo: another csr demo is running on {data_dir} (use --data-dir)"
+            ) from None
         yield
 
 
@@ -182,8 +210,10 @@ class Service:
 
     def check_alive(self) -> None:
         if self.proc.poll() is not None:
-            raise SystemExit(f"csr demo: the service exited ({self.proc.returncode}); its log "
-                             f"{self.log_path}:\n{_tail(self.log_path)}")
+            raise SystemExit(
+                f"csr demo: the service exited ({self.proc.returncode}); its log "
+                f"{self.log_path}:\n{_tail(self.log_path)}"
+            )
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -209,11 +239,13 @@ def _stop_with_parent(parent_pid: int) -> Callable[[], None]:
     """A ``preexec_fn``: the child gets SIGTERM when the demo dies, even by SIGKILL (Linux
     ``prctl(PR_SET_PDEATHSIG)``); a demo already gone by then stops it at once. Without it a killed
     demo leaves ``csr serve`` running on its port."""
+
     def arm() -> None:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
         if os.getppid() != parent_pid:
             os.kill(os.getpid(), signal.SIGTERM)
+
     return arm
 
 
@@ -224,22 +256,35 @@ def start_service(service_dir: Path, host: str, wanted_port: int) -> Service:
 
     service_dir.mkdir(parents=True, exist_ok=True)
     # the admin key, generated into the service's data dir the way `csr serve` does it (and read by it)
-    admin_key = Settings(data_dir=service_dir, admin_key=None, database_url=None, redis_url=None).admin_secret()
+    admin_key = Settings(
+        data_dir=service_dir, admin_key=None, database_url=None, redis_url=None
+    ).admin_secret()
     port = choose_port(host, wanted_port)
     if wanted_port and port != wanted_port:
         print(f"csr demo: port {wanted_port} is taken, using {port}")
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("CSR_DATABASE_URL", "CSR_REDIS_URL", "CSR_ADMIN_KEY", "CSR_DATA_DIR")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("CSR_DATABASE_URL", "CSR_REDIS_URL", "CSR_ADMIN_KEY", "CSR_DATA_DIR")
+    }
     env.update(CSR_DATA_DIR=str(service_dir.resolve()), OPENBLAS_NUM_THREADS="1")
     log_path = service_dir / "serve.log"
     csr = Path(sys.executable).parent / "csr"
-    argv = [str(csr)] if csr.exists() else [sys.executable, "-c", "import sys; from services.cli import main; "
-                                                                 "sys.exit(main())"]
+    argv = (
+        [str(csr)]
+        if csr.exists()
+        else [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())"]
+    )
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen(argv + ["serve", "--host", host, "--port", str(port), "--no-access-log"],
-                                env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True,
-                                preexec_fn=_stop_with_parent(os.getpid()) if sys.platform == "linux" else None)
+        proc = subprocess.Popen(
+            argv + ["serve", "--host", host, "--port", str(port), "--no-access-log"],
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            preexec_fn=_stop_with_parent(os.getpid()) if sys.platform == "linux" else None,
+        )
     url_host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     url_host = f"[{url_host}]" if ":" in url_host else url_host
     base_url = f"http://{url_host}:{port}"
@@ -252,8 +297,10 @@ def start_service(service_dir: Path, host: str, wanted_port: int) -> Service:
                 return service
         if time.monotonic() > deadline:
             service.stop()
-            raise SystemExit(f"csr demo: the service did not answer /healthz within {SERVER_START_TIMEOUT_S:.0f} s; "
-                             f"log {log_path}:\n{_tail(log_path)}")
+            raise SystemExit(
+                f"csr demo: the service did not answer /healthz within {SERVER_START_TIMEOUT_S:.0f} s; "
+                f"log {log_path}:\n{_tail(log_path)}"
+            )
         time.sleep(0.3)
 
 
@@ -272,8 +319,15 @@ def simulate_fleet(args: argparse.Namespace, scenario_dir: Path) -> dict[str, An
     if meta_path.exists():
         return orjson.loads(meta_path.read_bytes())
     with tqdm(total=args.trips, desc=f"simulate {args.world}", unit="trip", file=sys.stderr) as bar:
-        return simulate_scenario(args.world, args.trips, args.profile, args.seed, scenario_dir,
-                                 trip_length_m=args.trip_length_m, progress=lambda _trip: bar.update(1))
+        return simulate_scenario(
+            args.world,
+            args.trips,
+            args.profile,
+            args.seed,
+            scenario_dir,
+            trip_length_m=args.trip_length_m,
+            progress=lambda _trip: bar.update(1),
+        )
 
 
 # --- 3. upload, process, download ----------------------------------------------------------------
@@ -355,8 +409,15 @@ def run_fleet(service: Service, scenario_dir: Path, out_dir: Path) -> dict[str, 
             quality = trip.get("quality") or {}
             if quality.get("verdict") in ("repaired", "degraded"):
                 marked[key] = f"{quality['verdict']}: {quality.get('reason', '')}"
-    return {"ids": ids, "statuses": statuses, "failed": failed, "marked": marked, "counts": counts,
-            "upload_s": t1 - t0, "process_s": t2 - t1}
+    return {
+        "ids": ids,
+        "statuses": statuses,
+        "failed": failed,
+        "marked": marked,
+        "counts": counts,
+        "upload_s": t1 - t0,
+        "process_s": t2 - t1,
+    }
 
 
 def gnss_only_baseline(scenario_dir: Path, out_dir: Path) -> float:
@@ -401,6 +462,7 @@ def accuracy_table(columns: dict[str, Any]) -> str:
     row("RPE mean raw / aligned [m]", lambda e: f"{_f(e.raw.rpe.mean)} / {_f(e.aligned.rpe.mean)}")
     row("mCD raw / aligned [m]", lambda e: f"{_f(e.map_raw.mcd)} / {_f(e.map_aligned.mcd)}")
     for t in TABLE_TYPES:
+
         def per_type(e, t=t) -> str:
             s = e.map_aligned.per_type.get(t)
             if s is None or s.n_truth_samples == 0:
@@ -420,18 +482,31 @@ def accuracy_table(columns: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
-def write_figures(scenario_dir: Path, evaluated: dict[str, Any], meta: dict[str, Any],
-                  figures_dir: Path) -> list[tuple[str, Path]]:
+def write_figures(
+    scenario_dir: Path, evaluated: dict[str, Any], meta: dict[str, Any], figures_dir: Path
+) -> list[tuple[str, Path]]:
     """The benchmark's figures (:mod:`csr_core.bench.figures`) for the service and the baseline,
     plus a wider map overlay."""
     from csr_core.bench import figures
     from csr_core.bench.runner import CommandRun, Record
 
-    records = [Record(scenario=meta["name"], scenario_dir=scenario_dir, world=meta.get("world", ""),
-                      profile=meta["profile"]["name"] if isinstance(meta.get("profile"), dict) else "",
-                      method=name, variant="", run=CommandRun(0, 0.0, 0.0, ""), uploaded_bytes=0,
-                      output_bytes=0, km=ev.trip_length_km, report={}, evaluated=ev)
-               for name, ev in evaluated.items()]
+    records = [
+        Record(
+            scenario=meta["name"],
+            scenario_dir=scenario_dir,
+            world=meta.get("world", ""),
+            profile=meta["profile"]["name"] if isinstance(meta.get("profile"), dict) else "",
+            method=name,
+            variant="",
+            run=CommandRun(0, 0.0, 0.0, ""),
+            uploaded_bytes=0,
+            output_bytes=0,
+            km=ev.trip_length_km,
+            report={},
+            evaluated=ev,
+        )
+        for name, ev in evaluated.items()
+    ]
     out = figures.make_figures(records, figures_dir, "demo")
     wide = figures.plot_map(records, figures_dir / "demo_map_wide.png", half_w=120.0, half_h=75.0)
     return [*out, ("Truth vs reconstruction, a wider window (aligned)", wide)]
@@ -457,14 +532,23 @@ def _run(args: argparse.Namespace) -> int:
     with _locked_data_dir(data_dir):
         reused = _prepare_data_dir(data_dir, _stamp(args), args.fresh)
         algorithm_path = data_dir / "algorithm.txt"  # the code that computed the results in data_dir
-        if reused and algorithm_path.exists() and algorithm_path.read_text().strip() != algorithm_fingerprint():
-            print("csr demo: note: the algorithm changed since this data dir was processed; the results below are "
-                  "the old code's (--fresh recomputes them)")
+        if (
+            reused
+            and algorithm_path.exists()
+            and algorithm_path.read_text().strip() != algorithm_fingerprint()
+        ):
+            print(
+                "csr demo: note: the algorithm changed since this data dir was processed; the results below are "
+                "the old code's (--fresh recomputes them)"
+            )
         service = start_service(data_dir / "service", args.host, args.port)
         shown = False  # the results are printed: Ctrl-C from then on is the normal way out
         try:
-            print(f"csr demo: service (embedded: SQLite + in-process jobs) on {service.base_url}, "
-                  f"data in {data_dir}/service" + (" (reused from the last run)" if reused else ""), flush=True)
+            print(
+                f"csr demo: service (embedded: SQLite + in-process jobs) on {service.base_url}, "
+                f"data in {data_dir}/service" + (" (reused from the last run)" if reused else ""),
+                flush=True,
+            )
             _demo(args, service, data_dir, started)
             if not algorithm_path.exists():
                 algorithm_path.write_text(algorithm_fingerprint() + "\n")
@@ -493,8 +577,11 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
     t0 = time.perf_counter()
     meta = simulate_fleet(args, scenario_dir)
     km = sum(t["length_m"] for t in meta["trips"]) / 1000.0
-    print(f"csr demo: fleet {meta['name']}: {len(meta['trips'])} trips, {km:.1f} km "
-          f"({time.perf_counter() - t0:.1f} s) in {scenario_dir}", flush=True)
+    print(
+        f"csr demo: fleet {meta['name']}: {len(meta['trips'])} trips, {km:.1f} km "
+        f"({time.perf_counter() - t0:.1f} s) in {scenario_dir}",
+        flush=True,
+    )
 
     service.check_alive()
     previous_ids_path = data_dir / "trip_ids.json"
@@ -503,10 +590,13 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
     previous_ids_path.write_bytes(orjson.dumps(fleet_run["ids"], option=orjson.OPT_INDENT_2))
     same = sum(previous.get(k) == v for k, v in fleet_run["ids"].items())
     n_aligned = sum(s == "aligned" for s in fleet_run["statuses"].values())
-    print(f"csr demo: uploaded {len(fleet_run['ids'])} trips in {fleet_run['upload_s']:.1f} s "
-          f"({len(fleet_run['ids']) - same} new, {same} already stored under the same ids); processed in "
-          f"{fleet_run['process_s']:.1f} s: {n_aligned} aligned, {len(fleet_run['failed'])} failed; "
-          f"{fleet_run['counts']['features']} map features", flush=True)
+    print(
+        f"csr demo: uploaded {len(fleet_run['ids'])} trips in {fleet_run['upload_s']:.1f} s "
+        f"({len(fleet_run['ids']) - same} new, {same} already stored under the same ids); processed in "
+        f"{fleet_run['process_s']:.1f} s: {n_aligned} aligned, {len(fleet_run['failed'])} failed; "
+        f"{fleet_run['counts']['features']} map features",
+        flush=True,
+    )
     for key, error in fleet_run["failed"].items():
         print(f"  failed {key}: {error}")
     for key, verdict in fleet_run["marked"].items():  # poses off the trip's own GNSS at first
@@ -517,15 +607,23 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
         seconds = gnss_only_baseline(scenario_dir, data_dir / "results" / "gnss_only")
         evaluated["GNSS-only"] = evaluate_output(scenario_dir, data_dir / "results" / "gnss_only")
         if seconds:
-            print(f"csr demo: GNSS-only baseline (csr reconstruct --method gnss_only) in {seconds:.1f} s", flush=True)
+            print(
+                f"csr demo: GNSS-only baseline (csr reconstruct --method gnss_only) in {seconds:.1f} s",
+                flush=True,
+            )
     table = accuracy_table({name: ev.evaluation for name, ev in evaluated.items()})
-    title = (f"Accuracy against ground truth: {meta['name']}, {len(meta['trips'])} trips, {km:.1f} km "
-             f"(contract section 6; aligned = after one global SE(2) fit)")
+    title = (
+        f"Accuracy against ground truth: {meta['name']}, {len(meta['trips'])} trips, {km:.1f} km "
+        f"(contract section 6; aligned = after one global SE(2) fit)"
+    )
     print(f"\n{title}\n\n{table}\n", flush=True)
     (data_dir / "accuracy.md").write_text(f"{title}\n\n{table}\n")
-    (data_dir / "accuracy.json").write_bytes(orjson.dumps(
-        {name: ev.evaluation.as_dict() for name, ev in evaluated.items()}, option=orjson.OPT_INDENT_2
-        | orjson.OPT_SERIALIZE_NUMPY))
+    (data_dir / "accuracy.json").write_bytes(
+        orjson.dumps(
+            {name: ev.evaluation.as_dict() for name, ev in evaluated.items()},
+            option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY,
+        )
+    )
 
     figures = write_figures(scenario_dir, evaluated, meta, data_dir / "figures")
     print("csr demo: figures")
@@ -538,5 +636,8 @@ def _demo(args: argparse.Namespace, service: Service, data_dir: Path, started: f
         answer = httpx.get(service.base_url + route, timeout=10)
         note = "" if answer.status_code == 200 else f"   (answers {answer.status_code}: {answer.text[:120]})"
         print(f"  {label:<11} {service.base_url}{route}{note}")
-    print(f"  {'admin key':<11} {service.admin_key}   (also in {data_dir}/service/admin.key; the pages ask for it)\n"
-          f"  {'service log':<11} {service.log_path}", flush=True)
+    print(
+        f"  {'admin key':<11} {service.admin_key}   (also in {data_dir}/service/admin.key; the pages ask for it)\n"
+        f"  {'service log':<11} {service.log_path}",
+        flush=True,
+    )

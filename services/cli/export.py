@@ -18,11 +18,18 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="export a map GeoJSON as a Lanelet2 OSM file (no server)")
     p.add_argument("map_geojson", metavar="MAP.geojson", nargs="?", help="FeatureCollection like GET /v1/map")
-    p.add_argument("--scenario-dir", metavar="DIR",
-                   help="take DIR/map.geojson (csr reconstruct output) or DIR/truth/map.geojson")
+    p.add_argument(
+        "--scenario-dir",
+        metavar="DIR",
+        help="take DIR/map.geojson (csr reconstruct output) or DIR/truth/map.geojson",
+    )
     p.add_argument("--out", required=True, metavar="OUT.osm", help="Lanelet2 OSM file to write")
-    p.add_argument("--location", choices=("urban", "nonurban"), default="urban", help="location tag of lanelets")
-    p.add_argument("--validate", action="store_true", help="check the file (format rules; lanelet2 if installed)")
+    p.add_argument(
+        "--location", choices=("urban", "nonurban"), default="urban", help="location tag of lanelets"
+    )
+    p.add_argument(
+        "--validate", action="store_true", help="check the file (format rules; lanelet2 if installed)"
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_run)
 
@@ -51,11 +58,14 @@ def _lanelet2_check(path: Path, origin_lat: float, origin_lon: float) -> str:
         return "lanelet2 package not installed: loader check skipped"
     lmap, errors = lanelet2.io.loadRobust(str(path), LocalCartesianProjector(Origin(origin_lat, origin_lon)))
     graph = lanelet2.routing.RoutingGraph(
-        lmap, rules.create(rules.Locations.Germany, rules.Participants.Vehicle))
+        lmap, rules.create(rules.Locations.Germany, rules.Participants.Vehicle)
+    )
     roads = [ll for ll in lmap.laneletLayer if ll.attributes["subtype"] == "road"]
     following = sum(len(graph.following(ll)) for ll in roads)
-    return (f"lanelet2 load: {len(lmap.laneletLayer)} lanelets, {len(errors)} load errors; routing graph: "
-            f"{following} successor relations among {len(roads)} road lanelets")
+    return (
+        f"lanelet2 load: {len(lmap.laneletLayer)} lanelets, {len(errors)} load errors; routing graph: "
+        f"{following} successor relations among {len(roads)} road lanelets"
+    )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -85,7 +95,8 @@ def _run(args: argparse.Namespace) -> int:
         f"bound, {r.two_way_lanelets} two-way), {r.crosswalks} crosswalks, {r.stop_lines} stop lines, "
         f"{r.road_markings} road markings; {r.nodes} nodes, {r.ways} ways",
         f"successor links: {r.successor_links_joined}/{r.successor_links} share their junction nodes",
-        "skipped: " + (", ".join(f"{n} {why}" for why, n in r.runs_skipped.items()) or "nothing")
+        "skipped: "
+        + (", ".join(f"{n} {why}" for why, n in r.runs_skipped.items()) or "nothing")
         + f"; lanes without any lanelet: {r.lanes_skipped}; centrelines too short to be lanes: "
         f"{r.centerlines_not_lanes}; dividers/boundaries bounding no lanelet: {r.lines_unused}",
     ]
@@ -93,10 +104,15 @@ def _run(args: argparse.Namespace) -> int:
         lines.append("input features ignored: " + ", ".join(f"{n} {why}" for why, n in ignored.items()))
     if args.validate:
         v = validate_lanelet2_osm(xml_bytes)
-        report["validation"] = {"problems": v.n_problems, "first": list(v.problems[:10]),
-                                "successor_pairs": v.n_successor_pairs}
-        lines.append(f"format check: {v.n_problems} problems, {v.n_lanelets} lanelets, "
-                     f"{v.n_successor_pairs} successor pairs" + "".join(f"\n  {p}" for p in v.problems[:10]))
+        report["validation"] = {
+            "problems": v.n_problems,
+            "first": list(v.problems[:10]),
+            "successor_pairs": v.n_successor_pairs,
+        }
+        lines.append(
+            f"format check: {v.n_problems} problems, {v.n_lanelets} lanelets, "
+            f"{v.n_successor_pairs} successor pairs" + "".join(f"\n  {p}" for p in v.problems[:10])
+        )
         loader = _lanelet2_check(out, lmap.frame.origin_lat, lmap.frame.origin_lon)
         report["lanelet2"] = loader
         lines.append(loader)

@@ -10,8 +10,17 @@ import argparse
 import sys
 import time
 
-WORLDS = ("urban", "highway", "rural", "roundabout", "karlsruhe", "kashiwanoha", "carcarana", "a9",
-          "newmarket")  # csr_core.sim.WORLD_NAMES
+WORLDS = (
+    "urban",
+    "highway",
+    "rural",
+    "roundabout",
+    "karlsruhe",
+    "kashiwanoha",
+    "carcarana",
+    "a9",
+    "newmarket",
+)  # csr_core.sim.WORLD_NAMES
 PROFILES = ("standard", "hard", "noiseless", "loops")
 FLEETS = ("a", "b")  # csr_core.sim.scenario.FLEETS
 
@@ -19,8 +28,10 @@ FLEETS = ("a", "b")  # csr_core.sim.scenario.FLEETS
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a fleet of trips on a world and write a scenario folder")
     p.add_argument(
-        "--world", required=True, choices=WORLDS,
-        help="procedural world or real map (Lanelet2, CommonRoad, OpenDRIVE)"
+        "--world",
+        required=True,
+        choices=WORLDS,
+        help="procedural world or real map (Lanelet2, CommonRoad, OpenDRIVE)",
     )
     p.add_argument("--trips", type=int, required=True, help="number of trips")
     p.add_argument("--profile", default="standard", choices=PROFILES, help="sensor error profile")
@@ -28,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="scenario folder to write")
     p.add_argument("--trip-length-m", type=float, default=2000.0, help="length of each trip (metres)")
     p.add_argument(
-        "--fleet", default="a", choices=FLEETS,
+        "--fleet",
+        default="a",
+        choices=FLEETS,
         help="fleet model: a (profiles.py models, --profile applies) or b (csr_core.sim.fleet_b, its own parameters)",
     )
     p.add_argument("--plot", action="store_true", help="also draw OUT/overview.png (truth map and trips)")

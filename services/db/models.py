@@ -72,7 +72,9 @@ class FeatureGeometry(TypeDecorator):
         text = str(value)
         if text.startswith("SRID="):
             return shapely.from_wkt(text.split(";", 1)[1])
-        return shapely.from_wkb(bytes.fromhex(text) if not isinstance(value, bytes | memoryview) else bytes(value))
+        return shapely.from_wkb(
+            bytes.fromhex(text) if not isinstance(value, bytes | memoryview) else bytes(value)
+        )
 
 
 def utcnow() -> datetime:
@@ -329,7 +331,10 @@ class MapFeatureRow(Base):
     not part of the version's map). ``properties``: support, uncertainty, first/last seen, flags."""
 
     __tablename__ = "map_features"
-    __table_args__ = (Index("ix_map_features_version", "tile_version_id"), Index("ix_map_features_feature", "feature_id"))
+    __table_args__ = (
+        Index("ix_map_features_version", "tile_version_id"),
+        Index("ix_map_features_feature", "feature_id"),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     tile_version_id: Mapped[int] = mapped_column(ForeignKey("tile_versions.id", ondelete="CASCADE"))

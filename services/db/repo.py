@@ -150,11 +150,15 @@ def tiles_of_trip(session: Session, *, trip_pk: str) -> list[TripTile]:
     )
 
 
-def set_trip_tiles(session: Session, *, trip_pk: str, frames_of_tile: Mapping[tuple[int, int, int], int]) -> None:
+def set_trip_tiles(
+    session: Session, *, trip_pk: str, frames_of_tile: Mapping[tuple[int, int, int], int]
+) -> None:
     """Replace the trip's tiles, each with the frames it owns (idempotent: a re-run writes the
     same rows)."""
     session.execute(delete(TripTile).where(TripTile.trip_pk == trip_pk))
-    rows = [{"trip_pk": trip_pk, "z": z, "x": x, "y": y, "frames": n} for (z, x, y), n in frames_of_tile.items()]
+    rows = [
+        {"trip_pk": trip_pk, "z": z, "x": x, "y": y, "frames": n} for (z, x, y), n in frames_of_tile.items()
+    ]
     if rows:
         session.execute(_insert(session)(TripTile), rows)
 
@@ -268,8 +272,9 @@ def jobs_for_subject(session: Session, *, subject: str) -> list[Job]:
     return list(session.scalars(select(Job).where(Job.subject == subject).order_by(Job.created_at)))
 
 
-def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetime | None,
-                     offset: int = 0) -> list[Job]:
+def jobs_to_dispatch(
+    session: Session, *, limit: int, redispatch_before: datetime | None, offset: int = 0
+) -> list[Job]:
     """Outbox rows to hand to a runner: never dispatched, or (with ``redispatch_before``) queued so
     long that the broker may have lost the message; tile alignments after the other kinds, then
     oldest first. Rows are locked (``SKIP LOCKED`` on PostgreSQL) so that concurrent relays split
@@ -291,9 +296,14 @@ def jobs_to_dispatch(session: Session, *, limit: int, redispatch_before: datetim
 
 def reset_running_jobs(session: Session) -> int:
     """Embedded start-up: jobs left running by a previous process of this deployment run again."""
-    return cast(CursorResult, session.execute(
-        update(Job).where(Job.state == "running").values(state="queued", dispatched_at=None, lease_expires_at=None)
-    )).rowcount
+    return cast(
+        CursorResult,
+        session.execute(
+            update(Job)
+            .where(Job.state == "running")
+            .values(state="queued", dispatched_at=None, lease_expires_at=None)
+        ),
+    ).rowcount
 
 
 def _aware(moment: datetime) -> datetime:
@@ -317,15 +327,16 @@ def requeue_expired_leases(session: Session, *, now: datetime) -> list[str]:
     nothing works on them, and their broker message may be lost too. Their attempts stay
     counted; a re-run is idempotent like any re-delivery. Rows locked elsewhere (a job finishing
     now) are skipped. Returns the ids."""
-    ids = list(session.scalars(
-        select(Job.id).where(lease_expired_clause(now)).with_for_update(skip_locked=True)
-    ))
+    ids = list(
+        session.scalars(select(Job.id).where(lease_expired_clause(now)).with_for_update(skip_locked=True))
+    )
     if ids:
         session.execute(
             update(Job)
             .where(Job.id.in_(ids), lease_expired_clause(now))
-            .values(state="queued", dispatched_at=None, lease_expires_at=None,
-                    error="lease expired: queued again")
+            .values(
+                state="queued", dispatched_at=None, lease_expires_at=None, error="lease expired: queued again"
+            )
             .execution_options(synchronize_session=False)  # rows loaded here may hold naive SQLite times
         )
     return ids
@@ -334,9 +345,14 @@ def requeue_expired_leases(session: Session, *, now: datetime) -> list[str]:
 def forget_dispatches(session: Session) -> int:
     """Mark every queued job as not yet dispatched (the broker lost its messages): the outbox
     sends them again. Returns how many."""
-    return cast(CursorResult, session.execute(
-        update(Job).where(Job.state == "queued", Job.dispatched_at.is_not(None)).values(dispatched_at=None)
-    )).rowcount
+    return cast(
+        CursorResult,
+        session.execute(
+            update(Job)
+            .where(Job.state == "queued", Job.dispatched_at.is_not(None))
+            .values(dispatched_at=None)
+        ),
+    ).rowcount
 
 
 def supersede_stuck_job(job: Job, *, now: datetime) -> None:
@@ -350,13 +366,21 @@ def job_summary(session: Session) -> dict[str, int]:
     counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
     # a failed job retried since (a newer job of the same kind and subject) is no longer outstanding
     newer = aliased(Job)
-    retried = session.scalar(
-        select(func.count()).select_from(Job).where(
-            Job.state == "failed",
-            select(newer.id).where(newer.kind == Job.kind, newer.subject == Job.subject,
-                                   newer.created_at > Job.created_at).exists(),
+    retried = (
+        session.scalar(
+            select(func.count())
+            .select_from(Job)
+            .where(
+                Job.state == "failed",
+                select(newer.id)
+                .where(
+                    newer.kind == Job.kind, newer.subject == Job.subject, newer.created_at > Job.created_at
+                )
+                .exists(),
+            )
         )
-    ) or 0
+        or 0
+    )
     counts["failed"] = counts.get("failed", 0) - retried
     dirty = session.scalar(select(func.count()).select_from(DirtyTile)) or 0
     return {
@@ -398,29 +422,41 @@ def schedule_dirty_tiles(session: Session, *, last_marked_before: datetime | Non
     batch ends when its longest job does, so that one must not start last (longest processing
     time first), after the checkerboard colour (even x + y first). The runners take them in
     ``workers.dispatch``'s order, which also weighs the neighbours waiting for a tile."""
-    waiting = (select(func.coalesce(func.sum(func.coalesce(TripTile.frames, 1)), 0)).select_from(TripTile)
-               .where(TripTile.z == DirtyTile.z, TripTile.x == DirtyTile.x, TripTile.y == DirtyTile.y,
-                      TripTile.processed_job_id.is_(None))
-               .scalar_subquery())
+    waiting = (
+        select(func.coalesce(func.sum(func.coalesce(TripTile.frames, 1)), 0))
+        .select_from(TripTile)
+        .where(
+            TripTile.z == DirtyTile.z,
+            TripTile.x == DirtyTile.x,
+            TripTile.y == DirtyTile.y,
+            TripTile.processed_job_id.is_(None),
+        )
+        .scalar_subquery()
+    )
     stmt = select(DirtyTile).where(DirtyTile.job_id.is_(None))
     if last_marked_before is not None:
         stmt = stmt.where(DirtyTile.last_marked_at <= last_marked_before)
     # checkerboard: the tiles with x + y even first (the odd ones wait for their first versions,
     # ``workers.dispatch.neighbours_to_wait_for``), each colour biggest first
-    stmt = stmt.order_by((DirtyTile.x + DirtyTile.y) % 2, waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y)
+    stmt = stmt.order_by(
+        (DirtyTile.x + DirtyTile.y) % 2, waiting.desc(), DirtyTile.z, DirtyTile.x, DirtyTile.y
+    )
     jobs = []
     for tile in session.scalars(stmt.with_for_update(skip_locked=True)).all():
         job = add_job(session, kind="align_tile", subject=tile_subject(tile.z, tile.x, tile.y))
-        taken = cast(CursorResult, session.execute(
-            update(DirtyTile)
-            .where(
-                DirtyTile.z == tile.z,
-                DirtyTile.x == tile.x,
-                DirtyTile.y == tile.y,
-                DirtyTile.job_id.is_(None),
-            )
-            .values(job_id=job.id)
-        )).rowcount
+        taken = cast(
+            CursorResult,
+            session.execute(
+                update(DirtyTile)
+                .where(
+                    DirtyTile.z == tile.z,
+                    DirtyTile.x == tile.x,
+                    DirtyTile.y == tile.y,
+                    DirtyTile.job_id.is_(None),
+                )
+                .values(job_id=job.id)
+            ),
+        ).rowcount
         if taken:
             jobs.append(job)
         else:

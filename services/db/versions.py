@@ -109,9 +109,12 @@ def tile_head(session: Session, *, z: int, x: int, y: int) -> TileHead | None:
 
 def has_version(session: Session, *, z: int, x: int, y: int) -> bool:
     """Whether the tile has any version (without loading one: a version row holds the topology state)."""
-    return session.scalar(
-        select(TileVersion.id).where(TileVersion.z == z, TileVersion.x == x, TileVersion.y == y).limit(1)
-    ) is not None
+    return (
+        session.scalar(
+            select(TileVersion.id).where(TileVersion.z == z, TileVersion.x == x, TileVersion.y == y).limit(1)
+        )
+        is not None
+    )
 
 
 def latest_version(session: Session, *, z: int, x: int, y: int) -> TileVersion | None:

@@ -197,7 +197,14 @@ def render(
 
 
 def render_then_keep(
-    session_factory: sessionmaker[Session], cache: TileCache, *, kind: str, z: int, x: int, y: int, **options: Any
+    session_factory: sessionmaker[Session],
+    cache: TileCache,
+    *,
+    kind: str,
+    z: int,
+    x: int,
+    y: int,
+    **options: Any,
 ) -> tuple[Tile, bool]:
     """``render`` for a request: read in a read-only transaction (it never waits for a job's write),
     then keep a newly encoded body in ``tile_renders`` without waiting (``keep_render``)."""
@@ -208,7 +215,9 @@ def render_then_keep(
     return tile, not_modified
 
 
-def keep_render(session_factory: sessionmaker[Session], tile: Tile, *, kind: str, z: int, x: int, y: int) -> None:
+def keep_render(
+    session_factory: sessionmaker[Session], tile: Tile, *, kind: str, z: int, x: int, y: int
+) -> None:
     """Store an encoded tile if the write lock is free now; otherwise it stays in the in-process
     cache and a later read stores it (a stored render is an optimisation, never required)."""
     try:

@@ -70,8 +70,14 @@ def version_features(
         f("cl-east", "centerline", line(-1.75)),
         f("cl-west", "centerline", line(1.75)),
         # no perceived centreline in the outer lanes: derived between their divider and kerb
-        f("cl-outer", "centerline", line(-5.25), derived="bounding_lines", derived_from=["ld-south", "rb-south"],
-          direction="assumed"),
+        f(
+            "cl-outer",
+            "centerline",
+            line(-5.25),
+            derived="bounding_lines",
+            derived_from=["ld-south", "rb-south"],
+            direction="assumed",
+        ),
         f("ld-centre", "lane_divider", line(0.0 + divider_shift), "solid"),
         f("ld-north", "lane_divider", line(3.5), "dashed"),
         f("ld-south", "lane_divider", line(-3.5), "dashed"),

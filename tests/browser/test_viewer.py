@@ -219,10 +219,15 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
         sides = ("trip_i", "trip_j", "frames_i", "frames_j")
         assert checks["add_prefilled"] == {k: source[k] for k in sides}
         assert checks["add_trip_options"] >= 2  # "the map" and the trips crossing the tile
-        assert checks["add_error_message"].startswith("frames_i: ") and "999999" in checks["add_error_message"]
+        assert (
+            checks["add_error_message"].startswith("frames_i: ") and "999999" in checks["add_error_message"]
+        )
         assert checks["add_error_marked"] == 2
         assert checks["add_message"].startswith("add_pair: job done, map version"), checks
-        assert checks["add_version_label"].startswith("v5 of 5") and " · correction · " in checks["add_version_label"]
+        assert (
+            checks["add_version_label"].startswith("v5 of 5")
+            and " · correction · " in checks["add_version_label"]
+        )
         assert len(checks["add_correction_rows"]) == 2 and "add_pair" in checks["add_correction_rows"][1]
         assert "→ map v" in checks["add_correction_rows"][1]
         trips = {source["trip_i"], source["trip_j"]}
@@ -239,10 +244,14 @@ def test_viewer_on_the_pipeline(browser_ready, make_isolated) -> None:
             assert added_c["payload"]["offset_xyyaw"] == ADD_OFFSET
             assert added_c["payload"]["note"].startswith("browser test")
             # the 202 answer shown by the form names the correction and its job
-            assert checks["add_answer_message"] == f"correction {added_c['id']} queued: job {added_c['job_id']}"
+            assert (
+                checks["add_answer_message"] == f"correction {added_c['id']} queued: job {added_c['job_id']}"
+            )
             reasons = [v["reason"] for v in http.get(f"/v1/tiles/{tile}/versions").json()["versions"]]
             assert reasons == ["merge", "merge", "correction", "undo correction", "correction"], reasons
             pairs = http.get(f"/v1/tiles/{tile}/match-pairs").json()["match_pairs"]
-            assert any(p["human"] and p["status"] == "added" and {p["trip_i"], p["trip_j"]} == trips for p in pairs)
+            assert any(
+                p["human"] and p["status"] == "added" and {p["trip_i"], p["trip_j"]} == trips for p in pairs
+            )
     else:
         assert checks["corrections_visible"] is False

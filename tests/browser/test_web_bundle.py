@@ -31,8 +31,10 @@ def _unhashed(name: str) -> str:
 def _files(dist: Path) -> dict[str, bytes]:
     """Every file of a ``dist`` folder by its name without hash; the pages with their asset names
     unhashed too (the assets' bytes are compared on their own)."""
-    return {_unhashed(p.name): _unhashed(p.read_text()).encode() if p.suffix == ".html" else p.read_bytes()
-            for p in sorted(dist.iterdir())}
+    return {
+        _unhashed(p.name): _unhashed(p.read_text()).encode() if p.suffix == ".html" else p.read_bytes()
+        for p in sorted(dist.iterdir())
+    }
 
 
 def test_the_committed_bundle_is_the_build_of_the_sources(tmp_path: Path) -> None:
@@ -43,7 +45,9 @@ def test_the_committed_bundle_is_the_build_of_the_sources(tmp_path: Path) -> Non
     for name in ("build.mjs", "package.json"):
         shutil.copy(WEB / name, work / name)
     (work / "node_modules").symlink_to(WEB / "node_modules", target_is_directory=True)
-    done = subprocess.run(["node", "build.mjs"], cwd=work, capture_output=True, text=True, timeout=300, check=False)
+    done = subprocess.run(
+        ["node", "build.mjs"], cwd=work, capture_output=True, text=True, timeout=300, check=False
+    )
     assert done.returncode == 0, f"build.mjs failed:\n{done.stdout}\n{done.stderr}"
     built, committed = _files(work / "dist"), _files(WEB / "dist")
     assert sorted(built) == sorted(committed), "services/web/dist is stale: run `make web` and commit it"

@@ -77,8 +77,19 @@ def _bench_command_on_toy(tmp_path, command: str, set_option: str, section: str)
     doc = tmp_path / "BENCHMARKS.md"
     doc.write_text(OTHER)
     figs = tmp_path / "figs"
-    argv = CSR + [command, set_option, "toy", "--jobs", "1", "--out", str(tmp_path / "bench"),
-                  "--write", str(doc), "--figures", str(figs)]
+    argv = CSR + [
+        command,
+        set_option,
+        "toy",
+        "--jobs",
+        "1",
+        "--out",
+        str(tmp_path / "bench"),
+        "--write",
+        str(doc),
+        "--figures",
+        str(figs),
+    ]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = doc.read_text()
@@ -115,13 +126,17 @@ def test_bench_single_trip_toy_set_end_to_end(tmp_path):
 
 def test_bench_validator_toy_set_end_to_end(tmp_path):
     text, figs = _bench_command_on_toy(tmp_path, "bench-validator", "--set", "validator")
-    assert "| toy-toy-3x-300m-s1 | 3 |" in text and "csr bench-validator --write BENCHMARKS.md --set toy" in text
+    assert (
+        "| toy-toy-3x-300m-s1 | 3 |" in text and "csr bench-validator --write BENCHMARKS.md --set toy" in text
+    )
     _assert_figure_linked(figs / "bench_validator_map.png", text, tmp_path)
     (fleet,) = orjson.loads((tmp_path / "bench" / "validator" / "results.json").read_bytes())
     v = fleet["validator"]
     # the toy fleet is clean: every instance judged, none wrong, so nothing to catch and no false alarm
     assert v["instances"] > 5 and v["wrong"] == 0 and v["flagged"] == 0 and fleet["mcd"] < 0.05
-    assert list((tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned-*.pkl"))  # the alignment cache
+    assert list(
+        (tmp_path / "bench" / "validator").glob("toy-toy-3x-300m-s1*-aligned-*.pkl")
+    )  # the alignment cache
 
 
 def test_bench_budget_toy_set_end_to_end(tmp_path):
@@ -140,7 +155,9 @@ def test_bench_variants_toy_set_every_foreign_fleet_holds(tmp_path):
     text, figs = _bench_command_on_toy(tmp_path, "bench-variants", "--set", "variants")
     from csr_core.bench.variants import VARIANTS
 
-    rows = {line.split(" | ")[1]: line for line in text.splitlines() if line.startswith("| toy-toy-3x-300m-s1 |")}
+    rows = {
+        line.split(" | ")[1]: line for line in text.splitlines() if line.startswith("| toy-toy-3x-300m-s1 |")
+    }
     assert list(rows) == list(VARIANTS)
     # every variant ran; all hold but the known gaps (BENCHMARKS.md lists them) and, on the toy,
     # no_markings: the toy draws its dashed dividers whole on a gently curving road, so a crosswalk
@@ -158,6 +175,9 @@ def test_bench_variants_toy_set_every_foreign_fleet_holds(tmp_path):
     assert mcd_no_centerline < 0.2, rows["no_centerline"]
     assert f"**{len(held) - 1} of {len(VARIANTS) - 1} variants hold.** Known gaps" in text
     _assert_figure_linked(figs / "bench_variants.png", text, tmp_path)
-    unknown = subprocess.run(CSR + ["bench-variants", "--variants", "nope", "--set", "toy", "--out",
-                                    str(tmp_path / "bench")], capture_output=True, text=True)
+    unknown = subprocess.run(
+        CSR + ["bench-variants", "--variants", "nope", "--set", "toy", "--out", str(tmp_path / "bench")],
+        capture_output=True,
+        text=True,
+    )
     assert unknown.returncode == 2 and "unknown variant" in unknown.stderr

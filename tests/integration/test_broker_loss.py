@@ -39,11 +39,17 @@ def test_redis_lost_mid_job_every_upload_is_processed_once_it_is_back(
     dep.start_server()
     worker = dep.start_worker(CSR_TEST_INGEST_DELAY_S=INGEST_DELAY_S)
     running = dep.upload(moving_trip()).json()["id"]
-    wait_until(lambda: dep.scalar("SELECT state FROM jobs WHERE subject = :p", p=running) == "running",
-               timeout_s=60, what="the first job to start")
+    wait_until(
+        lambda: dep.scalar("SELECT state FROM jobs WHERE subject = :p", p=running) == "running",
+        timeout_s=60,
+        what="the first job to start",
+    )
     in_redis = dep.upload(moving_trip()).json()["id"]
-    wait_until(lambda: dep.scalar("SELECT count(*) FROM jobs WHERE dispatched_at IS NULL") == 0,
-               timeout_s=30, what="the second job to reach Redis")
+    wait_until(
+        lambda: dep.scalar("SELECT count(*) FROM jobs WHERE dispatched_at IS NULL") == 0,
+        timeout_s=30,
+        what="the second job to reach Redis",
+    )
 
     private_redis.stop()  # its messages are gone: no persistence
     late = dep.upload(moving_trip())
@@ -53,8 +59,11 @@ def test_redis_lost_mid_job_every_upload_is_processed_once_it_is_back(
     back = time.monotonic()
 
     trip_pks = [running, in_redis, late.json()["id"]]
-    wait_until(lambda: _drained(dep), timeout_s=DRAIN_TIMEOUT_S,
-               what=lambda: f"the summary to drain ({dep.summary()}); worker log:\n{worker.log_tail()}")
+    wait_until(
+        lambda: _drained(dep),
+        timeout_s=DRAIN_TIMEOUT_S,
+        what=lambda: f"the summary to drain ({dep.summary()}); worker log:\n{worker.log_tail()}",
+    )
     log.info("drained %.1f s after Redis was back", time.monotonic() - back)
     assert _jobs_of(dep, trip_pks) == {pk: [("done",)] for pk in trip_pks}
     for pk in trip_pks:
@@ -74,5 +83,8 @@ def test_healthz_reports_the_broker(make_isolated, private_redis: RedisServer):
     assert health.status_code == 200  # uploads are still accepted (the outbox keeps their jobs)
     assert health.json()["status"] == "degraded" and health.json()["broker"] == "unreachable"
     private_redis.start()
-    wait_until(lambda: httpx.get(dep.base_url + "/healthz", timeout=10).json()["status"] == "ok",
-               timeout_s=10, what="/healthz to report the broker back")
+    wait_until(
+        lambda: httpx.get(dep.base_url + "/healthz", timeout=10).json()["status"] == "ok",
+        timeout_s=10,
+        what="/healthz to report the broker back",
+    )

@@ -16,8 +16,11 @@ pytestmark = pytest.mark.integration
 
 
 def _settle(dep, http) -> None:
-    wait_until(lambda: (s := http.get("/v1/jobs/summary").json())["queued"] == 0 and s["running"] == 0,
-               timeout_s=300, what="the correction's jobs")
+    wait_until(
+        lambda: (s := http.get("/v1/jobs/summary").json())["queued"] == 0 and s["running"] == 0,
+        timeout_s=300,
+        what="the correction's jobs",
+    )
 
 
 def _trip_error_m(out_dir, scenario, key) -> float:
@@ -38,7 +41,7 @@ def _pair_offset_m(out_dir, scenario, key_i, frames_i, key_j, frames_j) -> np.nd
 
     def mean_error(key, frames):
         est = apply_se2(ev.evaluation.truth_T_est, ev.est_xy_by_key[key])
-        return (est - ev.true_xy_by_key[key])[frames[0]:frames[1] + 1].mean(axis=0)
+        return (est - ev.true_xy_by_key[key])[frames[0] : frames[1] + 1].mean(axis=0)
 
     return mean_error(key_j, frames_j) - mean_error(key_i, frames_i)
 
@@ -61,9 +64,15 @@ def test_a_forced_wrong_pair_bends_the_tile_and_undoing_it_restores_it(make_isol
         offset_before = _pair_offset_m(tmp_path / "before", fleet_dirs["first"], *where)
 
         # a wrong pair: j's data asserted 3.5 m (a lane) to the side of where it matches i's
-        wrong = {"kind": "add_pair", "trip_i": pair["trip_i"], "frames_i": pair["frames_i"],
-                 "trip_j": pair["trip_j"], "frames_j": pair["frames_j"], "offset_xyyaw": [0.0, 3.5, 0.0],
-                 "note": "test: deliberately wrong"}
+        wrong = {
+            "kind": "add_pair",
+            "trip_i": pair["trip_i"],
+            "frames_i": pair["frames_i"],
+            "trip_j": pair["trip_j"],
+            "frames_j": pair["frames_j"],
+            "offset_xyyaw": [0.0, 3.5, 0.0],
+            "note": "test: deliberately wrong",
+        }
         answer = http.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json=wrong)
         assert answer.status_code == 202, answer.text
         correction = answer.json()
@@ -72,12 +81,16 @@ def test_a_forced_wrong_pair_bends_the_tile_and_undoing_it_restores_it(make_isol
         bent = _trip_error_m(tmp_path / "wrong", fleet_dirs["first"], victim)
         # the two sub-maps are pulled apart by most of the 3.5 m the pair asserts (the trips'
         # other pairs pull back); the victim trip as a whole is off by more than before
-        moved = float(np.linalg.norm(_pair_offset_m(tmp_path / "wrong", fleet_dirs["first"], *where) - offset_before))
+        moved = float(
+            np.linalg.norm(_pair_offset_m(tmp_path / "wrong", fleet_dirs["first"], *where) - offset_before)
+        )
         assert moved > 0.5 * 3.5, (moved, before, bent)
         assert bent > before + 0.2, (before, bent)
         history = http.get(f"/v1/tiles/{z}/{x}/{y}/versions").json()["versions"]
         assert history[-1]["reason"] == "correction" and correction["id"] in str(history[-1]["corrections"])
-        added = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "added"}).json()["match_pairs"]
+        added = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "added"}).json()[
+            "match_pairs"
+        ]
         assert len(added) == 1 and added[0]["human"]
 
         undo = http.post(f"/v1/corrections/{correction['id']}/undo")
@@ -109,33 +122,42 @@ def test_rejecting_a_pair_reoptimizes_the_tile_and_is_audited(make_isolated, fle
         target = pairs[0]
         with dep.client(reader_key) as reader:
             assert reader.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs").status_code == 200
-            denied = reader.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair",
-                                                                             "pair_id": target["id"]})
+            denied = reader.post(
+                f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": target["id"]}
+            )
             assert denied.status_code == 403
         bad = http.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair"})
         assert bad.status_code in (400, 422) and "pair_id" in bad.text
-        missing = http.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": "nope"})
+        missing = http.post(
+            f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": "nope"}
+        )
         assert missing.status_code == 404
-        answer = http.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair",
-                                                                        "pair_id": target["id"]})
+        answer = http.post(
+            f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": target["id"]}
+        )
         assert answer.status_code == 202, answer.text
-        again = http.post(f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": target["id"]})
+        again = http.post(
+            f"/v1/tiles/{z}/{x}/{y}/corrections", json={"kind": "reject_pair", "pair_id": target["id"]}
+        )
         assert again.status_code == 409
         _settle(dep, http)
         versions = http.get(f"/v1/tiles/{z}/{x}/{y}/versions").json()["versions"]
         assert [v["version"] for v in versions][-1] == 2 and versions[-1]["reason"] == "correction"
         rejected = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "rejected"}).json()
         assert [p["id"] for p in rejected["match_pairs"]] == [target["id"]]
-        current = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "active"}).json()["match_pairs"]
+        current = http.get(f"/v1/tiles/{z}/{x}/{y}/match-pairs", params={"status": "active"}).json()[
+            "match_pairs"
+        ]
 
         def overlaps(a, b):
             return a[0] <= b[1] and b[0] <= a[1]
 
         def same_pair(p):  # the re-alignment found no pair between the rejected frames again
-            return ({p["trip_i"], p["trip_j"]} == {target["trip_i"], target["trip_j"]}
-                    and any(overlaps(p[f"frames_{a}"], target["frames_i"]) and overlaps(p[f"frames_{b}"],
-                                                                                       target["frames_j"])
-                            for a, b in (("i", "j"), ("j", "i"))))
+            return {p["trip_i"], p["trip_j"]} == {target["trip_i"], target["trip_j"]} and any(
+                overlaps(p[f"frames_{a}"], target["frames_i"])
+                and overlaps(p[f"frames_{b}"], target["frames_j"])
+                for a, b in (("i", "j"), ("j", "i"))
+            )
 
         assert current and not any(same_pair(p) for p in current)
         (entry,) = http.get("/v1/corrections").json()["corrections"]

@@ -55,5 +55,8 @@ def test_calls_during_a_database_outage_answer_json_503_with_retry_after(make_is
                 assert answer.headers["retry-after"].isdigit(), (method, url)
                 body = answer.json()
                 assert set(body) == {"error", "location", "message"}, (method, url)
-                assert (body["error"], body["location"]) == ("database_unavailable", "database"), (method, url)
+                assert (body["error"], body["location"]) == ("database_unavailable", "database"), (
+                    method,
+                    url,
+                )
         assert http.get("/v1/jobs/summary").status_code == 200  # back: the pool reconnects

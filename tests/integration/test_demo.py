@@ -30,14 +30,23 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 def _env() -> dict[str, str]:
     # a developer's CSR_* settings must not leak in: the demo is the embedded default by definition
     env = {k: v for k, v in os.environ.items() if not k.startswith("CSR_")}
-    env.update(OPENBLAS_NUM_THREADS="1", CSR_DATABASE_URL="postgresql+psycopg://nobody@127.0.0.1:1/none",
-               CSR_REDIS_URL="redis://127.0.0.1:1/0")
+    env.update(
+        OPENBLAS_NUM_THREADS="1",
+        CSR_DATABASE_URL="postgresql+psycopg://nobody@127.0.0.1:1/none",
+        CSR_REDIS_URL="redis://127.0.0.1:1/0",
+    )
     return env
 
 
 def _demo(data_dir: Path, port: int, *extra: str, timeout_s: float = 420) -> subprocess.CompletedProcess:
-    run = subprocess.run([str(BIN / "csr"), "demo", *SMALL, "--data-dir", str(data_dir), "--port", str(port),
-                          *extra], capture_output=True, text=True, timeout=timeout_s, env=_env(), cwd=REPO)
+    run = subprocess.run(
+        [str(BIN / "csr"), "demo", *SMALL, "--data-dir", str(data_dir), "--port", str(port), *extra],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=_env(),
+        cwd=REPO,
+    )
     ARTIFACTS.mkdir(exist_ok=True)
     log = ARTIFACTS / f"demo-{time.strftime('%H%M%S')}-{port}.log"
     log.write_text(run.stdout + "\n--- stderr ---\n" + run.stderr)
@@ -71,9 +80,14 @@ def test_demo_runs_end_to_end_and_a_rerun_is_safe(tmp_path):
     assert "Accuracy against ground truth: urban-standard-n3-s5, 3 trips" in out
     header = next(line for line in out.splitlines() if line.startswith("| aligned unless raw"))
     assert "CSR service" in header and "GNSS-only" in header
-    for label in ("trips with poses (coverage)", "ATE RMSE raw / aligned [m]", "RPE RMSE raw / aligned [m]",
-                  "mCD raw / aligned [m]", "lane_divider: CD [m] / compl / corr [%]",
-                  "road_boundary: CD [m] / compl / corr [%]"):
+    for label in (
+        "trips with poses (coverage)",
+        "ATE RMSE raw / aligned [m]",
+        "RPE RMSE raw / aligned [m]",
+        "mCD raw / aligned [m]",
+        "lane_divider: CD [m] / compl / corr [%]",
+        "road_boundary: CD [m] / compl / corr [%]",
+    ):
         assert re.search(rf"^\| {re.escape(label)}\s+\| \S", out, re.M), label
     scores = orjson.loads((data / "accuracy.json").read_bytes())
     service = scores["CSR service"]
@@ -118,7 +132,10 @@ def test_demo_runs_end_to_end_and_a_rerun_is_safe(tmp_path):
     assert "uploaded 3 trips" in out2 and "(0 new, 3 already stored under the same ids)" in out2
     assert orjson.loads((data / "trip_ids.json").read_bytes()) == ids_before
     assert _rows(data, "SELECT count(*) FROM trips") == [(3,)]
-    assert _rows(data, "SELECT kind, state, count(*) FROM jobs GROUP BY kind, state ORDER BY 1, 2") == jobs_before
+    assert (
+        _rows(data, "SELECT kind, state, count(*) FROM jobs GROUP BY kind, state ORDER BY 1, 2")
+        == jobs_before
+    )
     assert _rows(data, "SELECT z, x, y, version FROM tile_versions ORDER BY 1, 2, 3, 4") == versions_before
     assert (data / "results" / "service" / "map.geojson").read_bytes() == map_before
     assert orjson.loads((data / "accuracy.json").read_bytes())["CSR service"] == service
@@ -140,19 +157,44 @@ def test_demo_serves_until_ctrl_c(tmp_path):
     log = (tmp_path / "demo.out").open("w+")
     # Ctrl-C must reach the demo even when the test runner itself ignores SIGINT (a background job of
     # a non-interactive shell does, and a child inherits that): the child starts with the default
-    proc = subprocess.Popen([str(BIN / "csr"), "demo", *SMALL, "--trips", "2", "--no-baseline", "--data-dir",
-                             str(data), "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, env=_env(),
-                            cwd=REPO, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [
+            str(BIN / "csr"),
+            "demo",
+            *SMALL,
+            "--trips",
+            "2",
+            "--no-baseline",
+            "--data-dir",
+            str(data),
+            "--port",
+            str(port),
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=_env(),
+        cwd=REPO,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
+
         def serving() -> bool:
             output = Path(log.name).read_text()
-            assert proc.poll() is None, f"the demo exited ({proc.returncode}) before serving:\n{output[-3000:]}"
+            assert proc.poll() is None, (
+                f"the demo exited ({proc.returncode}) before serving:\n{output[-3000:]}"
+            )
             return "serving until Ctrl-C" in output
 
-        wait_until(serving, timeout_s=300, interval_s=1.0,
-                   what=lambda: f"the demo to serve; output:\n{Path(log.name).read_text()[-3000:]}")
+        wait_until(
+            serving,
+            timeout_s=300,
+            interval_s=1.0,
+            what=lambda: f"the demo to serve; output:\n{Path(log.name).read_text()[-3000:]}",
+        )
         key = (data / "service" / "admin.key").read_text().strip()
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"}) as http:
+        with httpx.Client(
+            base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"}
+        ) as http:
             assert http.get("/healthz").json()["status"] == "ok"
             summary = http.get("/v1/jobs/summary").json()
             assert summary["queued"] == summary["running"] == summary["dirty_tiles"] == 0, summary
@@ -172,19 +214,26 @@ def test_demo_serves_until_ctrl_c(tmp_path):
 def test_a_killed_demo_does_not_leave_its_service_running(tmp_path):
     """SIGKILL gives the demo no chance to stop ``csr serve``: the kernel does (parent-death signal)."""
     port = free_port()
-    script = ("import sys, time; from pathlib import Path; from services.cli.demo import start_service; "
-              f"s = start_service(Path({str(tmp_path / 'service')!r}), '127.0.0.1', {port}); "
-              "print(s.proc.pid, flush=True); time.sleep(600)")
-    demo = subprocess.Popen([str(BIN / "python"), "-c", script], stdout=subprocess.PIPE, text=True, env=_env(),
-                            cwd=REPO)
+    script = (
+        "import sys, time; from pathlib import Path; from services.cli.demo import start_service; "
+        f"s = start_service(Path({str(tmp_path / 'service')!r}), '127.0.0.1', {port}); "
+        "print(s.proc.pid, flush=True); time.sleep(600)"
+    )
+    demo = subprocess.Popen(
+        [str(BIN / "python"), "-c", script], stdout=subprocess.PIPE, text=True, env=_env(), cwd=REPO
+    )
     serve_pid = None
     try:
         serve_pid = int(demo.stdout.readline())
         assert _port_open(port), "the service did not start"
         demo.kill()
         demo.wait(timeout=10)
-        wait_until(lambda: not _port_open(port), timeout_s=30, interval_s=0.2,
-                   what="the service to stop after its demo was killed")
+        wait_until(
+            lambda: not _port_open(port),
+            timeout_s=30,
+            interval_s=0.2,
+            what="the service to stop after its demo was killed",
+        )
     finally:
         if demo.poll() is None:
             demo.kill()

@@ -37,8 +37,19 @@ def session_factory(request, tmp_path, pg) -> Iterator[sessionmaker[Session]]:
 
 def _trip(session: Session, tiles: dict[tuple[int, int, int], int]) -> str:
     pk = secrets.token_hex(8)
-    session.add(Trip(id=pk, vehicle_id="veh", trip_id=pk, content_sha256=pk, schema_version="1.0",
-                     started_at="2026-01-01T00:00:00Z", n_frames=sum(tiles.values()), body_bytes=1, json_bytes=1))
+    session.add(
+        Trip(
+            id=pk,
+            vehicle_id="veh",
+            trip_id=pk,
+            content_sha256=pk,
+            schema_version="1.0",
+            started_at="2026-01-01T00:00:00Z",
+            n_frames=sum(tiles.values()),
+            body_bytes=1,
+            json_bytes=1,
+        )
+    )
     session.flush()
     repo.set_trip_tiles(session, trip_pk=pk, frames_of_tile=tiles)
     return pk
@@ -51,8 +62,23 @@ def _job(session: Session, kind: str, subject: str, age_s: float) -> Job:
 
 
 def _version(session: Session, x: int) -> None:
-    session.add(TileVersion(z=Z, x=x, y=Y, version=1, status="published", reason="merge", trips=[],
-                            corrections=[], quality={}, changes={}, n_features=0, origin_lat=0.0, origin_lon=0.0))
+    session.add(
+        TileVersion(
+            z=Z,
+            x=x,
+            y=Y,
+            version=1,
+            status="published",
+            reason="merge",
+            trips=[],
+            corrections=[],
+            quality={},
+            changes={},
+            n_features=0,
+            origin_lat=0.0,
+            origin_lon=0.0,
+        )
+    )
 
 
 def test_merges_first_then_the_longest_chain_and_an_odd_tile_waits(session_factory):
@@ -67,8 +93,10 @@ def test_merges_first_then_the_longest_chain_and_an_odd_tile_waits(session_facto
         even = _job(s, "align_tile", f"{Z}/{EVEN_X}/{Y}", age_s=20)
         odd = _job(s, "align_tile", f"{Z}/{EVEN_X + 1}/{Y}", age_s=20)  # biggest, but waits for `even`
         merge = _job(s, "merge_tile", f"{Z}/{EVEN_X + 6}/{Y}", age_s=1)  # newest
-        ids = {j.id: name for j, name in ((small, "small"), (even, "even"), (odd, "odd"), (big, "big"),
-                                          (merge, "merge"))}
+        ids = {
+            j.id: name
+            for j, name in ((small, "small"), (even, "even"), (odd, "odd"), (big, "big"), (merge, "merge"))
+        }
     with session_factory.begin() as s:
         plan = dispatch.take_dispatchable(s, limit=10, redispatch_before=None, checkerboard=True)
         assert [ids[d.job.id] for d in plan] == ["merge", "even", "big", "small"]
@@ -78,8 +106,10 @@ def test_merges_first_then_the_longest_chain_and_an_odd_tile_waits(session_facto
         # checkerboard off: the odd tile goes too, first of the alignments (the most frames)
         plan = dispatch.take_dispatchable(s, limit=10, redispatch_before=None, checkerboard=False)
         assert [ids[d.job.id] for d in plan] == ["merge", "odd", "big", "even", "small"]
-        assert [ids[d.job.id] for d in dispatch.take_dispatchable(s, limit=2, redispatch_before=None,
-                                                                    checkerboard=True)] == ["merge", "even"]
+        assert [
+            ids[d.job.id]
+            for d in dispatch.take_dispatchable(s, limit=2, redispatch_before=None, checkerboard=True)
+        ] == ["merge", "even"]
     with session_factory.begin() as s:  # the even neighbour has its version: the odd tile may go
         s.get(Job, even.id).state = "done"
         _version(s, EVEN_X)

@@ -27,7 +27,9 @@ TILE = mercantile.tile(8.46, 49.02, 16)  # north-east of the tiles test_tiles.py
 
 @pytest.fixture(scope="module", params=["embedded", "distributed"])
 def tiled(request, tmp_path_factory, pg: PgDatabases, shared_redis_url: str) -> Iterator[Tiled]:
-    yield from start_tiled(request.param, tmp_path_factory.mktemp(f"export-{request.param}"), pg, shared_redis_url)
+    yield from start_tiled(
+        request.param, tmp_path_factory.mktemp(f"export-{request.param}"), pg, shared_redis_url
+    )
 
 
 def _road(frame: LocalFrame) -> list[vs.VersionFeature]:
@@ -45,13 +47,17 @@ def _road(frame: LocalFrame) -> list[vs.VersionFeature]:
         return vs.VersionFeature(fid, type_, style, {"support": 3}, LineString(ll(xy)))
 
     return [
-        f("e0", "centerline", straight(0.0)), f("e1", "centerline", straight(3.5)),
+        f("e0", "centerline", straight(0.0)),
+        f("e1", "centerline", straight(3.5)),
         f("w0", "centerline", straight(7.0)[::-1]),
-        f("curb_s", "road_boundary", straight(-1.75)), f("curb_n", "road_boundary", straight(8.75)),
-        f("dash", "lane_divider", straight(1.75), "dashed"), f("centre", "lane_divider", straight(5.25), "double"),
+        f("curb_s", "road_boundary", straight(-1.75)),
+        f("curb_n", "road_boundary", straight(8.75)),
+        f("dash", "lane_divider", straight(1.75), "dashed"),
+        f("centre", "lane_divider", straight(5.25), "double"),
         f("stop", "stop_line", [[95.0, -1.5], [95.0, 5.0]]),
-        vs.VersionFeature("zebra", "crosswalk", None, {}, Polygon(ll([[97, -1.75], [100, -1.75], [100, 8.75],
-                                                                       [97, 8.75]]))),
+        vs.VersionFeature(
+            "zebra", "crosswalk", None, {}, Polygon(ll([[97, -1.75], [100, -1.75], [100, 8.75], [97, 8.75]]))
+        ),
     ]
 
 
@@ -87,18 +93,29 @@ def test_lanelet2_export_of_the_live_map(tiled: Tiled):
 def test_csr_export_command_on_a_simulated_scenario(tmp_path: Path):
     csr = [str(Path(sys.executable).parent / "csr")]
     scen = tmp_path / "urban"
-    subprocess.run([*csr, "simulate", "--world", "urban", "--trips", "1", "--seed", "1", "--out", str(scen)],
-                   check=True, capture_output=True, timeout=300)
+    subprocess.run(
+        [*csr, "simulate", "--world", "urban", "--trips", "1", "--seed", "1", "--out", str(scen)],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     out = tmp_path / "urban.osm"
-    done = subprocess.run([*csr, "export", "--scenario-dir", str(scen), "--out", str(out), "--validate", "--json"],
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [*csr, "export", "--scenario-dir", str(scen), "--out", str(out), "--validate", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     report = orjson.loads(done.stdout)
     assert report["input"].endswith("truth/map.geojson")
     assert report["lanelets"] > 400 and report["runs_skipped"] == {}
     assert report["validation"]["problems"] == 0
     assert out.read_bytes().startswith(b"<?xml")
-    bad = subprocess.run([*csr, "export", str(tmp_path / "missing.geojson"), "--out", str(out)],
-                         capture_output=True, text=True, timeout=60)
+    bad = subprocess.run(
+        [*csr, "export", str(tmp_path / "missing.geojson"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert bad.returncode == 2 and "csr export" in bad.stderr
-

@@ -60,7 +60,9 @@ def tiled(tmp_path_factory, pg: PgDatabases, shared_redis_url: str) -> Iterator[
     yield from start_tiled("distributed", tmp_path_factory.mktemp("held-back"), pg, shared_redis_url)
 
 
-def _line_xy_m(origin_xy_m: np.ndarray, y_m: float, x0_m: float = 0.0, x1_m: float = ROAD_LENGTH_M) -> np.ndarray:
+def _line_xy_m(
+    origin_xy_m: np.ndarray, y_m: float, x0_m: float = 0.0, x1_m: float = ROAD_LENGTH_M
+) -> np.ndarray:
     """A straight east-west line ``(N, 2)`` at ``y_m`` north of the road, metre spacing, tile frame."""
     x_m = np.arange(x0_m, x1_m + 1e-9, 1.0)
     return origin_xy_m + np.column_stack([x_m, np.full_like(x_m, y_m)])
@@ -80,28 +82,58 @@ def _plant_aligned_trips(tiled: Tiled, tile: mercantile.Tile) -> np.ndarray:
     origin_xy_m = centre_xy_m - np.array([ROAD_LENGTH_M / 2, 0.0])
     path_xy_m = _line_xy_m(origin_xy_m, 0.0)
     poses_xyyaw = np.column_stack([path_xy_m, np.zeros(len(path_xy_m))])
-    real = [TripInstance(ElementType.LANE_DIVIDER, _line_xy_m(origin_xy_m, y), DividerStyle.SOLID, 10)
-            for y in (DIVIDER_Y_M, -DIVIDER_Y_M)]
+    real = [
+        TripInstance(ElementType.LANE_DIVIDER, _line_xy_m(origin_xy_m, y), DividerStyle.SOLID, 10)
+        for y in (DIVIDER_Y_M, -DIVIDER_Y_M)
+    ]
     ghosts = [
-        TripInstance(ElementType.LANE_DIVIDER, _line_xy_m(origin_xy_m, GHOST_DIVIDER_Y_M, 60.0, 140.0),
-                     DividerStyle.SOLID, 10),
-        TripInstance(ElementType.ROAD_BOUNDARY, _line_xy_m(origin_xy_m, GHOST_BOUNDARY_Y_M, 50.0, 150.0), None, 10),
+        TripInstance(
+            ElementType.LANE_DIVIDER,
+            _line_xy_m(origin_xy_m, GHOST_DIVIDER_Y_M, 60.0, 140.0),
+            DividerStyle.SOLID,
+            10,
+        ),
+        TripInstance(
+            ElementType.ROAD_BOUNDARY, _line_xy_m(origin_xy_m, GHOST_BOUNDARY_Y_M, 50.0, 150.0), None, 10
+        ),
     ]
     with tiled.sessions.begin() as session:
         for k in range(N_TRIPS):
-            trip = Trip(id=f"held-{secrets.token_hex(6)}", vehicle_id="veh-h", trip_id=f"t{k}", content_sha256="0" * 64,
-                        status="aligned", schema_version="1.0", started_at=f"2024-05-0{k + 1}T08:00:00Z",
-                        n_frames=len(poses_xyyaw), body_bytes=1, json_bytes=1)
+            trip = Trip(
+                id=f"held-{secrets.token_hex(6)}",
+                vehicle_id="veh-h",
+                trip_id=f"t{k}",
+                content_sha256="0" * 64,
+                status="aligned",
+                schema_version="1.0",
+                started_at=f"2024-05-0{k + 1}T08:00:00Z",
+                n_frames=len(poses_xyyaw),
+                body_bytes=1,
+                json_bytes=1,
+            )
             session.add(trip)
             session.flush()
             instances = real + ghosts if k == 0 else real
-            session.add(TripTileAlignment(
-                trip_pk=trip.id, z=tile.z, x=tile.x, y=tile.y, job_id="job-align-test",
-                origin_lat=frame.origin_lat, origin_lon=frame.origin_lon,
-                arrays=_npz(frame_indices=np.arange(len(poses_xyyaw), dtype=np.int32), poses_xyyaw=poses_xyyaw,
-                            weights=np.ones(len(poses_xyyaw), np.float32),
-                            residuals_m=np.zeros(len(poses_xyyaw), np.float32)),
-                instances=[instance_json(i) for i in instances], noise=noise_json(NOISE), failed_reason=None))
+            session.add(
+                TripTileAlignment(
+                    trip_pk=trip.id,
+                    z=tile.z,
+                    x=tile.x,
+                    y=tile.y,
+                    job_id="job-align-test",
+                    origin_lat=frame.origin_lat,
+                    origin_lon=frame.origin_lon,
+                    arrays=_npz(
+                        frame_indices=np.arange(len(poses_xyyaw), dtype=np.int32),
+                        poses_xyyaw=poses_xyyaw,
+                        weights=np.ones(len(poses_xyyaw), np.float32),
+                        residuals_m=np.zeros(len(poses_xyyaw), np.float32),
+                    ),
+                    instances=[instance_json(i) for i in instances],
+                    noise=noise_json(NOISE),
+                    failed_reason=None,
+                )
+            )
     return origin_xy_m
 
 
@@ -150,9 +182,14 @@ def test_held_back_lines_are_the_ones_the_version_counts(tiled: Tiled, planted: 
     assert held_ids and not held_ids & {f["id"] for f in published["features"]}
     # the two real dividers and the centreline derived between them (the lane the trips drove); no
     # lane is derived beside the held-back ghost divider
-    assert Counter(f["properties"]["type"] for f in published["features"]) == {"lane_divider": 2, "centerline": 1}
+    assert Counter(f["properties"]["type"] for f in published["features"]) == {
+        "lane_divider": 2,
+        "centerline": 1,
+    }
     (centre,) = [f for f in published["features"] if f["properties"]["type"] == "centerline"]
-    assert centre["properties"]["derived"] == "bounding_lines" and centre["properties"]["direction"] == "driven"
+    assert (
+        centre["properties"]["derived"] == "bounding_lines" and centre["properties"]["direction"] == "driven"
+    )
 
     # each held-back line is where its ghost was planted (tile frame, metres north of the road)
     frame = tile_frame(TILE.z, TILE.x, TILE.y)
@@ -186,9 +223,22 @@ def test_a_version_without_a_readable_state_is_409(tiled: Tiled):
             latest = head.latest_version if head else None
         with tiled.sessions.begin() as session:
             written: TileVersion = vs.write_tile_version(
-                session, z=tile.z, x=tile.x, y=tile.y, features=[], reason="merge", job_id="job-test", trips=[],
-                corrections=[], quality={}, origin_lat=frame.origin_lat, origin_lon=frame.origin_lon, state=state,
-                publish=True, expected_latest=latest)
+                session,
+                z=tile.z,
+                x=tile.x,
+                y=tile.y,
+                features=[],
+                reason="merge",
+                job_id="job-test",
+                trips=[],
+                corrections=[],
+                quality={},
+                origin_lat=frame.origin_lat,
+                origin_lon=frame.origin_lon,
+                state=state,
+                publish=True,
+                expected_latest=latest,
+            )
             number = written.version
         with tiled.http() as http:
             answer = http.get(_url(tile, version=number))

@@ -27,10 +27,14 @@ def tile_with_pairs(deployment):
     ids = write_pairs(deployment.db_url, N_PAIRS, tile=tile, seed=tile[1], decimals=1)
     rows = deployment.rows(
         "SELECT id, confidence FROM match_pairs WHERE z = :z AND x = :x AND y = :y",
-        z=tile[0], x=tile[1], y=tile[2],
+        z=tile[0],
+        x=tile[1],
+        y=tile[2],
     )
     assert sorted(r.id for r in rows) == sorted(ids)
-    return "/v1/tiles/{}/{}/{}/match-pairs".format(*tile), [r.id for r in sorted(rows, key=lambda r: (r[1], r[0]))]
+    return "/v1/tiles/{}/{}/{}/match-pairs".format(*tile), [
+        r.id for r in sorted(rows, key=lambda r: (r[1], r[0]))
+    ]
 
 
 def test_pages_cover_every_pair_once_in_a_stable_order(deployment, tile_with_pairs) -> None:
@@ -90,7 +94,6 @@ def test_a_bad_cursor_is_a_422_naming_it(deployment, tile_with_pairs, cursor) ->
     assert body["error"] == "invalid_request" and body["location"] == "query.cursor"
 
 
-
 def write_versions(db_url: str, tile: tuple[int, int, int], n: int) -> None:
     """``n`` published versions of ``tile`` (a few elements each), as the merge job writes them."""
     import mercantile
@@ -103,9 +106,22 @@ def write_versions(db_url: str, tile: tuple[int, int, int], n: int) -> None:
     for i in range(n):
         with make_session_factory(engine).begin() as session:
             vs.write_tile_version(
-                session, z=tile[0], x=tile[1], y=tile[2], features=tile_features(mercantile.Tile(*tile[1:], tile[0]), 3, i),
-                reason="merge", job_id=None, trips=[], corrections=[], quality={}, origin_lat=LAT, origin_lon=LON,
-                state=b"state", publish=True, expected_latest=i or None)
+                session,
+                z=tile[0],
+                x=tile[1],
+                y=tile[2],
+                features=tile_features(mercantile.Tile(*tile[1:], tile[0]), 3, i),
+                reason="merge",
+                job_id=None,
+                trips=[],
+                corrections=[],
+                quality={},
+                origin_lat=LAT,
+                origin_lon=LON,
+                state=b"state",
+                publish=True,
+                expected_latest=i or None,
+            )
     engine.dispose()
 
 

@@ -188,9 +188,20 @@ def test_retry_a_running_job_whose_lease_ran_out(make_isolated) -> None:
         job = session.get(Job, stuck_id)
         assert job is not None
         job.state, job.lease_expires_at = "running", now - timedelta(seconds=1)
-        session.add(Job(id=f"live-{stuck_id}", kind="ingest_trip", queue="ingest", subject=f"live-{trip_pk}",
-                        state="running", attempts=1, created_at=now, dispatched_at=now, started_at=now,
-                        lease_expires_at=now + timedelta(hours=1)))
+        session.add(
+            Job(
+                id=f"live-{stuck_id}",
+                kind="ingest_trip",
+                queue="ingest",
+                subject=f"live-{trip_pk}",
+                state="running",
+                attempts=1,
+                created_at=now,
+                dispatched_at=now,
+                started_at=now,
+                lease_expires_at=now + timedelta(hours=1),
+            )
+        )
     with deployment.admin() as http:
         live = http.post(f"/v1/jobs/live-{stuck_id}/retry")
         assert live.status_code == 409 and live.json()["error"] == "not_failed"

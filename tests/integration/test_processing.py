@@ -35,7 +35,10 @@ def test_ingest_stores_track_length_and_tiles_then_process_clears_the_dirty_tile
     # tiles own frames by smoothed position: within a metre of the GNSS track, so the same tiles
     # unless the track grazes a tile corner
     expected_tiles = trip["tiles"]
-    assert len(expected_tiles) >= 2 and len(set(expected_tiles) ^ set(gnss_tiles)) <= 1, (expected_tiles, gnss_tiles)
+    assert len(expected_tiles) >= 2 and len(set(expected_tiles) ^ set(gnss_tiles)) <= 1, (
+        expected_tiles,
+        gnss_tiles,
+    )
     assert trip["tiles_pending"] == len(expected_tiles)
 
     assert deployment.engine is not None
@@ -85,8 +88,14 @@ def test_process_queues_the_busiest_tiles_first(deployment: Deployment):
     from services.cli.bench_ingest import straight_trip
 
     def drive(lat: float, lon: float) -> str:
-        doc = straight_trip(vehicle_id="veh-lpt", trip_id="lpt-" + secrets.token_hex(4), length_m=120.0,
-                            origin_lat=lat, origin_lon=lon, heading_deg=0.0)
+        doc = straight_trip(
+            vehicle_id="veh-lpt",
+            trip_id="lpt-" + secrets.token_hex(4),
+            length_m=120.0,
+            origin_lat=lat,
+            origin_lon=lon,
+            heading_deg=0.0,
+        )
         return deployment.upload(doc).json()["id"]
 
     # the quiet tile is uploaded first and sorts first by z/x/y: only the trip count puts it last
@@ -114,8 +123,14 @@ def test_a_tiles_first_alignment_waits_for_its_neighbours_first_version(deployme
 
     def drive(x: int) -> str:
         west, south, east, north = tile_bounds_lonlat(z, x, y)
-        doc = straight_trip(vehicle_id="veh-chk", trip_id="chk-" + secrets.token_hex(4), length_m=120.0,
-                            origin_lat=(south + north) / 2, origin_lon=(west + east) / 2, heading_deg=0.0)
+        doc = straight_trip(
+            vehicle_id="veh-chk",
+            trip_id="chk-" + secrets.token_hex(4),
+            length_m=120.0,
+            origin_lat=(south + north) / 2,
+            origin_lon=(west + east) / 2,
+            heading_deg=0.0,
+        )
         return deployment.upload(doc).json()["id"]
 
     # the odd tile's trips come first and outnumber the even one's: only the checkerboard puts it after
@@ -127,9 +142,12 @@ def test_a_tiles_first_alignment_waits_for_its_neighbours_first_version(deployme
         http.post("/v1/process").raise_for_status()
     deployment.wait_idle(timeout_s=180)
     even_version_at = deployment.scalar(
-        "SELECT min(created_at) FROM tile_versions WHERE z = :z AND x = :x AND y = :y", z=z, x=x_even, y=y)
-    odd = deployment.rows("SELECT state, attempts, started_at FROM jobs WHERE kind = 'align_tile' AND subject = :s",
-                          s=f"{z}/{x_even + 1}/{y}")
+        "SELECT min(created_at) FROM tile_versions WHERE z = :z AND x = :x AND y = :y", z=z, x=x_even, y=y
+    )
+    odd = deployment.rows(
+        "SELECT state, attempts, started_at FROM jobs WHERE kind = 'align_tile' AND subject = :s",
+        s=f"{z}/{x_even + 1}/{y}",
+    )
     assert even_version_at is not None and len(odd) == 1, odd
     state, attempts, started_at = odd[0]
     assert state == "done" and attempts == 1
@@ -207,8 +225,11 @@ def test_quiet_period_processes_dirty_tiles_without_a_trigger(tmp_path, pg, shar
         )
         # the trip's tiles are done once aligned; the merge job that follows may still be running
         idle = {"queued": 0, "running": 0, "failed": 0, "dirty_tiles": 0}
-        wait_until(lambda: dep.summary() == idle, timeout_s=30,
-                   what=lambda: f"the merge after the quiet period; summary {dep.summary()}")
+        wait_until(
+            lambda: dep.summary() == idle,
+            timeout_s=30,
+            what=lambda: f"the merge after the quiet period; summary {dep.summary()}",
+        )
     finally:
         dep.stop()
 

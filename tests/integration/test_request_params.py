@@ -38,8 +38,6 @@ NUL = [
 ]
 
 
-
-
 def cursor(key: list) -> str:
     return base64.urlsafe_b64encode(orjson.dumps(key)).decode().rstrip("=")
 
@@ -55,7 +53,12 @@ INSIDE = [
         {"kind": "add_pair", "trip_i": "a\u0000", "frames_i": [0, 1], "frames_j": [0, 1]},
         "body.trip_i",
     ),
-    ("POST", "/v1/tiles/16/1/1/corrections", {"kind": "reject_pair", "pair_id": "p", "note": "\u0000"}, "body.note"),
+    (
+        "POST",
+        "/v1/tiles/16/1/1/corrections",
+        {"kind": "reject_pair", "pair_id": "p", "note": "\u0000"},
+        "body.note",
+    ),
     ("POST", "/v1/tiles/16/1/1/rollback", {"version": 2**40}, "body.version"),
     ("POST", "/v1/tiles/16/1/1/versions/1/approve", {"expected_latest": 2**40}, "body.expected_latest"),
 ]

@@ -80,8 +80,11 @@ REQUESTS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "POST /v1/tiles/{z}/{x}/{y}/versions/{v}/approve": ("POST", "/v1/tiles/16/0/0/versions/1/approve", {}),
     "GET /v1/features/{id}": ("GET", "/v1/features/none", {}),
     "GET /v1/tiles/{z}/{x}/{y}/match-pairs": ("GET", "/v1/tiles/16/0/0/match-pairs", {}),
-    "POST /v1/tiles/{z}/{x}/{y}/corrections": ("POST", "/v1/tiles/16/0/0/corrections",
-                                               {"json": {"kind": "reject_pair", "pair_id": "none"}}),
+    "POST /v1/tiles/{z}/{x}/{y}/corrections": (
+        "POST",
+        "/v1/tiles/16/0/0/corrections",
+        {"json": {"kind": "reject_pair", "pair_id": "none"}},
+    ),
     "GET /v1/corrections": ("GET", "/v1/corrections", {}),
     "POST /v1/corrections/{id}/undo": ("POST", "/v1/corrections/none/undo", {}),
     "GET /v1/export/lanelet2": ("GET", "/v1/export/lanelet2", {"params": {"bbox": BBOX}}),
@@ -158,11 +161,7 @@ def _generic(path: str) -> str:
 def test_the_matrix_names_every_route(deployment: Deployment):
     with deployment.admin() as http:
         spec = http.get("/openapi.json").json()
-    routes = {
-        f"{method.upper()} {_generic(path)}"
-        for path, item in spec["paths"].items()
-        for method in item
-    }
+    routes = {f"{method.upper()} {_generic(path)}" for path, item in spec["paths"].items() for method in item}
     assert routes == set(MATRIX)
 
 

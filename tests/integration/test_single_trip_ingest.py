@@ -149,8 +149,10 @@ def _with_gyro_bias(doc: dict[str, Any], bias_deg_s: float) -> dict[str, Any]:
     incr = se2.between(odom[:-1], odom[1:])
     incr[:, 2] += np.radians(bias_deg_s) * np.diff(t)
     biased = integrate_increments(odom[0], incr)
-    frames = [{**f, "odom": {"x": round(float(p[0]), 3), "y": round(float(p[1]), 3), "yaw": round(float(p[2]), 6)}}
-              for f, p in zip(doc["frames"], biased, strict=True)]
+    frames = [
+        {**f, "odom": {"x": round(float(p[0]), 3), "y": round(float(p[1]), 3), "yaw": round(float(p[2]), 6)}}
+        for f, p in zip(doc["frames"], biased, strict=True)
+    ]
     return {**doc, "frames": frames}
 
 

@@ -278,7 +278,9 @@ def test_etag_304_cors_and_a_new_version_changes_the_etag(tiled: Tiled):
         assert "Authorization" in preflight.headers["access-control-allow-headers"]
 
         tiled.write(tile, road(tile, shift=0.05))  # by another process than the server
-        changed = eventually(lambda: http.get(url, headers={"If-None-Match": etag}), lambda r: r.status_code == 200)
+        changed = eventually(
+            lambda: http.get(url, headers={"If-None-Match": etag}), lambda r: r.status_code == 200
+        )
         assert changed.status_code == 200 and changed.headers["etag"] != etag
         assert changed.content != first.content
         # the parent tile contains this one: its ETag follows too; a far tile's does not

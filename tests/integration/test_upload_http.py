@@ -184,13 +184,28 @@ def _bad_json_bodies() -> list[tuple[str, bytes, int, str, str]]:
         ),
         ("missing schema version", mutate(drop([], "schema_version")), 422, "schema", "schema_version"),
         *(
-            (f"started_at {text!r}", mutate(lambda d, text=text: d.update(started_at=text)), 422, "schema",
-             "started_at")
-            for text in ("2026-99-99T99:99:99Z", "2026-02-30T08:00:00Z", "2026-01-01T25:61:61Z",
-                         "2026-01-01T08:00:00Z\n")
+            (
+                f"started_at {text!r}",
+                mutate(lambda d, text=text: d.update(started_at=text)),
+                422,
+                "schema",
+                "started_at",
+            )
+            for text in (
+                "2026-99-99T99:99:99Z",
+                "2026-02-30T08:00:00Z",
+                "2026-01-01T25:61:61Z",
+                "2026-01-01T08:00:00Z\n",
+            )
         ),
         *(
-            (f"{literal.decode()} in sensor_setup", with_literal(literal), 422, "non_finite", "sensor_setup.bev[1]")
+            (
+                f"{literal.decode()} in sensor_setup",
+                with_literal(literal),
+                422,
+                "non_finite",
+                "sensor_setup.bev[1]",
+            )
             for literal in (b"NaN", b"1e999")
         ),
     ]

@@ -41,13 +41,15 @@ def test_a_message_from_a_tile_that_knew_the_bias_moves_a_lone_trip_onto_the_tru
     assert np.linalg.norm(alone) > 0.8  # held by nothing but its own GNSS: the offset stays
     t_mid = float(np.median(trip.trip.timestamps_s))
     told = GnssBiasMessage(t_mid, (-OFFSET_XY_M[0], -OFFSET_XY_M[1]), 0.01**2)  # 10 trips agreed elsewhere
-    moved = _mean_error_xy(optimize_submap_poses([trip], subs, [], PARAMS, bias_messages={trip.trip.key: [told]}),
-                           subs, truth)
+    moved = _mean_error_xy(
+        optimize_submap_poses([trip], subs, [], PARAMS, bias_messages={trip.trip.key: [told]}), subs, truth
+    )
     assert np.linalg.norm(moved) < 0.25 * np.linalg.norm(alone)
     # a message about the same trip an hour away says nothing about its bias now (Gauss-Markov decay)
     stale = GnssBiasMessage(t_mid + 3600.0, told.bias_xy_m, told.variance_m2)
-    unmoved = _mean_error_xy(optimize_submap_poses([trip], subs, [], PARAMS, bias_messages={trip.trip.key: [stale]}),
-                             subs, truth)
+    unmoved = _mean_error_xy(
+        optimize_submap_poses([trip], subs, [], PARAMS, bias_messages={trip.trip.key: [stale]}), subs, truth
+    )
     assert np.allclose(unmoved, alone, atol=1e-6)
 
 
@@ -56,8 +58,14 @@ def test_a_weak_message_moves_the_trip_less_than_a_firm_one():
     t_mid = float(np.median(trip.trip.timestamps_s))
     shift = {}
     for n_trips in (1, 20):
-        msg = bias_message(np.full(5, t_mid), np.zeros((5, 2)), np.tile(-np.array(OFFSET_XY_M), (5, 1)), np.ones(5),
-                           n_trips, PARAMS)
+        msg = bias_message(
+            np.full(5, t_mid),
+            np.zeros((5, 2)),
+            np.tile(-np.array(OFFSET_XY_M), (5, 1)),
+            np.ones(5),
+            n_trips,
+            PARAMS,
+        )
         res = optimize_submap_poses([trip], subs, [], PARAMS, bias_messages={trip.trip.key: [msg]})
         shift[n_trips] = np.linalg.norm(_mean_error_xy(res, subs, truth) - np.array(OFFSET_XY_M))
     assert shift[1] < shift[20]  # one trip's word against twenty trips' consensus
@@ -67,7 +75,9 @@ def test_a_weak_message_moves_the_trip_less_than_a_firm_one():
 def test_the_message_of_a_tile_is_its_weighted_mean_shift_and_its_consensus_variance():
     own = np.zeros((4, 2))
     aligned = np.array([[1.0, 0.0], [1.0, 0.0], [3.0, 2.0], [9.0, 9.0]])
-    msg = bias_message(np.array([10.0, 20.0, 30.0, 40.0]), own, aligned, np.array([1.0, 1.0, 2.0, 0.0]), 4, PARAMS)
+    msg = bias_message(
+        np.array([10.0, 20.0, 30.0, 40.0]), own, aligned, np.array([1.0, 1.0, 2.0, 0.0]), 4, PARAMS
+    )
     assert msg.bias_xy_m == pytest.approx((2.0, 1.0))
     assert msg.t_s == pytest.approx(22.5)
     assert msg.variance_m2 == pytest.approx(PARAMS.gnss_bias_share * PARAMS.gnss_sigma_base_xy_m**2 / 4)

@@ -21,13 +21,15 @@ def test_a_changed_setting_is_run_cached_and_scored_apart_from_the_default(tmp_p
     cache = tmp_path / "cache"
     changed = replace(SINGLE_TRIP_DEFAULT, GNSS_BIAS_STATE=not SINGLE_TRIP_DEFAULT.GNSS_BIAS_STATE)
     rows = compare_single_trip.compare([scenario], changed, cache)
-    (name, a, b), = rows
+    ((name, a, b),) = rows
     assert name == "s"
     assert len(list(cache.glob("*.pkl"))) == 2  # one file per variant, neither overwriting the other
     # the default variant is the default stage and alignment, scored as the contract says
     frame, recons = single_trip_results(scenario, None)
     truth = true_poses(scenario, frame, [r.trip.key for r in recons])
-    assert a.aligned_ate_m == pytest.approx(ate_rmse_m(align_trips(recons).poses_xyyaw_world, truth), abs=1e-9)
+    assert a.aligned_ate_m == pytest.approx(
+        ate_rmse_m(align_trips(recons).poses_xyyaw_world, truth), abs=1e-9
+    )
     # the changed stage smoothed the trips otherwise
     assert abs(b.trip_aligned_ate_m - a.trip_aligned_ate_m) > 1e-4
     # from the cache: the same figures, one progress line per scenario

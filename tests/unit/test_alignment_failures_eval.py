@@ -25,4 +25,6 @@ def test_a_trip_with_its_own_poses_is_shown_unaligned_and_still_judged():
     table = format_scores(scores)
     lone_row = next(line for line in table.splitlines() if line.startswith("lone"))
     assert "unaligned, own poses (no_overlap)" in lone_row and "over bound" in lone_row
-    assert table.splitlines()[-1].endswith("unmarked over 0.5 m: 1 (of them unaligned with their own poses: 1)")
+    assert table.splitlines()[-1].endswith(
+        "unmarked over 0.5 m: 1 (of them unaligned with their own poses: 1)"
+    )

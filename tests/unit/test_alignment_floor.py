@@ -17,12 +17,17 @@ def test_true_registrations_reproduce_the_true_relative_poses_and_do_not_align_w
     frame, recons = evaluate_floor.single_trip_results(scenario, None)
     truth = evaluate_floor.true_poses(scenario, frame, [r.trip.key for r in recons])
     seen: dict = {}
-    evaluate_floor.align_with_matches(recons, lambda m, sub: evaluate_floor.with_true_registration(m, sub, truth), seen)
+    evaluate_floor.align_with_matches(
+        recons, lambda m, sub: evaluate_floor.with_true_registration(m, sub, truth), seen
+    )
     assert seen["matches"], "the trips share roads: there are accepted pairs"
     for m in seen["matches"]:
         si, sj = seen["submaps"][m.i], seen["submaps"][m.j]
-        np.testing.assert_allclose(m.relative_pose(si.world_T_submap, sj.world_T_submap),
-                                   evaluate_floor._true_relative(m, seen["submaps"], truth), atol=1e-9)
+        np.testing.assert_allclose(
+            m.relative_pose(si.world_T_submap, sj.world_T_submap),
+            evaluate_floor._true_relative(m, seen["submaps"], truth),
+            atol=1e-9,
+        )
     figure = tmp_path / "stages.png"
     r = evaluate_floor.evaluate(scenario, figure=figure)
     assert figure.stat().st_size > 20_000  # two panels of frames drawn

@@ -34,8 +34,10 @@ def _two_trips_registered_only_at_the_start(n_registered: int = 3):
     rng = np.random.default_rng(0)
     elements = truth_elements(400.0)
     truths = [truth_trajectory(lane, False, rng, 400.0) for lane in (0, 1)]
-    trips = [make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
-             for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))]
+    trips = [
+        make_trip(f"veh{k}__t{k}", truths[k], elements, rng, offset_xy=off, perception=False)
+        for k, off in enumerate(((0.8, 0.5), (-0.6, -0.4)))
+    ]
     subs, by_trip = submaps_every_20_frames(trips)
     matches = [true_registration(by_trip[0][n], by_trip[1][n], truths, n) for n in range(n_registered)]
     return trips, truths, subs, by_trip, matches
@@ -54,8 +56,10 @@ def _relative_error_m(res, truths, by_trip, which: slice) -> float:
 
 def test_a_gnss_offset_learnt_where_trips_overlap_carries_along_the_stretch_driven_alone():
     trips, truths, subs, by_trip, matches = _two_trips_registered_only_at_the_start()
-    offset = np.linalg.norm((trips[1].poses_xyyaw_world[100] - truths[1][100])[:2]
-                            - (trips[0].poses_xyyaw_world[100] - truths[0][100])[:2])
+    offset = np.linalg.norm(
+        (trips[1].poses_xyyaw_world[100] - truths[1][100])[:2]
+        - (trips[0].poses_xyyaw_world[100] - truths[0][100])[:2]
+    )
     assert offset > 1.0  # the two trips' GNSS disagree by more than a metre
     far = slice(-5, None)  # the last 100 m, 200+ m past the last registration
     biased = optimize_submap_poses(trips, subs, matches, BIAS)
@@ -71,8 +75,10 @@ def test_a_gnss_offset_learnt_where_trips_overlap_carries_along_the_stretch_driv
 def test_bias_chain_step_is_the_gauss_markov_difference_and_a_status_change_frees_it():
     trips, _ = make_scenario(1, seed=1, length_m=200.0, perception=False)
     t = trips[0]
-    subs = [Submap(n, n, 0, t.trip.key, a, a - 5, a + 5, t.poses_xyyaw_world[a].copy(), ())
-            for n, a in enumerate((10, 30, 50))]
+    subs = [
+        Submap(n, n, 0, t.trip.key, a, a - 5, a + 5, t.poses_xyyaw_world[a].copy(), ())
+        for n, a in enumerate((10, 30, 50))
+    ]
     g = gtsam.NonlinearFactorGraph()
     weights = {0: 2.0, 1: 2.0, 2: 400.0}  # DGPS, DGPS, then RTK fixed (Eq. 11 weights)
     added = add_gnss_bias_chain(g, t, subs, weights, BIAS)
@@ -93,8 +99,12 @@ def _with_white_solve(subs, rng):
     """The sub-maps with a white-noise solve that differs from their contents' poses: shifted by
     (0.4, -0.3) m and bent by a few centimetres per sub-map."""
     shift = np.array([0.4, -0.3, 0.0])
-    return [replace(s, white_world_T_submap=s.world_T_submap + shift + np.r_[0.05 * rng.standard_normal(2), 0.01 * k])
-            for k, s in enumerate(subs)]
+    return [
+        replace(
+            s, white_world_T_submap=s.world_T_submap + shift + np.r_[0.05 * rng.standard_normal(2), 0.01 * k]
+        )
+        for k, s in enumerate(subs)
+    ]
 
 
 @pytest.mark.parametrize("params", [BIAS, INDEPENDENT], ids=["bias-chain", "independent"])

@@ -54,8 +54,10 @@ def test_dash_ends_recover_the_along_road_offset_that_lines_cannot(along_m):
     truth = np.array([along_m, 0.3, 0.004])
     target = _straight_road()
     inv = se2.inverse(truth)
-    source = ElementSet(target.types, tuple(se2.transform_points(inv, p) + rng.normal(0, 0.03, p.shape)
-                                            for p in target.points))
+    source = ElementSet(
+        target.types,
+        tuple(se2.transform_points(inv, p) + rng.normal(0, 0.03, p.shape) for p in target.points),
+    )
     matches = [(k, k) for k in range(4)]
     lines_only = register_elements(target, source, matches, 0.05, P)
     with_marks = register_elements(target, source, matches, 0.05, P, landmarks=_landmarks(truth, rng))
@@ -74,7 +76,9 @@ def test_a_landmark_does_not_snap_to_the_neighbouring_dash():
     truth = np.array([5.0, 0.0, 0.0])  # the wrong dash end is 4 m away, the right one 5 m
     target = _straight_road()
     source = ElementSet(target.types, tuple(p - truth[:2] for p in target.points))
-    reg = register_elements(target, source, [(k, k) for k in range(4)], 0.05, P, landmarks=_landmarks(truth, rng))
+    reg = register_elements(
+        target, source, [(k, k) for k in range(4)], 0.05, P, landmarks=_landmarks(truth, rng)
+    )
     assert reg is not None
     assert abs(reg.delta_xyyaw[0]) < 0.5  # neither 5 m (right) nor -4 m (wrong period): not observed
     assert reg.information_xyyaw[0, 0] < 10.0

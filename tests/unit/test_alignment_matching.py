@@ -45,8 +45,10 @@ D, B, C = ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTE
 
 def straight_road(offsets_types, x0=-25.0, x1=25.0, spacing=2.0) -> ElementSet:
     x = np.arange(x0, x1 + 1e-9, spacing)
-    return ElementSet(tuple(t for _, t in offsets_types),
-                      tuple(np.column_stack([x, np.full_like(x, o)]) for o, _ in offsets_types))
+    return ElementSet(
+        tuple(t for _, t in offsets_types),
+        tuple(np.column_stack([x, np.full_like(x, o)]) for o, _ in offsets_types),
+    )
 
 
 ROAD = [(-7.5, B), (-3.5, D), (0.0, D), (3.5, D), (7.5, B), (-5.25, C), (-1.75, C), (1.75, C), (5.25, C)]
@@ -110,7 +112,9 @@ def test_gnc_registration_recovers_a_rigid_transform_despite_outlier_matches():
     target = ElementSet(types, tuple([curve(o) for o in (-7.5, -3.5, 0.0, 3.5, 7.5)] + [stop]))
     truth = np.array([0.6, -0.8, 0.01])  # source = truth^-1 (target)
     inv = se2.inverse(truth)
-    source = ElementSet(types, tuple(se2.transform_points(inv, p) + rng.normal(0, 0.03, p.shape) for p in target.points))
+    source = ElementSet(
+        types, tuple(se2.transform_points(inv, p) + rng.normal(0, 0.03, p.shape) for p in target.points)
+    )
     matches = [(0, 0), (1, 1), (2, 2), (3, 3), (4, 4), (5, 5), (1, 2), (3, 1)][:6]
     matches = matches + [(0, 4)]  # outlier: left boundary to right boundary
     reg = register_elements(target, source, matches, 0.05, P)
@@ -122,14 +126,30 @@ def test_gnc_registration_recovers_a_rigid_transform_despite_outlier_matches():
 def _submap(es: ElementSet, trip: int, sid: int, pose=(0.0, 0.0, 0.0)) -> Submap:
     """A sub-map whose elements are ``es`` in the world, anchored at ``pose``."""
     inv = se2.inverse(np.asarray(pose, float))
-    return Submap(sid, 0, trip, f"v{trip}__t", 0, 0, 10, np.asarray(pose, float),
-                  tuple(SubmapElement(t, se2.transform_points(inv, p), n) for n, (t, p) in enumerate(zip(es.types, es.points, strict=False))))
+    return Submap(
+        sid,
+        0,
+        trip,
+        f"v{trip}__t",
+        0,
+        0,
+        10,
+        np.asarray(pose, float),
+        tuple(
+            SubmapElement(t, se2.transform_points(inv, p), n)
+            for n, (t, p) in enumerate(zip(es.types, es.points, strict=False))
+        ),
+    )
 
 
 def test_a_sub_map_offset_by_exactly_one_lane_width_is_not_matched_to_the_wrong_lane():
     circle = Circle(0, np.zeros(2), 0.0, 25.0)
-    noise = NoiseScales({t: 0.05 for t in ElementType} | {B: 0.1}, 0.1, sigma_p_m=2.5 * np.sqrt(2 * 0.05**2 + 0.1**2) + 0.4,
-                        sigma_e_m=0.25)
+    noise = NoiseScales(
+        {t: 0.05 for t in ElementType} | {B: 0.1},
+        0.1,
+        sigma_p_m=2.5 * np.sqrt(2 * 0.05**2 + 0.1**2) + 0.4,
+        sigma_e_m=0.25,
+    )
     a = straight_road(ROAD)
     b = straight_road(ROAD).shifted(np.array([0.0, LANE_W]))  # initial poses one lane apart
     m = match_pair(_submap(a, 0, 0), _submap(b, 1, 1), circle, noise, P)
@@ -157,10 +177,13 @@ def test_topology_descriptors_and_eq3_thresholds():
     narrow = topology_descriptor(_submap(straight_road([(-3.5, B), (0.0, D), (3.5, B)]), 1, 1), circle, 0.5)
     assert narrow.lane_count == 2
     assert not topology_consistent(full, narrow, NOISE, P)
-    shifted = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 0.5])), 1, 1), circle, 0.5)
+    shifted = topology_descriptor(
+        _submap(straight_road(ROAD).shifted(np.array([0.0, 0.5])), 1, 1), circle, 0.5
+    )
     assert topology_consistent(full, shifted, NOISE, P)
-    far = topology_descriptor(_submap(straight_road(ROAD).shifted(np.array([0.0, 12.0])), 1, 1, (0.0, 12.0, 0.0)),
-                              circle, 0.5)
+    far = topology_descriptor(
+        _submap(straight_road(ROAD).shifted(np.array([0.0, 12.0])), 1, 1, (0.0, 12.0, 0.0)), circle, 0.5
+    )
     assert not topology_consistent(full, far, NOISE, P)  # a parallel road, not the same one
 
 
@@ -177,13 +200,17 @@ def test_eq3_compares_each_carriageway_with_itself():
     a = cross_section(_submap(south, 0, 0), circle)
     b = cross_section(_submap(straight_road(north), 1, 1, (0.0, 19.0, 0.0)), circle)
     assert a.vehicle_m == pytest.approx(0.0) and b.vehicle_m == pytest.approx(19.0)
-    assert not topology_consistent(descriptor_at(a, a.vehicle_m, 0.5), descriptor_at(b, b.vehicle_m, 0.5), NOISE, P)
+    assert not topology_consistent(
+        descriptor_at(a, a.vehicle_m, 0.5), descriptor_at(b, b.vehicle_m, 0.5), NOISE, P
+    )
     assert same_road_consistent(a, b, 0.5, 0.5, NOISE, P)
     # the same carriageway with two of its dividers unseen in the other sub-map: 2 lanes against 4,
     # beyond Eq. 3's lane tolerance of 1
     fewer = cross_section(_submap(straight_road([r for r in ROAD if r[0] not in (-3.5, 0.0)]), 1, 1), circle)
     assert not same_road_consistent(a, fewer, 0.5, 0.5, NOISE, P)
-    assert same_road_consistent(a, cross_section(_submap(straight_road(ROAD), 1, 1), circle), 0.5, 0.5, NOISE, P)
+    assert same_road_consistent(
+        a, cross_section(_submap(straight_road(ROAD), 1, 1), circle), 0.5, 0.5, NOISE, P
+    )
 
 
 def test_a_trip_that_only_meets_the_other_carriageway_is_read_on_the_same_road():
@@ -196,26 +223,37 @@ def test_a_trip_that_only_meets_the_other_carriageway_is_read_on_the_same_road()
     south = straight_road(ROAD + [(11.5, B)])
     north = straight_road([(o + 19.0, t) for o, t in ROAD] + [(7.5, B)])
     trips = [SimpleNamespace(pose_sigma_xy_m=np.full(20, 0.3)) for _ in range(4)]
-    subs = [_submap(south, 0, 0), _submap(north, 1, 1, (0.0, 19.0, 0.0)),
-            _submap(south, 2, 2, (0.0, 0.3, 0.0)), _submap(north, 3, 3, (0.0, 19.2, 0.0))]
+    subs = [
+        _submap(south, 0, 0),
+        _submap(north, 1, 1, (0.0, 19.0, 0.0)),
+        _submap(south, 2, 2, (0.0, 0.3, 0.0)),
+        _submap(north, 3, 3, (0.0, 19.2, 0.0)),
+    ]
     # two trips, one per carriageway: the across pair passes on the second reading
     assert topology_filter([(0, 1)], subs, [circle], trips, NOISE, P).tolist() == [True]
     # trip 1 alone on the north carriageway, trips 0 and 2 together on the south one
     assert topology_filter([(0, 1), (0, 2), (1, 2)], subs, [circle], trips, NOISE, P).tolist() == [True] * 3
     # both carriageways have two trips each: the across pairs keep the own-road reading
-    assert topology_filter([(0, 1), (0, 2), (1, 3)], subs, [circle], trips, NOISE, P).tolist() == [False, True, True]
+    assert topology_filter([(0, 1), (0, 2), (1, 3)], subs, [circle], trips, NOISE, P).tolist() == [
+        False,
+        True,
+        True,
+    ]
 
 
 def test_split_merge_counts_are_compared_within_their_counting_noise():
     """Eq. 3's tau_sm: element ends inside a circle are counted events (a junction's pieces, a
     track broken by occlusion), so two sightings of one junction differ by about
     sqrt(N_i + N_j); a straight road against a junction still fails."""
+
     def desc(n_ends: int) -> TopologyDescriptor:
         return TopologyDescriptor(-1, float("nan"), n_ends, float("nan"), 0.2)
 
     assert topology_consistent(desc(17), desc(10), NOISE, P)  # one junction, two trips: 7 <= 2 sqrt(27)
     assert topology_consistent(desc(23), desc(31), NOISE, P)
-    assert not topology_consistent(desc(0), desc(6), NOISE, P)  # 6 > 2 sqrt(6): a junction is not a plain road
+    assert not topology_consistent(
+        desc(0), desc(6), NOISE, P
+    )  # 6 > 2 sqrt(6): a junction is not a plain road
     assert not topology_consistent(desc(1), desc(12), NOISE, P)
     assert topology_consistent(desc(0), desc(3), NOISE, P)  # the fixed floor tau_sm = 3 still holds
     fixed = AlignmentParams(topo_split_merge_z=0.0)  # the count's own noise left out: a fixed tau_sm
@@ -234,8 +272,10 @@ def _pruned_one_at_a_time(matches, s_node, e_a, e_b, sigma_e):
     matches = list(matches)
     best = eq4_objective(matches, s_node, e_a, e_b, sigma_e, P)
     while len(matches) > 1:
-        trials = [eq4_objective(matches[:q] + matches[q + 1 :], s_node, e_a, e_b, sigma_e, P)
-                  for q in range(len(matches))]
+        trials = [
+            eq4_objective(matches[:q] + matches[q + 1 :], s_node, e_a, e_b, sigma_e, P)
+            for q in range(len(matches))
+        ]
         q = int(np.argmax(trials))
         if trials[q] <= best + 1e-9:
             break
@@ -265,9 +305,13 @@ def test_greedy_pruning_agrees_with_the_eq4_objective_removal_by_removal():
 
 def test_principal_directions_are_the_svd_axes_and_overlap_uses_them():
     rng = np.random.default_rng(5)
-    sets = [se2.transform_points(np.array([0.0, 0.0, rng.uniform(-3.0, 3.0)]),
-                                 rng.normal(0.0, 1.0, (int(rng.integers(2, 30)), 2)) * rng.uniform(0.2, 5.0, 2))
-            for _ in range(50)]
+    sets = [
+        se2.transform_points(
+            np.array([0.0, 0.0, rng.uniform(-3.0, 3.0)]),
+            rng.normal(0.0, 1.0, (int(rng.integers(2, 30)), 2)) * rng.uniform(0.2, 5.0, 2),
+        )
+        for _ in range(50)
+    ]
     closed_form = principal_directions(sets)
     for pts, d in zip(sets, closed_form, strict=True):
         axis = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)[2][0]
@@ -275,6 +319,11 @@ def test_principal_directions_are_the_svd_axes_and_overlap_uses_them():
     np.testing.assert_allclose(principal_directions([np.array([[3.0, 4.0]])]), [[1.0, 0.0]])
     # a 20 m divider and a 10 m piece of it, shifted 5 m along: half of the union overlaps
     long_ = ElementSet((D,), (np.column_stack([np.arange(0.0, 20.1, 1.0), np.zeros(21)]),))
-    piece = ElementSet((D, B), (np.column_stack([np.arange(15.0, 25.1, 1.0), np.full(11, 0.1)]),
-                                np.column_stack([np.arange(0.0, 20.1, 1.0), np.full(21, 3.0)])))
+    piece = ElementSet(
+        (D, B),
+        (
+            np.column_stack([np.arange(15.0, 25.1, 1.0), np.full(11, 0.1)]),
+            np.column_stack([np.arange(0.0, 20.1, 1.0), np.full(21, 3.0)]),
+        ),
+    )
     np.testing.assert_allclose(overlap_matrix(long_, piece), [[2 * 5.0 / 30.0, 0.0]])

@@ -31,7 +31,9 @@ FIXED_SCALE = replace(SCALED, odom_scale_sigma=0.0)
 
 
 def test_scaled_chain_jacobians_match_numerical_derivatives():
-    factor = scaled_chain_factor(S(0), S(1), K(0), np.array([20.0, 3.0, 0.3]), gtsam.noiseModel.Unit.Create(3))
+    factor = scaled_chain_factor(
+        S(0), S(1), K(0), np.array([20.0, 3.0, 0.3]), gtsam.noiseModel.Unit.Create(3)
+    )
     values = gtsam.Values()
     values.insert(S(0), gtsam.Pose2(1.0, 2.0, 0.4))
     values.insert(S(1), gtsam.Pose2(15.0, 14.0, 0.8))
@@ -47,7 +49,9 @@ def test_scaled_chain_jacobians_match_numerical_derivatives():
                 if other == key:
                     step[d] = 1e-6
                 delta.insert(other, step)
-            numeric.append((factor.unwhitenedError(values.retract(delta)) - factor.unwhitenedError(values)) / 1e-6)
+            numeric.append(
+                (factor.unwhitenedError(values.retract(delta)) - factor.unwhitenedError(values)) / 1e-6
+            )
     np.testing.assert_allclose(analytic, np.array(numeric).T, atol=1e-4)
 
 
@@ -63,8 +67,10 @@ def _two_trips_one_stretched(scale_error: float):
     poses[:, :2] = poses[0, :2] + (1.0 + scale_error) * (poses[:, :2] - poses[0, :2])
     trips[1] = replace(trips[1], poses_xyyaw_world=poses)
     subs, by_trip = submaps_every_20_frames(trips)
-    matches = [true_registration(si, sj, truths, n)
-               for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False))]
+    matches = [
+        true_registration(si, sj, truths, n)
+        for n, (si, sj) in enumerate(zip(by_trip[0], by_trip[1], strict=False))
+    ]
     return trips, truths, subs, by_trip, matches
 
 

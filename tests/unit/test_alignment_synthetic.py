@@ -45,22 +45,31 @@ def offset_line(ref: np.ndarray, offset_m: float) -> np.ndarray:
 def truth_elements(length_m: float = 500.0):
     """``[(type, points)]`` of the true road."""
     ref = road_reference(length_m)
-    out = [(ElementType.ROAD_BOUNDARY, offset_line(ref, -2 * LANE_W - 0.5)),
-           (ElementType.ROAD_BOUNDARY, offset_line(ref, 2 * LANE_W + 0.5))]
+    out = [
+        (ElementType.ROAD_BOUNDARY, offset_line(ref, -2 * LANE_W - 0.5)),
+        (ElementType.ROAD_BOUNDARY, offset_line(ref, 2 * LANE_W + 0.5)),
+    ]
     out += [(ElementType.LANE_DIVIDER, offset_line(ref, o)) for o in (-LANE_W, 0.0, LANE_W)]
-    out += [(ElementType.CENTERLINE, offset_line(ref, o)) for o in (-1.5 * LANE_W, -0.5 * LANE_W, 0.5 * LANE_W, 1.5 * LANE_W)]
+    out += [
+        (ElementType.CENTERLINE, offset_line(ref, o))
+        for o in (-1.5 * LANE_W, -0.5 * LANE_W, 0.5 * LANE_W, 1.5 * LANE_W)
+    ]
     for s_stop in (int(0.3 * length_m), int(0.76 * length_m)):
         i = s_stop
         left, right = offset_line(ref, 2 * LANE_W)[i], offset_line(ref, -2 * LANE_W)[i]
         out.append((ElementType.STOP_LINE, np.vstack([right, 0.5 * (left + right)])))
         i2 = s_stop + 6
-        a, b = offset_line(ref, -2 * LANE_W)[i2 - 2 : i2 + 3 : 4], offset_line(ref, 2 * LANE_W)[i2 + 2 : i2 - 3 : -4]
+        a, b = (
+            offset_line(ref, -2 * LANE_W)[i2 - 2 : i2 + 3 : 4],
+            offset_line(ref, 2 * LANE_W)[i2 + 2 : i2 - 3 : -4],
+        )
         out.append((ElementType.CROSSWALK, np.vstack([a, b])))
     return out
 
 
-def truth_trajectory(lane: int, reverse: bool, rng, length_m: float = 500.0, start: float = 10.0,
-                     end: float | None = None) -> np.ndarray:
+def truth_trajectory(
+    lane: int, reverse: bool, rng, length_m: float = 500.0, start: float = 10.0, end: float | None = None
+) -> np.ndarray:
     """(N, 3) true poses, one per metre, along lane ``lane`` (0, 1 forward lanes -> right side)."""
     ref = road_reference(length_m)
     offset = -(lane + 0.5) * LANE_W if not reverse else (lane + 0.5) * LANE_W
@@ -70,18 +79,34 @@ def truth_trajectory(lane: int, reverse: bool, rng, length_m: float = 500.0, sta
     del centre
     end = length_m - 10.0 if end is None else end
     s = np.arange(start, end, 1.0)
-    path = np.column_stack([np.interp(s, np.arange(len(path)), path[:, 0]), np.interp(s, np.arange(len(path)), path[:, 1])])
+    path = np.column_stack(
+        [np.interp(s, np.arange(len(path)), path[:, 0]), np.interp(s, np.arange(len(path)), path[:, 1])]
+    )
     if reverse:
         path = path[::-1]
     d = np.gradient(path, axis=0)
     return np.column_stack([path, np.arctan2(d[:, 1], d[:, 0])])
 
 
-def make_trip(key: str, truth_xyyaw: np.ndarray, elements, rng, *, offset_xy=(0.0, 0.0), drift_xy_per_m=(0.0, 0.0),
-              yaw_err=0.0, noise_m=0.05, miss_prob=0.1, ghost=False, perception=True) -> TripReconstruction:
+def make_trip(
+    key: str,
+    truth_xyyaw: np.ndarray,
+    elements,
+    rng,
+    *,
+    offset_xy=(0.0, 0.0),
+    drift_xy_per_m=(0.0, 0.0),
+    yaw_err=0.0,
+    noise_m=0.05,
+    miss_prob=0.1,
+    ghost=False,
+    perception=True,
+) -> TripReconstruction:
     n = len(truth_xyyaw)
     s = np.arange(n, dtype=float)
-    err = np.column_stack([offset_xy[0] + drift_xy_per_m[0] * s, offset_xy[1] + drift_xy_per_m[1] * s, np.full(n, yaw_err)])
+    err = np.column_stack(
+        [offset_xy[0] + drift_xy_per_m[0] * s, offset_xy[1] + drift_xy_per_m[1] * s, np.full(n, yaw_err)]
+    )
     # world-left error about each true position: g_t = E_t o x_t, rotation about the vehicle
     smoothed = truth_xyyaw.copy()
     smoothed[:, :2] += err[:, :2]
@@ -116,16 +141,22 @@ def make_trip(key: str, truth_xyyaw: np.ndarray, elements, rng, *, offset_xy=(0.
         else:
             all_pts = np.vstack(chunks)
             s_along = np.linalg.norm(dense[e][1] - dense[e][1][0], axis=1)
-            keep = np.isin(np.round(dense[e][1], 6).view([("x", float), ("y", float)]),
-                           np.round(all_pts, 6).view([("x", float), ("y", float)])).ravel()
+            keep = np.isin(
+                np.round(dense[e][1], 6).view([("x", float), ("y", float)]),
+                np.round(all_pts, 6).view([("x", float), ("y", float)]),
+            ).ravel()
             pts = dense[e][1][keep]
             del s_along
             if len(pts) < 2:
                 continue
         near = np.argmin(np.linalg.norm(pts[:, None, :] - tree_pos[None, :, :], axis=2), axis=1)
-        moved = np.vstack([se2.transform_points(smoothed_of(t), p[None, :]) for t, p in zip(near, pts, strict=False)])
+        moved = np.vstack(
+            [se2.transform_points(smoothed_of(t), p[None, :]) for t, p in zip(near, pts, strict=False)]
+        )
         moved = moved + rng.normal(0, 0.5 * noise_m, 2) + rng.normal(0, 0.01, moved.shape)
-        instances.append(TripInstance(etype, moved, None, len(seen_frames[e]), min(seen_frames[e]), max(seen_frames[e])))
+        instances.append(
+            TripInstance(etype, moved, None, len(seen_frames[e]), min(seen_frames[e]), max(seen_frames[e]))
+        )
     if ghost:  # a divider copy one lane width to the side for 40 m
         f0 = n // 2
         seg = truth_xyyaw[f0 : f0 + 40, :2]
@@ -136,14 +167,34 @@ def make_trip(key: str, truth_xyyaw: np.ndarray, elements, rng, *, offset_xy=(0.
     lonlat = FRAME.to_lonlat(gnss_xy)
     odom = se2.compose(se2.inverse(truth_xyyaw[0])[None, :], truth_xyyaw)
     vehicle, trip_id = key.split("__")
-    trip = Trip(vehicle, trip_id, "2026-01-01T00:00:00Z", np.arange(n) * 0.1, lonlat,
-                np.full(n, int(GnssStatus.DGPS), np.uint8), np.full(n, 0.5), np.full(n, np.nan), odom, tuple(per_frame))
-    noise = {t: ElementNoise(noise_m if t != ElementType.ROAD_BOUNDARY else 2 * noise_m, 0.2, 100) for t in ElementType}
+    trip = Trip(
+        vehicle,
+        trip_id,
+        "2026-01-01T00:00:00Z",
+        np.arange(n) * 0.1,
+        lonlat,
+        np.full(n, int(GnssStatus.DGPS), np.uint8),
+        np.full(n, 0.5),
+        np.full(n, np.nan),
+        odom,
+        tuple(per_frame),
+    )
+    noise = {
+        t: ElementNoise(noise_m if t != ElementType.ROAD_BOUNDARY else 2 * noise_m, 0.2, 100)
+        for t in ElementType
+    }
     return TripReconstruction(trip, smoothed, np.full(n, 0.8), np.arange(0, n, 5), tuple(instances), noise)
 
 
-def make_scenario(n_trips: int = 6, seed: int = 0, *, error_m: float = 1.5, ghost_every: int = 0,
-                  perception: bool = True, length_m: float = 500.0):
+def make_scenario(
+    n_trips: int = 6,
+    seed: int = 0,
+    *,
+    error_m: float = 1.5,
+    ghost_every: int = 0,
+    perception: bool = True,
+    length_m: float = 500.0,
+):
     """``(trips, truth_poses)``: trips drive random lanes/directions with random GNSS errors."""
     rng = np.random.default_rng(seed)
     elements = truth_elements(length_m)
@@ -154,9 +205,19 @@ def make_scenario(n_trips: int = 6, seed: int = 0, *, error_m: float = 1.5, ghos
         ang = rng.uniform(0, 2 * np.pi)
         off = rng.uniform(0.5, error_m) * np.array([np.cos(ang), np.sin(ang)])
         drift = rng.normal(0, 0.001, 2)
-        trips.append(make_trip(f"veh{k}__t{k}", truth, elements, rng, offset_xy=off, drift_xy_per_m=drift,
-                               yaw_err=rng.normal(0, 0.002), ghost=bool(ghost_every and k % ghost_every == 1),
-                               perception=perception))
+        trips.append(
+            make_trip(
+                f"veh{k}__t{k}",
+                truth,
+                elements,
+                rng,
+                offset_xy=off,
+                drift_xy_per_m=drift,
+                yaw_err=rng.normal(0, 0.002),
+                ghost=bool(ghost_every and k % ghost_every == 1),
+                perception=perception,
+            )
+        )
         truths.append(truth)
     return trips, truths
 
@@ -190,8 +251,22 @@ def true_registration(si, sj, truths, n: int, information: np.ndarray = FULL_REG
     gi, gj = si.world_T_submap - c, sj.world_T_submap - c
     ti, tj = truths[0][si.anchor_frame] - c, truths[1][sj.anchor_frame] - c
     delta = se2.compose(se2.compose(gi, se2.between(ti, tj)), se2.inverse(gj))
-    return PairMatch(si.submap_id, sj.submap_id, 0, 1, n, si.world_T_submap[:2].copy(), delta, information,
-                     ((0, 0),), ((0, 0),), np.full(1, 0.9), 0.9, 0.03, 1.0)
+    return PairMatch(
+        si.submap_id,
+        sj.submap_id,
+        0,
+        1,
+        n,
+        si.world_T_submap[:2].copy(),
+        delta,
+        information,
+        ((0, 0),),
+        ((0, 0),),
+        np.full(1, 0.9),
+        0.9,
+        0.03,
+        1.0,
+    )
 
 
 def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]:
@@ -220,7 +295,9 @@ def aligned_errors(est: dict, trips, truths) -> tuple[float, float, list[float]]
 # --- end-to-end known answers ----------------------------------------------------------------
 
 
-def _relative_errors(est: np.ndarray, truth: np.ndarray, est_ref: np.ndarray, truth_ref: np.ndarray) -> np.ndarray:
+def _relative_errors(
+    est: np.ndarray, truth: np.ndarray, est_ref: np.ndarray, truth_ref: np.ndarray
+) -> np.ndarray:
     """Distance between where trip B sits relative to trip A, estimated vs true (nearest frames)."""
     d = np.linalg.norm(truth[:, None, :2] - truth_ref[None, :, :2], axis=2)
     j = np.argmin(d, axis=1)
@@ -297,8 +374,14 @@ def test_an_unfused_prior_map_is_reduced_to_one_copy_of_each_element():
     elements = truth_elements(200.0)
     copies = []
     for k in range(6):  # six earlier trips' aligned instances, a few cm apart
-        t = make_trip(f"v{k}__m", truth_trajectory(0, False, rng, 200.0), elements, rng,
-                      offset_xy=tuple(rng.normal(0, 0.05, 2)), perception=False)
+        t = make_trip(
+            f"v{k}__m",
+            truth_trajectory(0, False, rng, 200.0),
+            elements,
+            rng,
+            offset_xy=tuple(rng.normal(0, 0.05, 2)),
+            perception=False,
+        )
         copies += [MapFeature(i.type, i.points_xy_world) for i in t.instances]
     new = make_trip("vn__n", truth_trajectory(1, False, rng, 200.0), elements, rng, perception=False)
     reduced = reduce_prior_map(copies, [new], AlignmentParams())
@@ -326,7 +409,9 @@ def test_the_two_directions_of_a_wide_road_are_paired_and_registered():
     before = _relative_errors(b.poses_xyyaw_world, truth_b, a.poses_xyyaw_world, truth_a)
     assert np.median(before) > 1.0
     params = AlignmentParams(fine=False)
-    assert 10.5 < frame_graph_distance_m([a, b], params) <= 15.0  # the reach of the detections (no sensor_setup)
+    assert (
+        10.5 < frame_graph_distance_m([a, b], params) <= 15.0
+    )  # the reach of the detections (no sensor_setup)
     res = align_trips([a, b], params=params)
     assert res.failed == {}
     after = _relative_errors(res.poses_xyyaw_world["vb__b"], truth_b, res.poses_xyyaw_world["va__a"], truth_a)
@@ -344,9 +429,14 @@ def test_the_frame_graph_distance_is_the_shortest_stated_lateral_reach():
 
     rng = np.random.default_rng(1)
     trip = make_trip("va__a", truth_trajectory(0, False, rng, 100.0), truth_elements(100.0), rng)
-    stated = lambda y: replace(trip, trip=replace(trip.trip, sensor_setup={"bev_range_m": {"x": [-10, 30], "y": y}}))  # noqa: E731
+
+    def stated(y):
+        return replace(trip, trip=replace(trip.trip, sensor_setup={"bev_range_m": {"x": [-10, 30], "y": y}}))
+
     wide, narrow = stated([-15, 15]), stated([-12, 8])
     assert frame_graph_distance_m([wide], AlignmentParams()) == pytest.approx(15.0)
-    assert frame_graph_distance_m([wide, narrow], AlignmentParams()) == pytest.approx(12.0)  # the shortest reach
+    assert frame_graph_distance_m([wide, narrow], AlignmentParams()) == pytest.approx(
+        12.0
+    )  # the shortest reach
     assert frame_graph_distance_m([trip], AlignmentParams()) < 15.0  # no stated range: where detections lie
     assert frame_graph_distance_m([narrow], AlignmentParams(frame_graph_distance_m=6.0)) == 6.0

@@ -40,15 +40,25 @@ def test_a_scenario_fused_on_three_poses_and_the_true_poses_leave_the_least(tmp_
 
 
 def _result(spec: str, world: str, pipeline: float, exact: float, true: float) -> dict:
-    return {"spec": spec, "world": world, "seed": 1, "trips": 10, "trips_per_place": 3.0, "cached": False,
-            "mcd": {"pipeline": pipeline, "exact_registrations": exact, "true_poses": true},
-            "mcd_true_poses_overlaid": true + 0.01,
-            "ate_rmse_m": {"pipeline": 2 * pipeline, "exact_registrations": 2 * exact}}
+    return {
+        "spec": spec,
+        "world": world,
+        "seed": 1,
+        "trips": 10,
+        "trips_per_place": 3.0,
+        "cached": False,
+        "mcd": {"pipeline": pipeline, "exact_registrations": exact, "true_poses": true},
+        "mcd_true_poses_overlaid": true + 0.01,
+        "ate_rmse_m": {"pipeline": 2 * pipeline, "exact_registrations": 2 * exact},
+    }
 
 
 def test_worlds_are_means_over_their_seeds_and_the_section_names_the_target(tmp_path: Path) -> None:
-    results = [_result("urban-s1", "urban", 0.06, 0.05, 0.04), _result("urban-s2", "urban", 0.08, 0.07, 0.04),
-               _result("highway-s1", "highway", 0.12, 0.11, 0.03)]
+    results = [
+        _result("urban-s1", "urban", 0.06, 0.05, 0.04),
+        _result("urban-s2", "urban", 0.08, 0.07, 0.04),
+        _result("highway-s1", "highway", 0.12, 0.11, 0.03),
+    ]
     worlds = per_world(results)
     assert worlds["urban"]["n"] == 2 and worlds["highway"]["n"] == 1
     assert math.isclose(worlds["urban"]["mcd"]["pipeline"], 0.07)

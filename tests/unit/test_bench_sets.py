@@ -31,7 +31,10 @@ def test_trips_per_place_counts_the_trips_that_drive_within_the_radius():
 
 def test_trips_per_place_counts_only_where_the_trips_overlap():
     # two trips that share the first 50 m of 200: most frames see only their own trip
-    paths = {"a": _straight(0.0, 0.0, 200.0), "b": np.vstack([_straight(0.0, 0.0, 50.0), _straight(30.0, 50.0, 200.0)])}
+    paths = {
+        "a": _straight(0.0, 0.0, 200.0),
+        "b": np.vstack([_straight(0.0, 0.0, 50.0), _straight(30.0, 50.0, 200.0)]),
+    }
     assert trips_per_place(paths) == 1.0
     assert np.isnan(trips_per_place({}))
 
@@ -57,12 +60,18 @@ def test_the_real_map_set_is_every_shipped_real_map_at_both_profiles_and_three_s
     assert set(REAL_MAP_WORLDS) <= set(WORLD_NAMES)
     specs = scenario_set("real-maps")
     assert {(s.world, s.profile, s.seed, s.fleet) for s in specs} == {
-        (w, p, seed, f) for w in REAL_MAP_WORLDS for p in ("standard", "hard") for seed in STANDARD_SEEDS
-        for f in ("a", "b")}
+        (w, p, seed, f)
+        for w in REAL_MAP_WORLDS
+        for p in ("standard", "hard")
+        for seed in STANDARD_SEEDS
+        for f in ("a", "b")
+    }
     assert len({s.name for s in specs}) == len(specs)
     quick = scenario_set("real-maps-quick")
     assert [(s.world, s.fleet) for s in quick] == [(w, f) for f in ("a", "b") for w in REAL_MAP_WORLDS]
-    assert quick[0].name == "karlsruhe-standard-10x-1500m-s1" and quick[-1].name.endswith("-fleetb-10x-1500m-s1")
+    assert quick[0].name == "karlsruhe-standard-10x-1500m-s1" and quick[-1].name.endswith(
+        "-fleetb-10x-1500m-s1"
+    )
     assert all(s.profile == "loops" for s in scenario_set("loops"))
 
 

@@ -9,16 +9,39 @@ from csr_core.bench.validator import pooled, render_section
 pytestmark = pytest.mark.unit
 
 
-def _fleet(spec: str, instances: int, wrong: int, flagged: int, caught: int, per_flag: dict | None = None) -> dict:
-    v = {"instances": instances, "wrong": wrong, "flagged": flagged,
-         "recall": caught / max(wrong, 1), "precision": caught / max(flagged, 1), "per_flag": per_flag or {},
-         "beyond_local_offset": {"wrong": wrong, "flagged": flagged, "recall": caught / max(wrong, 1),
-                                 "precision": caught / max(flagged, 1)}}
-    return {"spec": spec, "world": spec.split("-")[0], "seed": 1, "trips": 8, "mcd": 0.1, "validator": v, "figure": None}
+def _fleet(
+    spec: str, instances: int, wrong: int, flagged: int, caught: int, per_flag: dict | None = None
+) -> dict:
+    v = {
+        "instances": instances,
+        "wrong": wrong,
+        "flagged": flagged,
+        "recall": caught / max(wrong, 1),
+        "precision": caught / max(flagged, 1),
+        "per_flag": per_flag or {},
+        "beyond_local_offset": {
+            "wrong": wrong,
+            "flagged": flagged,
+            "recall": caught / max(wrong, 1),
+            "precision": caught / max(flagged, 1),
+        },
+    }
+    return {
+        "spec": spec,
+        "world": spec.split("-")[0],
+        "seed": 1,
+        "trips": 8,
+        "mcd": 0.1,
+        "validator": v,
+        "figure": None,
+    }
 
 
 def test_instances_are_pooled_not_fleets_averaged():
-    fleets = [_fleet("urban-hard-8x-1500m-s5", 400, 40, 100, 36), _fleet("rural-hard-8x-1500m-s11", 20, 16, 4, 4)]
+    fleets = [
+        _fleet("urban-hard-8x-1500m-s5", 400, 40, 100, 36),
+        _fleet("rural-hard-8x-1500m-s11", 20, 16, 4, 4),
+    ]
     total = pooled(fleets)
     assert (total["wrong"], total["flagged"], total["caught"]) == (56, 104, 40)
     assert total["recall"] == pytest.approx(40 / 56) and total["precision"] == pytest.approx(40 / 104)
@@ -38,14 +61,26 @@ def test_the_bound_is_reported_met_only_when_both_hold_and_nothing_wrong_is_not_
 
 def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances(tmp_path):
     def inst(wrong: bool, suspect: bool, support: int) -> dict:
-        return {"type": "lane_divider", "length_m": 20.0, "wrong": wrong, "suspect": suspect, "flags": [],
-                "support_trips": support, "scatter_ratio": 0.5, "rejected_weight_share": 0.0}
+        return {
+            "type": "lane_divider",
+            "length_m": 20.0,
+            "wrong": wrong,
+            "suspect": suspect,
+            "flags": [],
+            "support_trips": support,
+            "scatter_ratio": 0.5,
+            "rejected_weight_share": 0.0,
+        }
 
     fleets = []
     for k, spec in enumerate(("urban-hard-8x-1500m-s5", "rural-hard-8x-1500m-s11")):
         f = _fleet(spec, 40, 4, 8, 3)
-        f["instances"] = ([inst(True, True, 1)] * 3 + [inst(False, True, 1)] * 5 + [inst(True, False, 3)]
-                          + [inst(False, False, 3)] * (31 - k))
+        f["instances"] = (
+            [inst(True, True, 1)] * 3
+            + [inst(False, True, 1)] * 5
+            + [inst(True, False, 3)]
+            + [inst(False, False, 3)] * (31 - k)
+        )
         fleets.append(f)
     text = render_section(fleets, None, None, 60.0)
     assert "### What a validator can reach here" in text
@@ -57,5 +92,6 @@ def test_the_section_says_what_a_validator_can_reach_from_the_judged_instances(t
     drawn = render_section(fleets, None, tmp_path, 60.0, reach_figure=tmp_path / "figures" / "reach.png")
     assert (tmp_path / "figures" / "reach.png").stat().st_size > 10_000
     assert "(figures/reach.png)" in drawn
-    assert "### What a validator can reach" not in render_section([_fleet("urban-hard-8x-1500m-s5", 40, 4, 8, 3)],
-                                                                  None, None, 60.0)
+    assert "### What a validator can reach" not in render_section(
+        [_fleet("urban-hard-8x-1500m-s5", 40, 4, 8, 3)], None, None, 60.0
+    )

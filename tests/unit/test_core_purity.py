@@ -9,8 +9,20 @@ import pytest
 
 pytestmark = pytest.mark.unit
 
-FORBIDDEN = {"fastapi", "starlette", "uvicorn", "sqlalchemy", "geoalchemy2", "alembic", "psycopg",
-             "celery", "kombu", "redis", "services", "workers"}
+FORBIDDEN = {
+    "fastapi",
+    "starlette",
+    "uvicorn",
+    "sqlalchemy",
+    "geoalchemy2",
+    "alembic",
+    "psycopg",
+    "celery",
+    "kombu",
+    "redis",
+    "services",
+    "workers",
+}
 CORE = pathlib.Path(__file__).resolve().parents[2] / "csr_core"
 
 
@@ -34,7 +46,8 @@ def test_no_source_file_of_the_core_imports_a_service_layer():
 def test_importing_every_core_module_loads_no_service_layer():
     modules = sorted(
         ".".join(p.relative_to(CORE.parent).with_suffix("").parts)
-        for p in CORE.rglob("*.py") if p.name != "__main__.py"
+        for p in CORE.rglob("*.py")
+        if p.name != "__main__.py"
     )
     code = (
         "import importlib, sys\n"

@@ -39,8 +39,18 @@ def _trip_far_east(seed: int) -> tuple[Trip, np.ndarray, LocalFrame]:
     t, true, odom, gnss_xy, status, std, grid_heading = _weaving_trip(seed)
     near = LocalFrame(origin_lat=49.0, origin_lon=8.6)
     lonlat = near.to_lonlat(gnss_xy)
-    trip = Trip("v", f"s{seed}", "2026-11-28T00:00:00Z", t, lonlat, status, std,
-                near.true_heading_deg(grid_heading, lonlat), odom, tuple(() for _ in t))
+    trip = Trip(
+        "v",
+        f"s{seed}",
+        "2026-11-28T00:00:00Z",
+        t,
+        lonlat,
+        status,
+        std,
+        near.true_heading_deg(grid_heading, lonlat),
+        odom,
+        tuple(() for _ in t),
+    )
     return trip, true, near
 
 

@@ -29,7 +29,9 @@ def sessions(tmp_path: Path) -> Iterator[sessionmaker[Session]]:
     engine.dispose()
 
 
-def _job(session: Session, name: str, state: str, *, lease_in_s: float | None, dispatched: bool = True) -> str:
+def _job(
+    session: Session, name: str, state: str, *, lease_in_s: float | None, dispatched: bool = True
+) -> str:
     job = repo.add_job(session, kind="ingest_trip", subject=name)
     now = utcnow()
     job.state, job.attempts = state, 1 if state != "queued" else 0

@@ -41,16 +41,22 @@ def _road_features() -> list[LonLatFeature]:
     (y = 7); a curb at -1.75, a dashed divider at 1.75, a double centre line at 5.25, a curb at 8.75."""
     cl = ElementType.CENTERLINE
     return [
-        _line(cl, _straight(0.0, 0, 50), fid="e0a"), _line(cl, _straight(0.0, 50, 100), fid="e0b"),
-        _line(cl, _straight(3.5, 0, 50), fid="e1a"), _line(cl, _straight(3.5, 50, 100), fid="e1b"),
+        _line(cl, _straight(0.0, 0, 50), fid="e0a"),
+        _line(cl, _straight(0.0, 50, 100), fid="e0b"),
+        _line(cl, _straight(3.5, 0, 50), fid="e1a"),
+        _line(cl, _straight(3.5, 50, 100), fid="e1b"),
         _line(cl, _straight(7.0, 0, 100)[::-1], fid="w0"),
         _line(ElementType.ROAD_BOUNDARY, _straight(-1.75), fid="curb_s"),
         _line(ElementType.LANE_DIVIDER, _straight(1.75), DividerStyle.DASHED, fid="dash"),
         _line(ElementType.LANE_DIVIDER, _straight(5.25), DividerStyle.DOUBLE, fid="centre"),
         _line(ElementType.ROAD_BOUNDARY, _straight(8.75)[::-1], fid="curb_n"),
         _line(ElementType.STOP_LINE, [[95.0, -1.5], [95.0, 5.0]], fid="stop"),
-        LonLatFeature(ElementType.CROSSWALK, FRAME.to_lonlat(np.array([[97, -1.75], [100, -1.75], [100, 8.75],
-                                                                       [97, 8.75]], float)), None, "zebra"),
+        LonLatFeature(
+            ElementType.CROSSWALK,
+            FRAME.to_lonlat(np.array([[97, -1.75], [100, -1.75], [100, 8.75], [97, 8.75]], float)),
+            None,
+            "zebra",
+        ),
     ]
 
 
@@ -62,8 +68,10 @@ def _parse(xml: bytes) -> tuple[dict, dict, dict]:
     tags = lambda el: {t.get("k"): t.get("v") for t in el.findall("tag")}  # noqa: E731
     nodes = {n.get("id"): (float(n.attrib["lon"]), float(n.attrib["lat"])) for n in root.findall("node")}
     ways = {w.get("id"): ([nd.get("ref") for nd in w.findall("nd")], tags(w)) for w in root.findall("way")}
-    rels = {r.get("id"): ({m.get("role"): m.get("ref") for m in r.findall("member")}, tags(r))
-            for r in root.findall("relation")}
+    rels = {
+        r.get("id"): ({m.get("role"): m.get("ref") for m in r.findall("member")}, tags(r))
+        for r in root.findall("relation")
+    }
     return nodes, ways, rels
 
 
@@ -123,7 +131,12 @@ def _junction_features() -> list[LonLatFeature]:
         _line(bnd, _straight(-1.75, 0, 50), fid="in_r"),
         _line(div, _straight(1.75, 70, 150), DividerStyle.SOLID, fid="east_l"),
         _line(bnd, _straight(-1.75, 70, 150), fid="east_r"),
-        _line(div, np.column_stack([np.full(17, 68.25), np.linspace(20, 100, 17)]), DividerStyle.DASHED, fid="n_l"),
+        _line(
+            div,
+            np.column_stack([np.full(17, 68.25), np.linspace(20, 100, 17)]),
+            DividerStyle.DASHED,
+            fid="n_l",
+        ),
         _line(bnd, np.column_stack([np.full(17, 71.75), np.linspace(20, 100, 17)]), fid="n_r"),
     ]
 
@@ -149,19 +162,39 @@ def test_lane_without_paint_anywhere_is_skipped_and_counted():
 
 
 def test_geojson_adapter_and_errors():
-    doc = {"type": "FeatureCollection", "features": [
-        {"type": "Feature", "id": f.feature_id, "properties": {"type": f.type.value, "style": f.style and f.style.value},
-         "geometry": ({"type": "Polygon", "coordinates": [f.lonlat_deg.tolist() + [f.lonlat_deg[0].tolist()]]}
-                      if f.type.is_polygon else {"type": "LineString", "coordinates": f.lonlat_deg.tolist()})}
-        for f in _road_features()
-    ] + [{"type": "Feature", "properties": {"type": "traffic_light"}, "geometry": None}]}
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "id": f.feature_id,
+                "properties": {"type": f.type.value, "style": f.style and f.style.value},
+                "geometry": (
+                    {"type": "Polygon", "coordinates": [f.lonlat_deg.tolist() + [f.lonlat_deg[0].tolist()]]}
+                    if f.type.is_polygon
+                    else {"type": "LineString", "coordinates": f.lonlat_deg.tolist()}
+                ),
+            }
+            for f in _road_features()
+        ]
+        + [{"type": "Feature", "properties": {"type": "traffic_light"}, "geometry": None}],
+    }
     xml, m, ignored = export_lanelet2_geojson(doc)
     assert m.report.lanelets == 5 and ignored == {"unknown type": 1}
     with pytest.raises(ExportError):
         export_lanelet2_geojson({"type": "Feature"})
     with pytest.raises(ExportError, match=r"features\[0\]"):
-        export_lanelet2_geojson({"type": "FeatureCollection", "features": [
-            {"properties": {"type": "centerline"}, "geometry": {"type": "Point", "coordinates": [1, 2]}}]})
+        export_lanelet2_geojson(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "properties": {"type": "centerline"},
+                        "geometry": {"type": "Point", "coordinates": [1, 2]},
+                    }
+                ],
+            }
+        )
     with pytest.raises(ExportError):
         export_lanelet2([])
 
@@ -206,7 +239,9 @@ def _load(xml: bytes, tmp_path):
     path.write_bytes(xml)
     lmap, errors = lanelet2.io.loadRobust(str(path), LocalCartesianProjector(Origin(lat0, lon0)))
     assert errors == []
-    graph = lanelet2.routing.RoutingGraph(lmap, rules.create(rules.Locations.Germany, rules.Participants.Vehicle))
+    graph = lanelet2.routing.RoutingGraph(
+        lmap, rules.create(rules.Locations.Germany, rules.Participants.Vehicle)
+    )
     return lmap, graph, LocalFrame(lat0, lon0)
 
 
@@ -287,8 +322,12 @@ def test_urban_truth_round_trip(tmp_path):
     # a route across several junctions
     lanes = _by_lane(lmap)
     start = max(roads, key=lambda ll: len(graph.reachableSet(ll, 1e9, 0)))
-    far = max(graph.reachableSet(start, 1e9, 0), key=lambda ll: np.hypot(ll.centerline[0].x - start.centerline[0].x,
-                                              ll.centerline[0].y - start.centerline[0].y))
+    far = max(
+        graph.reachableSet(start, 1e9, 0),
+        key=lambda ll: np.hypot(
+            ll.centerline[0].x - start.centerline[0].x, ll.centerline[0].y - start.centerline[0].y
+        ),
+    )
     path = graph.getRoute(start, far).shortestPath()
     kinds = {ll.leftBound.attributes["type"] for ll in path}
     assert len(path) >= 10 and "virtual" in kinds  # it crossed junction connectors

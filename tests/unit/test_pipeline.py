@@ -107,8 +107,12 @@ def test_features_of_degraded_trips_are_flagged_and_those_only_they_support_held
     from csr_core.types import ElementType, MapFeature
 
     def feature(fid: str, trips: list[str]) -> MapFeature:
-        return MapFeature(ElementType.LANE_DIVIDER, np.array([[0.0, 0.0], [10.0, 0.0]]), feature_id=fid,
-                          properties={"trips": trips, "flags": []})
+        return MapFeature(
+            ElementType.LANE_DIVIDER,
+            np.array([[0.0, 0.0], [10.0, 0.0]]),
+            feature_id=fid,
+            properties={"trips": trips, "flags": []},
+        )
 
     ghost = feature("ghost", ["c"])
     features = [feature("both", ["a", "b"]), feature("clean", ["a"]), feature("only", ["b"])]

@@ -18,12 +18,16 @@ def test_integers_past_the_databases_columns_are_422_naming_the_parameter(raw: s
     assert (caught.value.status, caught.value.location) == (422, "query.since")
 
 
-@pytest.mark.parametrize(("raw", "value"), [(str(DB_INT_MAX), DB_INT_MAX), ("-7", -7), ("abc", None), ("1.5", None)])
+@pytest.mark.parametrize(
+    ("raw", "value"), [(str(DB_INT_MAX), DB_INT_MAX), ("-7", -7), ("abc", None), ("1.5", None)]
+)
 def test_integers_in_range_pass_and_non_integers_are_left_to_the_route(raw: str, value: int | None) -> None:
     assert check_int("path.v", raw) == value
 
 
-@pytest.mark.parametrize(("text", "bad"), [("a\x00b", True), ("\n", True), ("\x7f", True), ("trip-1:x.y", False)])
+@pytest.mark.parametrize(
+    ("text", "bad"), [("a\x00b", True), ("\n", True), ("\x7f", True), ("trip-1:x.y", False)]
+)
 def test_control_characters(text: str, bad: bool) -> None:
     assert has_control_characters(text) is bad
 

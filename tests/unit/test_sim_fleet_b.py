@@ -59,8 +59,11 @@ def _straight(n: int, speed_mps: float, dt_s: float = 0.1, heading_rad: float = 
 def _one_status(code: int) -> GnssParamsB:
     init = tuple(1.0 if k == code else 0.0 for k in range(4))
     return dataclasses.replace(
-        GnssParamsB(), initial_probs=init, transition_rate_per_s=((0.0,) * 4,) * 4,
-        multipath_rate_per_s=0.0, outage_rate_per_s=0.0,
+        GnssParamsB(),
+        initial_probs=init,
+        transition_rate_per_s=((0.0,) * 4,) * 4,
+        multipath_rate_per_s=0.0,
+        outage_rate_per_s=0.0,
     )
 
 
@@ -102,7 +105,9 @@ def test_gnss_course_noise_scales_with_one_over_speed_and_is_absent_when_slow():
     true_course_deg = np.degrees(np.pi / 2 - heading_rad)  # clockwise from north
     for speed in (2.0, 5.0, 20.0):
         t, poses = _straight(40_000, speed, heading_rad=heading_rad)
-        g = simulate_gnss_b(t, poses, params, np.zeros((0, 3)), np.random.default_rng(3), ReceiverB(True, 0.0))
+        g = simulate_gnss_b(
+            t, poses, params, np.zeros((0, 3)), np.random.default_rng(3), ReceiverB(True, 0.0)
+        )
         err_rad = np.angle(np.exp(1j * np.radians(g.course_deg[1:-1] - true_course_deg)))
         assert np.std(err_rad) * speed == pytest.approx(params.velocity_sigma_mps, rel=0.05)
     t, poses = _straight(1000, 0.5 * params.course_min_speed_mps)
@@ -131,14 +136,19 @@ def test_gnss_multipath_bursts_start_at_the_stated_rate_and_cost_the_rtk_fix():
 
 def test_odometry_scale_error_and_its_speed_dependence_are_recovered():
     params = dataclasses.replace(
-        OdometryParamsB(), gyro_white_rad_s=0.0, gyro_bias_init_sigma_rad_s=0.0, gyro_bias_rw_rad_s_per_sqrt_s=0.0
+        OdometryParamsB(),
+        gyro_white_rad_s=0.0,
+        gyro_bias_init_sigma_rad_s=0.0,
+        gyro_bias_rw_rad_s_per_sqrt_s=0.0,
     )
     odometer = OdometerB(scale_error=0.004, scale_per_mps=3.0e-4, gyro_scale_error=0.0)
     ratios = []
     for speed in (5.0, 25.0):
         t, poses = _straight(20_000, speed)
         odom, _ = simulate_odometry_b(t, poses, params, np.random.default_rng(6), odometer)
-        ratios.append(np.linalg.norm(odom[-1, :2] - odom[0, :2]) / np.linalg.norm(poses[-1, :2] - poses[0, :2]))
+        ratios.append(
+            np.linalg.norm(odom[-1, :2] - odom[0, :2]) / np.linalg.norm(poses[-1, :2] - poses[0, :2])
+        )
     k = (ratios[1] - ratios[0]) / 20.0
     e0 = ratios[0] - 1.0 - 5.0 * k
     assert k == pytest.approx(odometer.scale_per_mps, rel=0.02)
@@ -164,7 +174,9 @@ def test_gyro_bias_follows_a_random_walk_of_the_stated_rate():
 def test_odometry_holds_heading_at_standstill_and_starts_at_a_random_pose():
     t = np.arange(600) * 0.1
     poses = np.zeros((600, 3))
-    odom, _ = simulate_odometry_b(t, poses, OdometryParamsB(), np.random.default_rng(8), OdometerB(0.0, 0.0, 0.0))
+    odom, _ = simulate_odometry_b(
+        t, poses, OdometryParamsB(), np.random.default_rng(8), OdometerB(0.0, 0.0, 0.0)
+    )
     assert np.ptp(odom, axis=0) == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)
     assert np.linalg.norm(odom[0, :2]) > 1.0
 
@@ -179,10 +191,18 @@ def _line(eid: int, xy, kind=ElementType.LANE_DIVIDER, style=DividerStyle.SOLID)
 def _quiet(**changes) -> PerceptionParamsB:
     """No noise, no misses, no false positives, no rig error, unless changed."""
     base = dict(
-        point_sigma_base_m=0.0, point_sigma_quad_per_m2=0.0, offset_sigma_base_m=0.0,
-        offset_sigma_quad_per_m2=0.0, track_bias_sigma_m=0.0, miss_prob_base=0.0, miss_prob_range=0.0,
-        miss_prob_occlusion=0.0, small_element_miss_prob=0.0, false_positive_rate_per_frame=0.0,
-        track_switch_prob=0.0, style_confusion_prob=0.0,
+        point_sigma_base_m=0.0,
+        point_sigma_quad_per_m2=0.0,
+        offset_sigma_base_m=0.0,
+        offset_sigma_quad_per_m2=0.0,
+        track_bias_sigma_m=0.0,
+        miss_prob_base=0.0,
+        miss_prob_range=0.0,
+        miss_prob_occlusion=0.0,
+        small_element_miss_prob=0.0,
+        false_positive_rate_per_frame=0.0,
+        track_switch_prob=0.0,
+        style_confusion_prob=0.0,
     )
     return dataclasses.replace(PerceptionParamsB(), **{**base, **changes})
 
@@ -220,7 +240,9 @@ def test_occluded_mask_hides_what_lies_behind_a_box():
 
 def test_a_vehicle_ahead_hides_the_line_behind_it():
     params = _quiet()
-    index = build_truth_index_b((_line(1, [[0.0, 0.0], [29.0, 0.0]]), _line(2, [[0.0, 3.0], [29.0, 3.0]])), params)
+    index = build_truth_index_b(
+        (_line(1, [[0.0, 0.0], [29.0, 0.0]]), _line(2, [[0.0, 3.0], [29.0, 3.0]])), params
+    )
     ahead = np.array([[12.0, 0.0, 0.0, 4.6, 1.9]])
     (els,) = _frames(index, params, 1, seed=10, boxes=ahead)
     on_axis = [np.asarray(e["points"]) for e in els if abs(np.mean(e["points"], axis=0)[1]) < 1.0]
@@ -273,7 +295,9 @@ def test_dashed_divider_is_reported_dash_by_dash_near_and_as_one_run_far():
     index = build_truth_index_b((_line(1, [[-29.0, 1.7], [29.0, 1.7]], style=DividerStyle.DASHED),), params)
     (els,) = _frames(index, params, 1, seed=14)
     lengths = [float(np.ptp(np.asarray(e["points"])[:, 0])) for e in els]
-    near = [ln for ln, e in zip(lengths, els, strict=True) if np.abs(np.asarray(e["points"])[:, 0]).max() < 19.0]
+    near = [
+        ln for ln, e in zip(lengths, els, strict=True) if np.abs(np.asarray(e["points"])[:, 0]).max() < 19.0
+    ]
     assert len(near) >= 3 and all(ln <= params.dash_length_m + 0.01 for ln in near)
     assert max(lengths) > 5.0  # beyond the merge range the dashes are one instance
     assert all(e["style"] == "dashed" for e in els)
@@ -305,7 +329,9 @@ def test_fleet_b_uploads_validate_and_scenario_json_records_the_model(fleet_b_sc
     doc = json.loads((out / "scenario.json").read_text())
     assert doc["fleet"] == "b" and doc["profile"]["name"] == "fleet-b"
     assert len(doc["profile"]["gnss"]["status_errors"]) == 4 and "occluders" in doc["profile"]["perception"]
-    validator = jsonschema.Draft202012Validator(json.loads(SCHEMA.read_text()), format_checker=jsonschema.FormatChecker())
+    validator = jsonschema.Draft202012Validator(
+        json.loads(SCHEMA.read_text()), format_checker=jsonschema.FormatChecker()
+    )
     for path in sorted((out / "trips").glob("*.json.gz")):
         body = gzip.decompress(path.read_bytes())
         validate_upload_json(body)
@@ -341,6 +367,24 @@ def test_unknown_fleet_or_a_fleet_a_profile_with_fleet_b_is_an_error(tmp_path):
 def test_csr_simulate_takes_the_fleet_option(tmp_path):
     from services.cli import main
 
-    assert main(["simulate", "--world", "rural", "--trips", "1", "--trip-length-m", "60", "--seed", "2",
-                 "--fleet", "b", "--out", str(tmp_path / "s")]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--world",
+                "rural",
+                "--trips",
+                "1",
+                "--trip-length-m",
+                "60",
+                "--seed",
+                "2",
+                "--fleet",
+                "b",
+                "--out",
+                str(tmp_path / "s"),
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "s" / "scenario.json").read_text())["fleet"] == "b"

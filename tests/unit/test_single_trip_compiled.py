@@ -33,7 +33,9 @@ def test_project_measures_arclength_and_offset_from_the_nearest_backbone_point(s
     tangent /= np.linalg.norm(tangent, axis=1)[:, None]
     rel = points - backbone[nearest]
     np.testing.assert_allclose(s, arclength[nearest] + (rel * tangent[nearest]).sum(1), atol=1e-12)
-    np.testing.assert_allclose(d, tangent[nearest, 0] * rel[:, 1] - tangent[nearest, 1] * rel[:, 0], atol=1e-12)
+    np.testing.assert_allclose(
+        d, tangent[nearest, 0] * rel[:, 1] - tangent[nearest, 1] * rel[:, 0], atol=1e-12
+    )
     s_at, d_at = polyline.project_at(points, cKDTree(backbone).query(points)[1], columns, arclength)
     np.testing.assert_allclose(s_at, s, atol=1e-12)
     np.testing.assert_allclose(d_at, d, atol=1e-12)
@@ -45,7 +47,9 @@ def test_geometry_columns_are_the_points_and_their_unit_gradient():
     tangent = np.gradient(backbone, axis=0)
     np.testing.assert_allclose(columns[:2].T, backbone)
     np.testing.assert_allclose(columns[2:].T, tangent / np.linalg.norm(tangent, axis=1)[:, None], atol=1e-12)
-    np.testing.assert_allclose(arclength, np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(backbone, axis=0), axis=1))])
+    np.testing.assert_allclose(
+        arclength, np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(backbone, axis=0), axis=1))]
+    )
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -58,8 +62,9 @@ def test_resample_polyline_keeps_the_ends_and_equal_steps(seed):
     s = polyline.arclength(line)
     n = int(np.ceil(s[-1] / 0.5)) + 1
     q = np.linspace(0.0, s[-1], n)
-    np.testing.assert_allclose(out, np.column_stack([np.interp(q, s, line[:, 0]), np.interp(q, s, line[:, 1])]),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        out, np.column_stack([np.interp(q, s, line[:, 0]), np.interp(q, s, line[:, 1])]), atol=1e-9
+    )
     np.testing.assert_array_equal(polyline.resample_polyline(np.ones((3, 2)), 0.5), np.ones((1, 2)))
 
 
@@ -67,8 +72,9 @@ def test_resample_polyline_keeps_the_ends_and_equal_steps(seed):
 def test_cluster_sd_labels_cells_as_scipy_does(seed):
     rng = np.random.default_rng(seed)
     # three lines side by side, one with a gap longer than the reach, and scattered points
-    s = np.concatenate([rng.uniform(0, 80, 300), rng.uniform(0, 30, 100), rng.uniform(60, 90, 100),
-                        rng.uniform(0, 90, 20)])
+    s = np.concatenate(
+        [rng.uniform(0, 80, 300), rng.uniform(0, 30, 100), rng.uniform(60, 90, 100), rng.uniform(0, 90, 20)]
+    )
     d = np.concatenate([rng.normal(0, 0.05, 300), rng.normal(3.5, 0.05, 200), rng.uniform(-6, 8, 20)])
     bin_m, cell_m, reach = 1.0, 0.5, 7
     labels = profile.cluster_sd(s, d, bin_m, cell_m, reach)
@@ -79,7 +85,7 @@ def test_cluster_sd_labels_cells_as_scipy_does(seed):
     grid[sb, db] = True
     grown = np.zeros_like(grid)
     for a in range(grid.shape[0]):
-        grown[a] = grid[max(a - reach, 0):a + reach + 1].any(0)
+        grown[a] = grid[max(a - reach, 0) : a + reach + 1].any(0)
     expected, _ = label(grown, structure=np.ones((3, 3), dtype=bool))
     np.testing.assert_array_equal(labels, expected[sb, db] - 1)
     assert len(np.unique(labels)) >= 3
@@ -95,7 +101,7 @@ def test_binned_profile_takes_the_upper_middle_value_per_bin(seed):
     assert n_bins == bins.max() + 1
     for b in range(n_bins):
         values = np.sort(d[bins == b])
-        assert (np.isnan(med[b]) if len(values) == 0 else med[b] == values[len(values) // 2])
+        assert np.isnan(med[b]) if len(values) == 0 else med[b] == values[len(values) // 2]
     dev = np.abs(d - med[bins])
     assert profile.mixture_sigma(d, bins, med) == pytest.approx(1.4826 * np.median(dev), rel=1e-12)
 
@@ -121,8 +127,9 @@ def test_fit_profile_recovers_an_offset_line_and_rejects_outliers():
     bins, n_bins, med = profile.binned_profile(s, d, 1.0)
     kernel = np.exp(-0.5 * (np.arange(-8, 9) / 2.0) ** 2)
     kernel /= kernel.sum()
-    ok, line, inl, s_lo, s_hi, d_fit = profile.fit_profile(s, d, obs_id, bins, n_bins, med, 3.0, 1.0, kernel, 0.5,
-                                                     columns, arclength)
+    ok, line, inl, s_lo, s_hi, d_fit = profile.fit_profile(
+        s, d, obs_id, bins, n_bins, med, 3.0, 1.0, kernel, 0.5, columns, arclength
+    )
     assert ok
     assert not inl[:10].any() and inl[10:].mean() > 0.97
     assert abs(line[len(line) // 2, 1] - 0.3) < 0.02
@@ -140,7 +147,9 @@ def test_nearest_index_agrees_with_a_kd_tree(seed):
         np.testing.assert_array_equal(nearest, idx)
         np.testing.assert_allclose(np.sqrt(dist2), dist, atol=1e-12)
     # the first of equals, as argmin over all pairs
-    nearest, _ = search.nearest_index(np.zeros((1, 2)), np.array([1.0, -1.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0, 0.0]))
+    nearest, _ = search.nearest_index(
+        np.zeros((1, 2)), np.array([1.0, -1.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0, 0.0])
+    )
     assert nearest[0] == 0
 
 
@@ -155,7 +164,9 @@ def test_frames_near_and_in_range_agree_with_numpy(seed):
     lo, hi = samples.min(0) - reach, samples.max(0) + reach
     in_box = ((pos >= lo) & (pos <= hi)).all(1)
     near = np.linalg.norm(pos[:, None] - samples[None], axis=2).min(1) <= corner
-    np.testing.assert_array_equal(checks.frames_near(samples, poses, frames, reach, corner), np.flatnonzero(in_box & near))
+    np.testing.assert_array_equal(
+        checks.frames_near(samples, poses, frames, reach, corner), np.flatnonzero(in_box & near)
+    )
 
     box = np.array([-13.0, 28.0, -13.0, 13.0])
     rel = samples[None] - poses[:, None, :2]
@@ -193,24 +204,34 @@ def test_pair_distance_agrees_with_densely_sampled_segments(seed):
 
 
 def test_track_observations_densify_detections_and_move_them_into_the_world():
-    raw = np.array([[0.0, 0.0], [2.5, 0.0], [3.0, 0.0],  # piece 0: a 2.5 m step, then 0.5 m
-                    [5.0, 1.0], [5.0, 4.0],  # piece 1: one 3 m step
-                    [9.0, 9.0]])  # piece 2 (not in the track)
+    raw = np.array(
+        [
+            [0.0, 0.0],
+            [2.5, 0.0],
+            [3.0, 0.0],  # piece 0: a 2.5 m step, then 0.5 m
+            [5.0, 1.0],
+            [5.0, 4.0],  # piece 1: one 3 m step
+            [9.0, 9.0],
+        ]
+    )  # piece 2 (not in the track)
     offsets = np.array([0, 3, 5, 6])
     yaw = np.array([0.0, np.pi / 2])
     pose_x, pose_y = np.array([10.0, 0.0]), np.array([0.0, 20.0])
     points_v, obs_offsets, original, points_w, obs_id = observations.track_observations(
-        raw, offsets, np.array([0, 1]), np.cos(yaw), np.sin(yaw), pose_x, pose_y, 1.0)
+        raw, offsets, np.array([0, 1]), np.cos(yaw), np.sin(yaw), pose_x, pose_y, 1.0
+    )
     np.testing.assert_array_equal(obs_offsets, [0, 5, 9])  # 3 + 1 + 1 points, then 3 + 1
     np.testing.assert_allclose(points_v[:5, 0], [0.0, 2.5 / 3, 5.0 / 3, 2.5, 3.0])
     np.testing.assert_array_equal(original, [True, False, False, True, True, True, False, False, True])
     np.testing.assert_array_equal(obs_id, [0] * 5 + [1] * 4)
     np.testing.assert_allclose(points_w[:5], points_v[:5] + [10.0, 0.0])
-    np.testing.assert_allclose(points_w[5:], np.column_stack([-points_v[5:, 1], points_v[5:, 0]]) + [0.0, 20.0],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        points_w[5:], np.column_stack([-points_v[5:, 1], points_v[5:, 0]]) + [0.0, 20.0], atol=1e-12
+    )
     # polygons (no step limit): the vertices as sent
     points_v, obs_offsets, original, _, _ = observations.track_observations(
-        raw, offsets, np.array([1, 2]), np.ones(2), np.zeros(2), np.zeros(2), np.zeros(2), 0.0)
+        raw, offsets, np.array([1, 2]), np.ones(2), np.zeros(2), np.zeros(2), np.zeros(2), 0.0
+    )
     np.testing.assert_array_equal(points_v, raw[3:])
     assert original.all() and list(obs_offsets) == [0, 2, 3]
 
@@ -253,15 +274,33 @@ def test_the_warm_up_compiles_the_kernels_the_pipeline_calls():
     import subprocess
     import sys
 
-    script = ("import json\nfrom csr_core.single_trip.compiled.warm_up import kernels, main\nassert main() == 0\n"
-              "print(json.dumps({name: len(k.signatures) for name, k in kernels().items()}))")
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
+    script = (
+        "import json\nfrom csr_core.single_trip.compiled.warm_up import kernels, main\nassert main() == 0\n"
+        "print(json.dumps({name: len(k.signatures) for name, k in kernels().items()}))"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600
+    )
     compiled = json.loads(run.stdout.strip().splitlines()[-1])
-    called_from_python = ("checks.frames_in_range", "checks.frames_near", "checks.runs_along_observations",
-                          "growth.grow_backbone", "observations.pair_distance", "observations.track_observations",
-                          "polyline.geometry_columns", "polyline.project_at", "polyline.resample_polyline",
-                          "profile.binned_profile", "profile.cluster_sd", "profile.fit_profile", "profile.robust_ends",
-                          "profile.splice_residuals", "search.nearest_in_sorted", "search.seen_within",
-                          "search.sort_along_wider_axis", "search.within_radius")
+    called_from_python = (
+        "checks.frames_in_range",
+        "checks.frames_near",
+        "checks.runs_along_observations",
+        "growth.grow_backbone",
+        "observations.pair_distance",
+        "observations.track_observations",
+        "polyline.geometry_columns",
+        "polyline.project_at",
+        "polyline.resample_polyline",
+        "profile.binned_profile",
+        "profile.cluster_sd",
+        "profile.fit_profile",
+        "profile.robust_ends",
+        "profile.splice_residuals",
+        "search.nearest_in_sorted",
+        "search.seen_within",
+        "search.sort_along_wider_axis",
+        "search.within_radius",
+    )
     assert set(called_from_python) <= set(compiled)
     assert [name for name in called_from_python if not compiled[name]] == []

@@ -41,8 +41,9 @@ def _tracks_of(dashes: list[list[np.ndarray]], seed: int = 3):
                 members.append(len(frame))
                 frame.append(fr)
                 points.append(dash + rng.normal(0.0, 0.03, dash.shape))
-                elements.setdefault(fr, []).append(PerceivedElement(ElementType.LANE_DIVIDER, dash,
-                                                                    DividerStyle.DASHED))
+                elements.setdefault(fr, []).append(
+                    PerceivedElement(ElementType.LANE_DIVIDER, dash, DividerStyle.DASHED)
+                )
         index = np.array(members)
         order = np.lexsort((index, np.array(frame)[index]))
         tracks.append(Track(ElementType.LANE_DIVIDER, index[order], np.unique(np.array(frame)[index])))
@@ -53,15 +54,22 @@ def _tracks_of(dashes: list[list[np.ndarray]], seed: int = 3):
         element_index[q] = seen.get(fr, 0)
         seen[fr] = element_index[q] + 1
     pw = np.array(points)
-    pieces = Pieces(np.array(frame), element_index, np.full(len(frame), TYPE_CODES[ElementType.LANE_DIVIDER]),
-                    pw.copy(), pw)
+    pieces = Pieces(
+        np.array(frame),
+        element_index,
+        np.full(len(frame), TYPE_CODES[ElementType.LANE_DIVIDER]),
+        pw.copy(),
+        pw,
+    )
     return pieces, tracks, [tuple(elements.get(f, ())) for f in range(n_frames)], np.arange(n_frames)
 
 
 def _guide_line_dashes(centre, radius: float, start_rad: float, turn_rad: float) -> list[np.ndarray]:
     """3 m dashes, 6 m gaps, on a circle (counter-clockwise from ``start_rad``)."""
     step, dash = 9.0 / radius, 3.0 / radius
-    return [_arc(centre, radius, a, a + dash) for a in np.arange(start_rad, start_rad + turn_rad - dash, step)]
+    return [
+        _arc(centre, radius, a, a + dash) for a in np.arange(start_rad, start_rad + turn_rad - dash, step)
+    ]
 
 
 def test_dash_chord_of_a_straight_dash_and_of_an_arc():
@@ -92,7 +100,9 @@ def test_next_dash_on_the_circle_links_and_a_parallel_or_kinked_one_does_not():
     assert _facing_cost(chords[0], chords[1]) is not None
     parallel = dash_chord(9, np.stack([_arc((0.0, 0.0), 18.5, 9.0 / 18.5, 12.0 / 18.5)] * 4), DEFAULT)
     assert _facing_cost(chords[0], parallel) is None  # the next lane's line
-    kinked = dash_chord(9, np.stack([_line(dashes[1][0], np.pi / 2 + 9.0 / 15.0 + 0.6, 0.0, 3.0)] * 4), DEFAULT)
+    kinked = dash_chord(
+        9, np.stack([_line(dashes[1][0], np.pi / 2 + 9.0 / 15.0 + 0.6, 0.0, 3.0)] * 4), DEFAULT
+    )
     assert _facing_cost(chords[0], kinked) is None  # turns 34 degrees more than the arc
     assert _facing_cost(chords[0], chords[1], max_gap_m=5.0) is None  # the gap (6 m) beyond the limit
 
@@ -112,13 +122,19 @@ def test_two_guide_lines_mixed_in_one_track_are_cut_into_their_lines():
     # 25 m): the tracker chained dashes of both into one track; each line comes out whole, alone
     inner = _guide_line_dashes((0.0, 0.0), 15.0, 0.0, 1.6)
     outer = [d + np.array([-6.5, 0.0]) for d in _guide_line_dashes((0.0, 0.0), 25.0, 0.0, 1.0)]
-    pieces, tracks, elements, frames = _tracks_of([inner[:2] + outer[:2], *([d] for d in inner[2:] + outer[2:])])
+    pieces, tracks, elements, frames = _tracks_of(
+        [inner[:2] + outer[:2], *([d] for d in inner[2:] + outer[2:])]
+    )
     out = chain_dash_tracks(pieces, tracks, elements, frames, DEFAULT)
     points = [pieces.points_w[t.pieces].reshape(-1, 2) for t in out]
-    radii = [np.hypot(p[:, 0] - c, p[:, 1]) for p, c in
-             ((p, 0.0 if np.hypot(*p.mean(0)) < 18 else -6.5) for p in points)]
+    radii = [
+        np.hypot(p[:, 0] - c, p[:, 1])
+        for p, c in ((p, 0.0 if np.hypot(*p.mean(0)) < 18 else -6.5) for p in points)
+    ]
     assert len(out) == 2
-    assert sorted(len(t.pieces) for t in out) == sorted([len(inner) * FRAMES_PER_DASH, len(outer) * FRAMES_PER_DASH])
+    assert sorted(len(t.pieces) for t in out) == sorted(
+        [len(inner) * FRAMES_PER_DASH, len(outer) * FRAMES_PER_DASH]
+    )
     for r in radii:  # every dash on its own circle
         assert np.ptp(np.round(r)) <= 1.0
 
@@ -126,7 +142,9 @@ def test_two_guide_lines_mixed_in_one_track_are_cut_into_their_lines():
 def test_tracks_of_other_types_and_of_solid_lines_are_left_alone():
     dashes = _guide_line_dashes((0.0, 0.0), 15.0, -0.3, 2.2)
     pieces, tracks, elements, frames = _tracks_of([[d] for d in dashes])
-    solid = [tuple(PerceivedElement(e.type, e.points_xy_vehicle, DividerStyle.SOLID) for e in f) for f in elements]
+    solid = [
+        tuple(PerceivedElement(e.type, e.points_xy_vehicle, DividerStyle.SOLID) for e in f) for f in elements
+    ]
     assert chain_dash_tracks(pieces, tracks, solid, frames, DEFAULT) == tracks
     boundaries = [Track(ElementType.ROAD_BOUNDARY, t.pieces, t.frames) for t in tracks]
     assert chain_dash_tracks(pieces, boundaries, elements, frames, DEFAULT) == boundaries
@@ -137,7 +155,9 @@ def test_a_mixed_track_along_the_path_is_left_to_the_splicer():
     # the lines of such a track along the path, so it stays one track here
     inner = _guide_line_dashes((0.0, 0.0), 15.0, 0.0, 1.6)
     outer = [d + np.array([-6.5, 0.0]) for d in _guide_line_dashes((0.0, 0.0), 25.0, 0.0, 1.0)]
-    pieces, tracks, elements, frames = _tracks_of([inner[:2] + outer[:2], *([d] for d in inner[2:] + outer[2:])])
+    pieces, tracks, elements, frames = _tracks_of(
+        [inner[:2] + outer[:2], *([d] for d in inner[2:] + outer[2:])]
+    )
     along = np.stack([np.hypot(*pieces.points_w.transpose(2, 0, 1)), np.zeros(pieces.points_w.shape[:2])], -1)
     along[..., 0] += np.linspace(0.0, 3.0, K)  # every observation runs along the vehicle's x axis
     pieces = Pieces(pieces.frame, pieces.element, pieces.type_code, along, pieces.points_w)
@@ -162,12 +182,19 @@ def _two_lines_side_by_side(n_frames: int, seed: int = 5):
                     points_w.append(w)
                     points_v.append(w - [x_vehicle, 0.0])
                     line_of.append(line)
-                    seen.append(PerceivedElement(ElementType.LANE_DIVIDER, w - [x_vehicle, 0.0], DividerStyle.DASHED))
+                    seen.append(
+                        PerceivedElement(ElementType.LANE_DIVIDER, w - [x_vehicle, 0.0], DividerStyle.DASHED)
+                    )
         elements.append(tuple(seen))
     frame_arr = np.array(frame)
     element_index = np.concatenate([np.arange(np.sum(frame_arr == f)) for f in range(n_frames)])
-    pieces = Pieces(frame_arr, element_index, np.full(len(frame), TYPE_CODES[ElementType.LANE_DIVIDER]),
-                    np.array(points_v), np.array(points_w))
+    pieces = Pieces(
+        frame_arr,
+        element_index,
+        np.full(len(frame), TYPE_CODES[ElementType.LANE_DIVIDER]),
+        np.array(points_v),
+        np.array(points_w),
+    )
     track = Track(ElementType.LANE_DIVIDER, np.arange(len(frame)), np.arange(n_frames))
     return pieces, [track], elements, np.arange(n_frames), np.array(line_of)
 
@@ -178,8 +205,9 @@ def test_two_lines_side_by_side_for_a_junction_s_length_are_cut_into_their_lines
     pieces, tracks, elements, frames, line_of = _two_lines_side_by_side(6)
     out = chain_dash_tracks(pieces, tracks, elements, frames, DEFAULT)
     assert len(out) == 2
-    assert sorted(sorted(t.pieces.tolist()) for t in out) == sorted(np.flatnonzero(line_of == k).tolist()
-                                                                    for k in (0, 1))
+    assert sorted(sorted(t.pieces.tolist()) for t in out) == sorted(
+        np.flatnonzero(line_of == k).tolist() for k in (0, 1)
+    )
 
 
 def test_two_lines_side_by_side_over_a_long_stretch_are_left_to_the_splicer():

@@ -73,13 +73,19 @@ def test_noiseless_trip_reproduces_the_lines(curvature_1pm, tol_p95_m, tol_max_m
         assert d.max() < tol_max_m
 
 
-@pytest.mark.parametrize("spec", [
-    # the solid divider at 5.25 m seen shifted by a lane width for 6 frames, the right boundary for 5
-    SynthSpec(length_m=300.0, element_sigma_m=0.05, ghosts=((120, 125, 2, 3.5), (200, 204, 0, -3.5)), seed=5),
-    # the right boundary seen a lane further out in the trip's first 13 frames: three tracked frames,
-    # as few as an element the trip leaves behind (below), but the place stays in range unseen
-    SynthSpec(length_m=200.0, element_sigma_m=0.03, seed=7, ghosts=((0, 12, 0, -3.5),)),
-], ids=["mid-trip", "at-trip-start"])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        # the solid divider at 5.25 m seen shifted by a lane width for 6 frames, the right boundary for 5
+        SynthSpec(
+            length_m=300.0, element_sigma_m=0.05, ghosts=((120, 125, 2, 3.5), (200, 204, 0, -3.5)), seed=5
+        ),
+        # the right boundary seen a lane further out in the trip's first 13 frames: three tracked frames,
+        # as few as an element the trip leaves behind (below), but the place stays in range unseen
+        SynthSpec(length_m=200.0, element_sigma_m=0.03, seed=7, ghosts=((0, 12, 0, -3.5),)),
+    ],
+    ids=["mid-trip", "at-trip-start"],
+)
 def test_ghost_seen_for_a_few_frames_is_dropped(spec):
     trip, _, frame = make_trip(spec)
     rec = reconstruct_trip(trip, frame)
@@ -96,25 +102,39 @@ def test_an_element_seen_only_before_the_trip_left_it_behind_is_kept():
     spec = SynthSpec(length_m=200.0, element_sigma_m=0.03, seed=7, lines=(*SynthSpec().lines, behind))
     trip, _, frame = make_trip(spec)
     truth = line_points_world(spec, behind, 0.1)
-    seen_in = [i for i, f in enumerate(trip.elements) if any(
-        e.type == ElementType.ROAD_BOUNDARY and e.points_xy_vehicle[:, 1].mean() < -4.0 for e in f)]
+    seen_in = [
+        i
+        for i, f in enumerate(trip.elements)
+        if any(e.type == ElementType.ROAD_BOUNDARY and e.points_xy_vehicle[:, 1].mean() < -4.0 for e in f)
+    ]
     assert seen_in and max(seen_in) < 15  # the first 1.5 s of a 20 s trip
-    near = [i for i in _instances(reconstruct_trip(trip, frame), ElementType.ROAD_BOUNDARY)
-            if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5]
+    near = [
+        i
+        for i in _instances(reconstruct_trip(trip, frame), ElementType.ROAD_BOUNDARY)
+        if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5
+    ]
     assert len(near) == 1
     assert np.percentile(_dist_to_line(near[0].points_xy_world, truth), 95) < 0.15
     # the rule it passes: without it (as many frames as anywhere else) the boundary is dropped
     strict = replace(DEFAULT, TRACK_MIN_FRAMES_AT_TRIP_END=DEFAULT.TRACK_MIN_FRAMES)
-    assert not [i for i in _instances(reconstruct_trip(trip, frame, strict), ElementType.ROAD_BOUNDARY)
-                if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5]
+    assert not [
+        i
+        for i in _instances(reconstruct_trip(trip, frame, strict), ElementType.ROAD_BOUNDARY)
+        if np.median(_dist_to_line(i.points_xy_world, truth)) < 0.5
+    ]
 
 
 def test_dashed_divider_stays_one_instance():
     spec = SynthSpec(
-        length_m=300.0, element_sigma_m=0.03, seed=6,
-        lines=(SynthLine(ElementType.ROAD_BOUNDARY, -1.9),
-               SynthLine(ElementType.LANE_DIVIDER, 1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0)),
-               SynthLine(ElementType.ROAD_BOUNDARY, 5.4)))
+        length_m=300.0,
+        element_sigma_m=0.03,
+        seed=6,
+        lines=(
+            SynthLine(ElementType.ROAD_BOUNDARY, -1.9),
+            SynthLine(ElementType.LANE_DIVIDER, 1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0)),
+            SynthLine(ElementType.ROAD_BOUNDARY, 5.4),
+        ),
+    )
     trip, _, frame = make_trip(spec)
     # perception reports separate dashes
     assert max(sum(e.type == ElementType.LANE_DIVIDER for e in f) for f in trip.elements) >= 4
@@ -141,24 +161,42 @@ def test_dashed_divider_is_cut_where_its_paint_breaks_at_a_crossing(crossing_typ
     dashed = dict(type=ElementType.LANE_DIVIDER, offset_m=1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0))
     crossing = SynthCrossing(crossing_type, s_m=142.0, from_m=-1.9, to_m=5.4)
     spec = SynthSpec(
-        length_m=300.0, element_sigma_m=0.03, seed=6, crossings=(crossing,),
-        lines=(SynthLine(ElementType.ROAD_BOUNDARY, -1.9), SynthLine(**dashed, s_range_m=(0.0, 138.0)),
-               SynthLine(**dashed, s_range_m=(146.0, 400.0)), SynthLine(ElementType.ROAD_BOUNDARY, 5.4)))
+        length_m=300.0,
+        element_sigma_m=0.03,
+        seed=6,
+        crossings=(crossing,),
+        lines=(
+            SynthLine(ElementType.ROAD_BOUNDARY, -1.9),
+            SynthLine(**dashed, s_range_m=(0.0, 138.0)),
+            SynthLine(**dashed, s_range_m=(146.0, 400.0)),
+            SynthLine(ElementType.ROAD_BOUNDARY, 5.4),
+        ),
+    )
     trip, _, frame = make_trip(spec)
     geometry = _crossing_geometry(spec, crossing)
 
     def across(rec):
-        return [i for i in _instances(rec, ElementType.LANE_DIVIDER)
-                if shapely.LineString(i.points_xy_world).distance(geometry) < 1.0]
+        return [
+            i
+            for i in _instances(rec, ElementType.LANE_DIVIDER)
+            if shapely.LineString(i.points_xy_world).distance(geometry) < 1.0
+        ]
 
-    assert across(reconstruct_trip(trip, frame, replace(DEFAULT, PAINT_BREAKS=False)))  # bridged without the rule
+    assert across(
+        reconstruct_trip(trip, frame, replace(DEFAULT, PAINT_BREAKS=False))
+    )  # bridged without the rule
     rec = reconstruct_trip(trip, frame)
     assert _instances(rec, crossing_type)
     assert not across(rec)
     dividers = _instances(rec, ElementType.LANE_DIVIDER)
     assert len(dividers) == 2
-    on_line = [[np.percentile(_dist_to_line(d.points_xy_world, line_points_world(spec, line, 0.1)), 95) < 0.2
-                for line in spec.lines[1:3]] for d in dividers]
+    on_line = [
+        [
+            np.percentile(_dist_to_line(d.points_xy_world, line_points_world(spec, line, 0.1)), 95) < 0.2
+            for line in spec.lines[1:3]
+        ]
+        for d in dividers
+    ]
     assert sorted(on_line) == [[False, True], [True, False]]  # one instance on each painted line
 
 
@@ -169,8 +207,11 @@ def test_a_divider_seen_across_a_crosswalk_is_not_cut():
     rec = reconstruct_trip(trip, frame)
     assert _instances(rec, ElementType.CROSSWALK)
     geometry = _crossing_geometry(spec, crossing)
-    solid = [i for i in _instances(rec, ElementType.LANE_DIVIDER)
-             if shapely.LineString(i.points_xy_world).intersects(geometry)]
+    solid = [
+        i
+        for i in _instances(rec, ElementType.LANE_DIVIDER)
+        if shapely.LineString(i.points_xy_world).intersects(geometry)
+    ]
     assert len(solid) == 2  # both dividers of the default road, perceived unbroken through it, stay whole
     assert all(np.linalg.norm(np.diff(i.points_xy_world, axis=0), axis=1).sum() > 280.0 for i in solid)
 
@@ -228,7 +269,9 @@ def test_a_stretch_displaced_from_its_observations_beyond_the_trips_noise_is_cut
 
     rng = np.random.default_rng(7)
     x = np.arange(0.0, 40.0, DEFAULT.UNSEEN_CUT_STEP_M)
-    frames = [np.column_stack([x, 0.7 * ((x > 15) & (x < 25)) + rng.normal(0, 0.1, len(x))]) for _ in range(20)]
+    frames = [
+        np.column_stack([x, 0.7 * ((x > 15) & (x < 25)) + rng.normal(0, 0.1, len(x))]) for _ in range(20)
+    ]
     observed = ObservedPoints(np.vstack(frames))
     line = np.column_stack([np.arange(0.0, 40.5, 1.0), np.zeros(41)])
     sigma_m = robust_sigma(np.concatenate([f[:, 1] for f in frames])[np.tile((x <= 15) | (x >= 25), 20)])
@@ -325,7 +368,9 @@ def test_road_driven_twice_is_not_taken_for_a_ghost():
     back_pts = np.repeat(element[::8][None], 20, axis=0)  # (20, 6, 2): the return pass's detections
     back_frames = np.repeat(np.arange(20, 40), back_pts.shape[1])
     box = (-15.0, 30.0, -15.0, 15.0)
-    ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, cKDTree(back_pts.reshape(-1, 2)), back_frames, 0.9)
+    ratio = _visibility_ratio(
+        element, seen, frames, poses, box, 2.0, cKDTree(back_pts.reshape(-1, 2)), back_frames, 0.9
+    )
     assert ratio == pytest.approx(1.0)
     shifted = back_pts.reshape(-1, 2) + (0.0, 3.5)
     ratio = _visibility_ratio(element, seen, frames, poses, box, 2.0, cKDTree(shifted), back_frames, 0.9)
@@ -359,8 +404,11 @@ def test_dashed_line_crossed_in_a_junction_is_one_instance():
     rng = np.random.default_rng(3)
     guide = np.column_stack([np.linspace(-40.0, 40.0, 161), np.zeros(161)])
     dashes = [(y0, y0 + 3.0) for y0 in np.arange(-14.0, 14.0, 9.0)]
-    obs = [np.column_stack([5.0 + rng.normal(0.0, 0.03, 4), np.linspace(a, b, 4)])
-           for _ in range(6) for a, b in dashes]
+    obs = [
+        np.column_stack([5.0 + rng.normal(0.0, 0.03, 4), np.linspace(a, b, 4)])
+        for _ in range(6)
+        for a, b in dashes
+    ]
     counts = np.array([len(o) for o in obs])
     offsets = np.r_[0, np.cumsum(counts)]
     points = np.concatenate(obs)
@@ -449,8 +497,16 @@ def _with_crosswalks(trip, true_poses, outlines_w, sliding, slide_rng, box=(-15.
                 continue
             if slide:  # three vertices along each of the sides 0-1 and 2-3
                 a, b = np.sort(slide_rng.uniform(0.05, 0.95, (2, 3)), axis=1)
-                v = np.vstack([v[0], v[0] + a[:, None] * (v[1] - v[0]), v[1],
-                               v[2], v[2] + b[:, None] * (v[3] - v[2]), v[3]])
+                v = np.vstack(
+                    [
+                        v[0],
+                        v[0] + a[:, None] * (v[1] - v[0]),
+                        v[1],
+                        v[2],
+                        v[2] + b[:, None] * (v[3] - v[2]),
+                        v[3],
+                    ]
+                )
             extra.append(PerceivedElement(ElementType.CROSSWALK, v + slide_rng.normal(0.0, 0.03, v.shape)))
         elements.append(tuple(frame_elements) + tuple(extra))
     return dataclasses.replace(trip, elements=tuple(elements))
@@ -466,20 +522,34 @@ def test_crosswalk_with_sliding_vertices_is_not_taken_for_a_mixture():
     spec = SynthSpec(length_m=300.0, seed=7)
     trip, true, frame = make_trip(spec)
     outlines = []
-    for i, x0 in ((len(true) // 4, 10.0), (len(true) // 2, 10.0), (3 * len(true) // 4, 10.0),
-                  (3 * len(true) // 4, 15.0)):
+    for i, x0 in (
+        (len(true) // 4, 10.0),
+        (len(true) // 2, 10.0),
+        (3 * len(true) // 4, 10.0),
+        (3 * len(true) // 4, 15.0),
+    ):
         x, y, yaw = true[i]
         along, across = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
-        outlines.append(np.array([(x, y) + a0 * along + b * across
-                                  for a0, b in ((x0, -5.0), (x0, 8.0), (x0 + 4.0, 8.0), (x0 + 4.0, -5.0))]))
+        outlines.append(
+            np.array(
+                [
+                    (x, y) + a0 * along + b * across
+                    for a0, b in ((x0, -5.0), (x0, 8.0), (x0 + 4.0, 8.0), (x0 + 4.0, -5.0))
+                ]
+            )
+        )
     trip = _with_crosswalks(trip, true, outlines, (False, True, False, False), np.random.default_rng(1))
     n = len(true)
-    rec = reconstruct_trip(trip, frame, smoothed=SmoothedPoses(true, np.zeros(n), np.zeros(n), np.ones(n, bool),
-                                                               np.zeros(3)))
+    rec = reconstruct_trip(
+        trip, frame, smoothed=SmoothedPoses(true, np.zeros(n), np.zeros(n), np.ones(n, bool), np.zeros(3))
+    )
     found = _instances(rec, ElementType.CROSSWALK)
     assert len(found) == len(outlines)
     for outline in outlines:
-        got = min((inst.points_xy_world.mean(0) for inst in found), key=lambda p: np.linalg.norm(p - outline.mean(0)))
+        got = min(
+            (inst.points_xy_world.mean(0) for inst in found),
+            key=lambda p: np.linalg.norm(p - outline.mean(0)),
+        )
         assert np.linalg.norm(got - outline.mean(0)) < 0.6  # sliding vertices move the vertex mean
 
 
@@ -488,15 +558,22 @@ def test_duplicate_polygons_keep_the_one_fused_from_whole_outlines():
     from csr_core.types import TripInstance
 
     def cand(outline, n_obs):
-        inst = TripInstance(type=ElementType.CROSSWALK, points_xy_world=outline, style=None, n_observations=n_obs,
-                            first_frame=0, last_frame=1)
+        inst = TripInstance(
+            type=ElementType.CROSSWALK,
+            points_xy_world=outline,
+            style=None,
+            n_observations=n_obs,
+            first_frame=0,
+            last_frame=1,
+        )
         return inst, np.zeros(0), np.zeros(0)
 
     whole = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 12.0], [0.0, 12.0]])
     clipped_rectangle = whole[:, :] * (1.0, 0.5) + (0.5, 0.0)  # only the part seen, from another pass
     other = whole + (10.0, 0.0)
-    out = _without_duplicate_polygons([cand(clipped_rectangle, 9), cand(whole, 6), cand(other, 3)],
-                                      {id(whole): whole, id(other): other})
+    out = _without_duplicate_polygons(
+        [cand(clipped_rectangle, 9), cand(whole, 6), cand(other, 3)], {id(whole): whole, id(other): other}
+    )
     kept = [c[0].points_xy_world for c in out]
     assert len(kept) == 2
     assert any(k is whole for k in kept) and any(k is other for k in kept)
@@ -516,8 +593,15 @@ def _runs_along(line, points, obs_id):
     from csr_core.single_trip.params import DEFAULT
     from csr_core.single_trip.splicing import runs_along_observations
 
-    return runs_along_observations(line, points, obs_id, np.unique(obs_id), DEFAULT.TRACK_MAX_ANGLE_RAD,
-                                   DEFAULT.TRACK_GATE_M, DEFAULT.SPLICE_ACROSS_WINDOW_M)
+    return runs_along_observations(
+        line,
+        points,
+        obs_id,
+        np.unique(obs_id),
+        DEFAULT.TRACK_MAX_ANGLE_RAD,
+        DEFAULT.TRACK_GATE_M,
+        DEFAULT.SPLICE_ACROSS_WINDOW_M,
+    )
 
 
 def test_splice_along_its_dashes_is_kept_whole_gaps_included():
@@ -557,9 +641,11 @@ def test_splice_running_on_past_its_end_is_cut_where_it_crosses_another_divider(
         assert not ((part[:, 1] > 3.0) & (part[:, 0] > 30.0)).any()
 
 
-
-@pytest.mark.parametrize("params", [DEFAULT, replace(DEFAULT, INSTANCE_MIXTURE_MIN_SIGMA_M=0.0)],
-                         ids=["as shipped", "without the mixture floor"])
+@pytest.mark.parametrize(
+    "params",
+    [DEFAULT, replace(DEFAULT, INSTANCE_MIXTURE_MIN_SIGMA_M=0.0)],
+    ids=["as shipped", "without the mixture floor"],
+)
 def test_noiseless_dashed_dividers_are_not_taken_for_mixtures(tmp_path, params):
     # a simulated highway trip without any sensor error: the solid lines' residuals are ~0 (the
     # type's sigma 2 mm), a dashed divider's a centimetre (its dashes chained into one line); only a
@@ -571,7 +657,9 @@ def test_noiseless_dashed_dividers_are_not_taken_for_mixtures(tmp_path, params):
     trip_file = list_trip_files(tmp_path)[0]
     true_xy = meta.frame.to_local(read_poses_dir(tmp_path / "truth" / "poses")[trip_file.key].lonlat_deg)
     rec = reconstruct_trip(load_trip(trip_file), meta.frame, params)
-    scores = map_scores([MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map, true_xy)
+    scores = map_scores(
+        [MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map, true_xy
+    )
     dividers = scores.per_type[ElementType.LANE_DIVIDER]
     dashed = [i for i in _instances(rec, ElementType.LANE_DIVIDER) if i.style == DividerStyle.DASHED]
     if params.INSTANCE_MIXTURE_MIN_SIGMA_M > 0:
@@ -588,15 +676,19 @@ def test_a_wide_sensor_keeps_instances_within_the_map_corridor():
     # INSTANCE_MAX_LATERAL_M (15 m, the corridor contract section 6 scores) of the path is kept:
     # here none of it; the lines within 15 m are kept whole
     far = SynthLine(ElementType.ROAD_BOUNDARY, 21.75)
-    spec = SynthSpec(length_m=200.0, element_sigma_m=0.02, seed=3, bev_y_m=(-25.0, 25.0),
-                     lines=(*SynthSpec().lines, far))
+    spec = SynthSpec(
+        length_m=200.0, element_sigma_m=0.02, seed=3, bev_y_m=(-25.0, 25.0), lines=(*SynthSpec().lines, far)
+    )
     trip, _, frame = make_trip(spec)
     far_truth = line_points_world(spec, far, 0.1)
     assert any(e.points_xy_vehicle[:, 1].min() > 18.0 for f in trip.elements for e in f)  # perceived
     for params, kept in ((DEFAULT, False), (replace(DEFAULT, INSTANCE_MAX_LATERAL_M=30.0), True)):
         rec = reconstruct_trip(trip, frame, params)
-        near_far = [i for i in _instances(rec, ElementType.ROAD_BOUNDARY)
-                    if np.median(_dist_to_line(i.points_xy_world, far_truth)) < 0.5]
+        near_far = [
+            i
+            for i in _instances(rec, ElementType.ROAD_BOUNDARY)
+            if np.median(_dist_to_line(i.points_xy_world, far_truth)) < 0.5
+        ]
         assert bool(near_far) == kept
         assert len(rec.instances) >= len(SynthSpec().lines)
 
@@ -616,14 +708,22 @@ def test_a_splice_across_its_observations_everywhere_is_regrouped_not_dropped(tm
     truth = read_poses_dir(tmp_path / "truth" / "poses")[trip_file.key]
     true_xy = meta.frame.to_local(truth.lonlat_deg)
     n = len(true_xy)
-    poses = SmoothedPoses(np.column_stack([true_xy, heading_deg_to_yaw_rad(truth.heading_deg)]), np.zeros(n),
-                          np.zeros(n), np.ones(n, bool), np.zeros(3))
+    poses = SmoothedPoses(
+        np.column_stack([true_xy, heading_deg_to_yaw_rad(truth.heading_deg)]),
+        np.zeros(n),
+        np.zeros(n),
+        np.ones(n, bool),
+        np.zeros(3),
+    )
     trip = load_trip(trip_file)
     boundaries = {}
     for regroup in (True, False):
-        rec = reconstruct_trip(trip, meta.frame, replace(DEFAULT, SPLICE_REGROUP_ACROSS=regroup), smoothed=poses)
-        scores = map_scores([MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map,
-                            true_xy)
+        rec = reconstruct_trip(
+            trip, meta.frame, replace(DEFAULT, SPLICE_REGROUP_ACROSS=regroup), smoothed=poses
+        )
+        scores = map_scores(
+            [MapFeature(i.type, i.points_xy_world, i.style) for i in rec.instances], truth_map, true_xy
+        )
         boundaries[regroup] = scores.per_type[ElementType.ROAD_BOUNDARY]
     assert boundaries[True].completeness > boundaries[False].completeness + 0.01
     assert boundaries[True].correctness >= boundaries[False].correctness - 0.002
@@ -640,7 +740,9 @@ def test_observed_points_densified_see_a_vertex_between_two_points_as_given():
     assert ObservedPoints(points).seen(vertex, 0.4).tolist() == [False, True, False]
     assert ObservedPoints(points, np.array([0, 6]), 0.25).seen(vertex, 0.4).tolist() == [True, True, False]
     # two detections side by side: no step is inserted between one's last point and the next's first
-    two = ObservedPoints(np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [6.0, 0.0]]), np.array([0, 2, 4]), 0.25)
+    two = ObservedPoints(
+        np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [6.0, 0.0]]), np.array([0, 2, 4]), 0.25
+    )
     assert two.seen(np.array([[3.0, 0.0]]), 0.4).tolist() == [False]
 
 
@@ -671,8 +773,9 @@ def test_one_continuation_per_end_keeps_a_lane_with_its_straightest_connector():
     # only, and the two connectors start side by side: they do not continue each other
     from csr_core.single_trip.tracking import one_continuation_per_end
 
-    pieces = np.stack([_piece((-20.0, 0.0), (0.0, 0.0)), _piece((0.0, 0.0), (20.0, 0.0)),
-                       _piece((0.0, 0.0), (10.0, 1.5))])
+    pieces = np.stack(
+        [_piece((-20.0, 0.0), (0.0, 0.0)), _piece((0.0, 0.0), (20.0, 0.0)), _piece((0.0, 0.0), (10.0, 1.5))]
+    )
     a, b = np.array([0, 0, 1]), np.array([1, 2, 2])
     keep = one_continuation_per_end(pieces, a, b, np.array([0.05, 0.30, 0.20]), np.zeros(3, dtype=bool))
     assert keep.tolist() == [True, False, False]
@@ -683,8 +786,13 @@ def test_one_continuation_per_end_keeps_a_line_split_in_pieces_whole():
     # the outer pieces (20 m apart) is left out and the three stay one component
     from csr_core.single_trip.tracking import component_labels, one_continuation_per_end
 
-    pieces = np.stack([_piece((-30.0, 0.0), (-10.5, 0.0)), _piece((-10.0, 0.0), (10.0, 0.0)),
-                       _piece((10.5, 0.0), (30.0, 0.0))])
+    pieces = np.stack(
+        [
+            _piece((-30.0, 0.0), (-10.5, 0.0)),
+            _piece((-10.0, 0.0), (10.0, 0.0)),
+            _piece((10.5, 0.0), (30.0, 0.0)),
+        ]
+    )
     a, b = np.array([0, 0, 1]), np.array([1, 2, 2])
     exempt = np.array([False, False, True])  # kept as it is, whatever the others say
     keep = one_continuation_per_end(pieces, a, b, np.zeros(3), exempt)
@@ -700,9 +808,15 @@ def test_a_lane_and_its_connectors_are_one_track_without_the_rule_and_two_with_i
     from csr_core.single_trip.tracking import track_elements
     from csr_core.types import PerceivedElement
 
-    world = [_piece((-12.0, 0.0), (0.0, 0.0)), _piece((0.0, 0.0), (10.0, 0.0)), _piece((0.0, 0.0), (10.0, 1.0))]
+    world = [
+        _piece((-12.0, 0.0), (0.0, 0.0)),
+        _piece((0.0, 0.0), (10.0, 0.0)),
+        _piece((0.0, 0.0), (10.0, 1.0)),
+    ]
     poses = np.column_stack([-30.0 + 2.0 * np.arange(10), np.zeros(10), np.zeros(10)])
-    elements = tuple(tuple(PerceivedElement(ElementType.CENTERLINE, w - pose[:2]) for w in world) for pose in poses)
+    elements = tuple(
+        tuple(PerceivedElement(ElementType.CENTERLINE, w - pose[:2]) for w in world) for pose in poses
+    )
     frames, travel = np.arange(10), 2.0 * np.arange(10)
 
     def tracks_of(params):

@@ -39,11 +39,18 @@ def test_the_chain_is_the_gauss_markov_prior_exactly():
     sigma = rng.uniform(0.3, 0.8, n)  # the stationary sigma may change from node to node
     z = rng.normal(size=(n, 2)) + 1.0
     g, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    add_gauss_markov_chain(g, t, sigma, np.zeros(n, int), rng.normal(size=(n, 2)), tau)  # any linearisation point
+    add_gauss_markov_chain(
+        g, t, sigma, np.zeros(n, int), rng.normal(size=(n, 2)), tau
+    )  # any linearisation point
     for k in range(n):
         values.insert(_bias_key(k), gtsam.Pose2())
-        g.add(gtsam.PriorFactorPose2(_bias_key(k), gtsam.Pose2(z[k, 0], z[k, 1], 0.0),
-                                     gtsam.noiseModel.Diagonal.Sigmas(np.array([meas_sigma, meas_sigma, 1e3]))))
+        g.add(
+            gtsam.PriorFactorPose2(
+                _bias_key(k),
+                gtsam.Pose2(z[k, 0], z[k, 1], 0.0),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([meas_sigma, meas_sigma, 1e3])),
+            )
+        )
     result = gtsam.LevenbergMarquardtOptimizer(g, values).optimize()
     got = np.array([[result.atPose2(_bias_key(k)).x(), result.atPose2(_bias_key(k)).y()] for k in range(n)])
 
@@ -65,14 +72,22 @@ def test_a_new_fix_status_starts_a_new_bias():
     n, tau = 20, 100.0
     t = np.arange(n, dtype=float)
     solved = {}
-    for name, run in (("one run", np.zeros(n, int)), ("two runs", np.r_[np.zeros(10, int), np.ones(10, int)])):
+    for name, run in (
+        ("one run", np.zeros(n, int)),
+        ("two runs", np.r_[np.zeros(10, int), np.ones(10, int)]),
+    ):
         g, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         add_gauss_markov_chain(g, t, np.full(n, 0.5), run, np.zeros((n, 2)), tau)
         for k in range(n):
             values.insert(_bias_key(k), gtsam.Pose2())
         for k in range(10):
-            g.add(gtsam.PriorFactorPose2(_bias_key(k), gtsam.Pose2(1.0, 0.0, 0.0),
-                                         gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 1e3]))))
+            g.add(
+                gtsam.PriorFactorPose2(
+                    _bias_key(k),
+                    gtsam.Pose2(1.0, 0.0, 0.0),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 1e3])),
+                )
+            )
         result = gtsam.LevenbergMarquardtOptimizer(g, values).optimize()
         solved[name] = np.array([result.atPose2(_bias_key(k)).x() for k in range(n)])
     assert solved["one run"][10] == pytest.approx(np.exp(-1 / tau), abs=0.02)
@@ -124,8 +139,13 @@ def _wander_trip(seed: int):
     yaw = np.cumsum(np.where(turning, (np.pi / 2) / 50.0, 0.0) * np.where((t // 30.0) % 2 == 0, 1.0, -1.0))
     incr = np.column_stack([np.full(len(t), 0.7), np.zeros(len(t)), np.r_[np.diff(yaw), 0.0]])[:-1]
     true = integrate_increments(np.zeros(3), incr)
-    noisy = incr + np.column_stack([0.002 * np.sqrt(0.7) * rng.standard_normal(len(incr)), np.zeros(len(incr)),
-                                    0.0002 * rng.standard_normal(len(incr))])
+    noisy = incr + np.column_stack(
+        [
+            0.002 * np.sqrt(0.7) * rng.standard_normal(len(incr)),
+            np.zeros(len(incr)),
+            0.0002 * rng.standard_normal(len(incr)),
+        ]
+    )
     odom = integrate_increments(np.array([3.0, -2.0, 0.4]), noisy)
     gnss = true[:, :2] + _gauss_markov(len(t), 0.1, 600.0, 0.6, rng) + 0.05 * rng.standard_normal((len(t), 2))
     status = np.full(len(t), int(GnssStatus.SINGLE), np.uint8)
@@ -137,13 +157,17 @@ def test_a_wandering_gnss_bias_does_not_bend_the_trajectory() -> None:
     a state the smoothed trajectory keeps more of the odometry's shape than the white model (fixes
     inflated by their correlation time), which follows the wander. Trip-aligned error (each
     trip's own rigid offset removed, the single-trip measure) over four trips."""
-    models = {"state": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True),
-              "white": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False)}
+    models = {
+        "state": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True),
+        "white": dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False),
+    }
     errors: dict[str, list[np.ndarray]] = {"state": [], "white": []}
     for seed in range(4):
         t, true, odom, gnss, status, std = _wander_trip(seed)
         for name, params in models.items():
-            est = smooth_poses(t, gnss, status, std, np.full(len(t), np.nan), odom, params).poses_xyyaw_world[:, :2]
+            est = smooth_poses(t, gnss, status, std, np.full(len(t), np.nan), odom, params).poses_xyyaw_world[
+                :, :2
+            ]
             aligned = metrics.apply_se2(metrics.umeyama_se2(est, true[:, :2]), est)
             errors[name].append(metrics.position_errors(aligned, true[:, :2]))
     rms = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in errors.items()}
@@ -158,7 +182,9 @@ def test_the_bias_state_keeps_the_white_solve_for_the_alignment_s_chain():
     t, _, odom, gnss, status, std = _wander_trip(0)
     heading = np.full(len(t), np.nan)
     on = smooth_poses(t, gnss, status, std, heading, odom, dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=True))
-    off = smooth_poses(t, gnss, status, std, heading, odom, dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False))
+    off = smooth_poses(
+        t, gnss, status, std, heading, odom, dataclasses.replace(DEFAULT, GNSS_BIAS_STATE=False)
+    )
     assert off.white_poses_xyyaw_world is None
     np.testing.assert_allclose(on.white_poses_xyyaw_world, off.poses_xyyaw_world, atol=1e-9)
     moved = np.linalg.norm(on.poses_xyyaw_world[:, :2] - on.white_poses_xyyaw_world[:, :2], axis=1)

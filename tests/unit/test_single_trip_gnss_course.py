@@ -77,8 +77,13 @@ def _weaving_trip(seed: int):
     yaw_rate = 0.05 * np.sin(t / 9.0)
     incr = np.column_stack([speed[:-1] * 0.1, np.zeros(n - 1), yaw_rate[:-1] * 0.1])
     true = integrate_increments(np.zeros(3), incr)
-    noisy = incr + np.column_stack([0.002 * np.sqrt(incr[:, 0]) * rng.standard_normal(n - 1), np.zeros(n - 1),
-                                    0.0002 * rng.standard_normal(n - 1)])
+    noisy = incr + np.column_stack(
+        [
+            0.002 * np.sqrt(incr[:, 0]) * rng.standard_normal(n - 1),
+            np.zeros(n - 1),
+            0.0002 * rng.standard_normal(n - 1),
+        ]
+    )
     odom = integrate_increments(np.array([3.0, -2.0, 0.4]), noisy)
     phi = np.exp(-0.1 / 60.0)
     bias = np.zeros((n, 2))
@@ -87,7 +92,9 @@ def _weaving_trip(seed: int):
         bias[k] = phi * bias[k - 1] + 0.5 * np.sqrt(1 - phi**2) * rng.standard_normal(2)
     gnss = true[:, :2] + bias + 0.08 * rng.standard_normal((n, 2))
     status = np.full(n, int(GnssStatus.DGPS), np.uint8)
-    heading_deg = np.degrees(np.pi / 2 - (true[:, 2] + np.radians(1.0) * 10.0 / speed * rng.standard_normal(n)))
+    heading_deg = np.degrees(
+        np.pi / 2 - (true[:, 2] + np.radians(1.0) * 10.0 / speed * rng.standard_normal(n))
+    )
     return t, true, odom, gnss, status, np.full(n, 0.5), np.mod(heading_deg, 360.0)
 
 
@@ -96,8 +103,10 @@ def test_every_fix_s_course_holds_the_trajectory_s_shape_against_the_gnss_bias()
     only for seconds and the wandering position bias cannot tell. Every course, weighed by its
     measured noise, holds it: the trip-aligned error (the single-trip measure) over four trips is
     lower than with one course per node at the fixed 3 degrees."""
-    models = {"per_fix": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=True),
-              "per_node": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=False)}
+    models = {
+        "per_fix": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=True),
+        "per_node": dataclasses.replace(DEFAULT, GNSS_HEADING_PER_FIX=False),
+    }
     errors: dict[str, list[np.ndarray]] = {k: [] for k in models}
     for seed in range(4):
         t, true, odom, gnss, status, std, heading = _weaving_trip(seed)

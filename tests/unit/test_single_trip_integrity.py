@@ -17,9 +17,12 @@ DT_S = 0.1
 RING_RADIUS_M = 20.0
 
 
-def _loop_drive(laps: float = 18.0, approach_m: float = 40.0, standstill_s: float = 3.0,
-                stops: tuple[tuple[float, float], ...] = ((150.0, 20.0), (320.0, 12.0), (470.0, 25.0))
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _loop_drive(
+    laps: float = 18.0,
+    approach_m: float = 40.0,
+    standstill_s: float = 3.0,
+    stops: tuple[tuple[float, float], ...] = ((150.0, 20.0), (320.0, 12.0), (470.0, 25.0)),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A trip like a delivery round: standing still, a straight approach, then laps of a ring
     of ``RING_RADIUS_M`` at 7 m/s, with stops (time s, wait s). Returns (t, true poses, increments)."""
     ring_m = 2 * np.pi * RING_RADIUS_M
@@ -43,8 +46,13 @@ def _loop_drive(laps: float = 18.0, approach_m: float = 40.0, standstill_s: floa
     return t, integrate_increments(np.zeros(3), incr), incr
 
 
-def _gnss(true_xy: np.ndarray, rng: np.random.Generator, bias_sigma_m: float = 0.85, tau_s: float = 60.0,
-          white_m: float = 0.3) -> np.ndarray:
+def _gnss(
+    true_xy: np.ndarray,
+    rng: np.random.Generator,
+    bias_sigma_m: float = 0.85,
+    tau_s: float = 60.0,
+    white_m: float = 0.3,
+) -> np.ndarray:
     """Fixes with a first-order Gauss-Markov bias per axis plus white noise."""
     n = len(true_xy)
     a = np.exp(-DT_S / tau_s)
@@ -184,7 +192,9 @@ def test_a_trip_the_repair_cannot_fix_is_marked_degraded_and_anchored_to_its_gns
     assert quality.verdict == TripVerdict.DEGRADED and quality.degraded
     assert "the repair failed too" in quality.reason and quality.reason.endswith("kept")
     # of the three solves, the one kept is the least far from the trip's GNSS
-    assert quality.median_offset_m <= _median_offset(smoothed_plain(t, gnss, status, std, course, odom, stiff), gnss)
+    assert quality.median_offset_m <= _median_offset(
+        smoothed_plain(t, gnss, status, std, course, odom, stiff), gnss
+    )
 
 
 def test_aligned_poses_within_the_gnss_error_model_are_kept_and_a_bad_shift_is_reverted():
@@ -199,9 +209,16 @@ def test_aligned_poses_within_the_gnss_error_model_are_kept_and_a_bad_shift_is_r
     rng = np.random.default_rng(21)
     t, true, _, _, status, std, _ = _loop_trip(16, 0.0)
     frame = LocalFrame(48.0, 11.0)
-    gnss = true[:, :2] + np.array([1.77, -1.77]) + rng.normal(scale=0.1, size=(len(t), 2))  # |bias| = 2.5 sigma
-    trip = SimpleNamespace(fix_status=status, gnss_std_m=std, has_fix=np.ones(len(t), bool), timestamps_s=t,
-                           gnss_lonlat_deg=frame.to_lonlat(gnss))
+    gnss = (
+        true[:, :2] + np.array([1.77, -1.77]) + rng.normal(scale=0.1, size=(len(t), 2))
+    )  # |bias| = 2.5 sigma
+    trip = SimpleNamespace(
+        fix_status=status,
+        gnss_std_m=std,
+        has_fix=np.ones(len(t), bool),
+        timestamps_s=t,
+        gnss_lonlat_deg=frame.to_lonlat(gnss),
+    )
     single = true.copy()
     single[:, :2] = gnss  # the single-trip poses follow the fixes
     kept, reason = check_aligned_poses(trip, single, true, frame, DEFAULT)

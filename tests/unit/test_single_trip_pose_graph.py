@@ -24,8 +24,15 @@ pytestmark = pytest.mark.unit
 
 def _smooth(trip, frame):
     xy = frame.to_local(trip.gnss_lonlat_deg)
-    return smooth_poses(trip.timestamps_s, xy, trip.gnss_status, trip.gnss_std_m, trip.gnss_heading_deg,
-                        trip.odom_xyyaw, DEFAULT), xy
+    return smooth_poses(
+        trip.timestamps_s,
+        xy,
+        trip.gnss_status,
+        trip.gnss_std_m,
+        trip.gnss_heading_deg,
+        trip.odom_xyyaw,
+        DEFAULT,
+    ), xy
 
 
 def test_local_frame_round_trip_is_far_below_a_millimetre():
@@ -59,8 +66,14 @@ def test_straight_drive_is_not_bent_by_a_gnss_jump():
 
 
 def test_gnss_outage_is_bridged_by_odometry():
-    spec = SynthSpec(length_m=600.0, gnss_sigma_m=0.2, gnss_outages=((250, 400),), curvature_1pm=0.002,
-                     odom_sigma_per_m=0.002, seed=4)
+    spec = SynthSpec(
+        length_m=600.0,
+        gnss_sigma_m=0.2,
+        gnss_outages=((250, 400),),
+        curvature_1pm=0.002,
+        odom_sigma_per_m=0.002,
+        seed=4,
+    )
     trip, true, frame = make_trip(spec)
     assert (trip.gnss_status[250:401] == GnssStatus.NONE).all()
     smoothed, _ = _smooth(trip, frame)
@@ -78,13 +91,16 @@ def test_trip_without_fix_raises():
         reconstruct_trip(trip, frame)
 
 
-
 def _held_at(trip, period_frames: int):
     """``trip`` as a receiver at 1 / ``period_frames`` of the frame rate logs it: each epoch's
     fix (position, status, std) copied into the frames up to the next epoch."""
     epoch = (np.arange(trip.n_frames) // period_frames) * period_frames
-    return dataclasses.replace(trip, gnss_lonlat_deg=trip.gnss_lonlat_deg[epoch], gnss_status=trip.gnss_status[epoch],
-                               gnss_std_m=trip.gnss_std_m[epoch])
+    return dataclasses.replace(
+        trip,
+        gnss_lonlat_deg=trip.gnss_lonlat_deg[epoch],
+        gnss_status=trip.gnss_status[epoch],
+        gnss_std_m=trip.gnss_std_m[epoch],
+    )
 
 
 def test_a_fix_held_over_the_frames_between_epochs_is_one_measurement():
@@ -95,18 +111,29 @@ def test_a_fix_held_over_the_frames_between_epochs_is_one_measurement():
     held = _held_at(trip, 10)
     assert held.held_fix.sum() == trip.n_frames - len(range(0, trip.n_frames, 10))
     assert not held.held_fix[::10].any() and not trip.held_fix.any()
-    epochs_only = dataclasses.replace(trip, gnss_status=np.where(np.arange(trip.n_frames) % 10 == 0, trip.gnss_status,
-                                                                 np.uint8(GnssStatus.NONE)).astype(np.uint8))
+    epochs_only = dataclasses.replace(
+        trip,
+        gnss_status=np.where(
+            np.arange(trip.n_frames) % 10 == 0, trip.gnss_status, np.uint8(GnssStatus.NONE)
+        ).astype(np.uint8),
+    )
 
     def rmse(t):
-        return float(np.sqrt(np.mean(np.sum((reconstruct_trip(t, frame).poses_xyyaw_world[:, :2] - true[:, :2]) ** 2,
-                                            axis=1))))
+        return float(
+            np.sqrt(
+                np.mean(
+                    np.sum((reconstruct_trip(t, frame).poses_xyyaw_world[:, :2] - true[:, :2]) ** 2, axis=1)
+                )
+            )
+        )
 
     assert rmse(held) == pytest.approx(rmse(epochs_only), abs=0.01)
     assert rmse(held) < 0.3
 
 
-def _winding_drive(t: np.ndarray, speed_mps: np.ndarray, yaw_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _winding_drive(
+    t: np.ndarray, speed_mps: np.ndarray, yaw_rad: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``(true poses (N, 3), body-frame increments (N-1, 3))`` of a drive at 10 Hz with the given
     speed and heading profiles."""
     incr = np.column_stack([speed_mps * 0.1, np.zeros_like(t), np.r_[np.diff(yaw_rad), 0.0]])[:-1]
@@ -193,7 +220,15 @@ def test_yaw_rate_bias_is_recovered_in_full():
     gnss = true[:, :2] + rng.normal(scale=0.3, size=(len(t), 2))
     sigma = np.full(len(t), 0.3)
     assert estimate_yaw_rate_bias(t, odom, gnss, sigma, np.ones(len(t), bool), 100.0)[0] == pytest.approx(
-        bias_rad_s, rel=0.05)
-    smoothed = smooth_poses(t, gnss, np.full(len(t), int(GnssStatus.RTK_FLOAT), np.uint8), sigma,
-                            np.full(len(t), np.nan), odom, DEFAULT)
+        bias_rad_s, rel=0.05
+    )
+    smoothed = smooth_poses(
+        t,
+        gnss,
+        np.full(len(t), int(GnssStatus.RTK_FLOAT), np.uint8),
+        sigma,
+        np.full(len(t), np.nan),
+        odom,
+        DEFAULT,
+    )
     assert smoothed.odom_yaw_rate_bias_rad_s == pytest.approx(bias_rad_s, rel=0.05)

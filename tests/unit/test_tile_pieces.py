@@ -37,16 +37,25 @@ def test_an_aligned_piece_moves_its_elements_with_its_alignment(piece):
     assert np.allclose(moved[0].points_xy_world, piece.instances[0].points_xy_world + [0.7, -0.2])
 
 
-@pytest.mark.parametrize("reason", ["no_consistent_match: none of 2 overlapping sub-maps passed",
-                                    "no_overlap: no other trip or map area shares this trip's road"])
+@pytest.mark.parametrize(
+    "reason",
+    [
+        "no_consistent_match: none of 2 overlapping sub-maps passed",
+        "no_overlap: no other trip or map area shares this trip's road",
+    ],
+)
 def test_a_piece_not_aligned_here_keeps_its_elements_in_the_map_at_its_own_poses(piece, reason):
     """A road only this trip drove in the tile, past junctions its crossing trips do not match,
     stays in the map (dropping it lost a whole road: docs/pipeline.md); it has no say on the trip's
     poses (they follow the trip's aligned tiles), and only an unmatched one is a failure here."""
     signed = np.full(piece.trip.n_frames, 50.0)
-    poses, weights, _, moved, failed = piece_outcome(piece, _result(piece, {piece.trip.key: reason}), signed, HALO_M)
+    poses, weights, _, moved, failed = piece_outcome(
+        piece, _result(piece, {piece.trip.key: reason}), signed, HALO_M
+    )
     assert np.allclose(poses, piece.poses_xyyaw_world)
     assert len(moved) == len(piece.instances) > 0
-    assert all(np.allclose(m.points_xy_world, i.points_xy_world) for m, i in zip(moved, piece.instances, strict=True))
+    assert all(
+        np.allclose(m.points_xy_world, i.points_xy_world) for m, i in zip(moved, piece.instances, strict=True)
+    )
     assert not weights.any()
     assert failed == (None if reason.startswith("no_overlap") else reason)

@@ -34,11 +34,20 @@ def _two_way_road(x0: float = 0.0, x1: float = 200.0) -> list[MapFeature]:
     the centre line out."""
     kerb = 2 * LANE_M + SHOULDER_M
 
-    def f(etype: ElementType, y: float, fid: str, support: int, style: DividerStyle | None = None) -> MapFeature:
-        return MapFeature(etype, _line(y, x0, x1), style, fid, {"uncertainty_m": 0.05, "support_trips": support})
+    def f(
+        etype: ElementType, y: float, fid: str, support: int, style: DividerStyle | None = None
+    ) -> MapFeature:
+        return MapFeature(
+            etype, _line(y, x0, x1), style, fid, {"uncertainty_m": 0.05, "support_trips": support}
+        )
 
-    return [f(LD, 0.0, "ld-centre", 5, DividerStyle.SOLID), f(LD, -LANE_M, "ld-right", 4, DividerStyle.DASHED),
-            f(LD, LANE_M, "ld-left", 3, DividerStyle.DASHED), f(RB, -kerb, "rb-right", 2), f(RB, kerb, "rb-left", 1)]
+    return [
+        f(LD, 0.0, "ld-centre", 5, DividerStyle.SOLID),
+        f(LD, -LANE_M, "ld-right", 4, DividerStyle.DASHED),
+        f(LD, LANE_M, "ld-left", 3, DividerStyle.DASHED),
+        f(RB, -kerb, "rb-right", 2),
+        f(RB, kerb, "rb-left", 1),
+    ]
 
 
 def _wander(path: np.ndarray, seed: int, sigma_m: float = 0.15) -> np.ndarray:
@@ -46,7 +55,11 @@ def _wander(path: np.ndarray, seed: int, sigma_m: float = 0.15) -> np.ndarray:
     rng = np.random.default_rng(seed)
     x = path[:, 0]
     phase = rng.uniform(0, 2 * np.pi, 2)
-    off = sigma_m * (np.sin(2 * np.pi * x / 70 + phase[0]) + np.sin(2 * np.pi * x / 130 + phase[1])) / np.sqrt(2)
+    off = (
+        sigma_m
+        * (np.sin(2 * np.pi * x / 70 + phase[0]) + np.sin(2 * np.pi * x / 130 + phase[1]))
+        / np.sqrt(2)
+    )
     return path + np.column_stack([np.zeros(len(x)), off])
 
 
@@ -89,7 +102,10 @@ def test_a_perceived_centreline_takes_precedence() -> None:
 
 def test_a_strip_wider_than_a_lane_is_left_alone() -> None:
     """Divider and kerb 8 m apart (a divider missing, or a parking strip): no centreline guessed."""
-    road = [MapFeature(LD, _line(0.0), DividerStyle.SOLID, "ld", {}), MapFeature(RB, _line(-8.0), None, "rb", {})]
+    road = [
+        MapFeature(LD, _line(0.0), DividerStyle.SOLID, "ld", {}),
+        MapFeature(RB, _line(-8.0), None, "rb", {}),
+    ]
     assert derive_centerlines(road, path_probes({"veh__t0": _line(-2.0)}), DEFAULT) == []
 
 
@@ -98,7 +114,9 @@ def _turn_path(radius_m: float = 12.0) -> np.ndarray:
     y0 = -LANE_M / 2
     a = np.linspace(-np.pi / 2, 0.0, 40)
     arc = np.column_stack([100 + radius_m * np.cos(a), y0 + radius_m + radius_m * np.sin(a)])
-    north = np.column_stack([np.full(100, 100 + radius_m), np.linspace(y0 + radius_m, y0 + radius_m + 100, 100)])
+    north = np.column_stack(
+        [np.full(100, 100 + radius_m), np.linspace(y0 + radius_m, y0 + radius_m + 100, 100)]
+    )
     return np.vstack([_line(y0, 0.0, 100.0), arc[1:], north[1:]])
 
 
@@ -139,8 +157,10 @@ def _fleet(keys: list[str], y_path: float) -> tuple[dict, dict, dict, dict]:
     """Trips that saw the two-way road's divider and kerbs (no centreline) and drove its right lane."""
     inst, noise, times, paths = {}, {}, {}, {}
     for k, key in enumerate(keys):
-        inst[key] = [TripInstance(f.type, f.points_xy_world.copy(), f.style, n_observations=20)
-                     for f in _two_way_road()]
+        inst[key] = [
+            TripInstance(f.type, f.points_xy_world.copy(), f.style, n_observations=20)
+            for f in _two_way_road()
+        ]
         noise[key], times[key] = NOISE, f"2026-01-0{k + 1}T00:00:00Z"
         paths[key] = _wander(_line(y_path), seed=k)
     return inst, noise, times, paths
@@ -161,7 +181,13 @@ def test_derived_centrelines_in_the_map_keep_their_ids_and_follow_updates() -> N
     driven = next(f for f in again if f.properties["direction"] == "driven")
     assert driven.properties["support_trips"] == 3
     assert driven.properties["last_confirmed"] == "2026-01-09T00:00:00Z"
-    rebuilt = generate_topology({**inst, **inst2}, {**noise, **noise2}, previous=second,
-                                trip_times={**times, **times2}, paths_xy_per_trip={**paths, **paths2})
+    rebuilt = generate_topology(
+        {**inst, **inst2},
+        {**noise, **noise2},
+        previous=second,
+        trip_times={**times, **times2},
+        paths_xy_per_trip={**paths, **paths2},
+    )
     assert sorted(f.feature_id for f in _centrelines(list(rebuilt.features)) if is_derived(f)) == sorted(
-        f.feature_id for f in lanes)
+        f.feature_id for f in lanes
+    )

@@ -35,8 +35,9 @@ def _noisy(points: np.ndarray, rng: np.random.Generator, sigma_m: float, bias_m:
 
 
 def _distance_to(points: np.ndarray, line: np.ndarray) -> np.ndarray:
-    dense = np.column_stack([np.interp(np.linspace(0, 1, 4000), np.linspace(0, 1, len(line)), line[:, i])
-                             for i in (0, 1)])
+    dense = np.column_stack(
+        [np.interp(np.linspace(0, 1, 4000), np.linspace(0, 1, len(line)), line[:, i]) for i in (0, 1)]
+    )
     _, d = project_on_polyline(points, dense)
     return np.abs(d)
 
@@ -59,8 +60,9 @@ def test_fusion_of_noisy_copies_converges_to_the_line() -> None:
     1 / sqrt(N)."""
     rng = np.random.default_rng(0)
     truth = _curve(np.arange(0.0, 120.0, 1.0))
-    dense = np.column_stack([np.interp(np.linspace(0, 1, 4000), np.linspace(0, 1, len(truth)), truth[:, i])
-                             for i in (0, 1)])
+    dense = np.column_stack(
+        [np.interp(np.linspace(0, 1, 4000), np.linspace(0, 1, len(truth)), truth[:, i]) for i in (0, 1)]
+    )
     for n_trips in (2, 8, 32):
         biases = rng.normal(0.0, 0.08, n_trips)
         trips = _trips([[_noisy(truth, rng, 0.05, b)] for b in biases])
@@ -137,7 +139,13 @@ def test_noisy_crosswalk_rectangles_fuse_into_one() -> None:
 def test_divider_style_by_weighted_vote() -> None:
     rng = np.random.default_rng(5)
     truth = _curve(np.arange(0.0, 80.0, 1.0))
-    styles = [DividerStyle.DASHED, DividerStyle.DASHED, DividerStyle.SOLID, DividerStyle.UNKNOWN, DividerStyle.DASHED]
+    styles = [
+        DividerStyle.DASHED,
+        DividerStyle.DASHED,
+        DividerStyle.SOLID,
+        DividerStyle.UNKNOWN,
+        DividerStyle.DASHED,
+    ]
     trips = _trips([[_noisy(truth, rng, 0.05)] for _ in styles], styles=styles)
     res = generate_topology(trips, _noise(trips))
     assert len(res.features) == 1
@@ -170,7 +178,9 @@ def test_reposition_instances_round_trip() -> None:
     to_poses = np.array([compose(correction, p) for p in from_poses])
     inst = TripInstance(LD, np.column_stack([x[10:60], np.full(50, 3.5)]), DividerStyle.SOLID, 5, 8, 62)
     (moved,) = reposition_instances([inst], from_poses, to_poses)
-    np.testing.assert_allclose(moved.points_xy_world, transform_points(correction, inst.points_xy_world), atol=1e-9)
+    np.testing.assert_allclose(
+        moved.points_xy_world, transform_points(correction, inst.points_xy_world), atol=1e-9
+    )
     (back,) = reposition_instances([moved], to_poses, from_poses)
     np.testing.assert_allclose(back.points_xy_world, inst.points_xy_world, atol=1e-9)
     assert moved.style == DividerStyle.SOLID and moved.n_observations == 5
@@ -194,7 +204,9 @@ def _drive(segments: list[tuple[float, float]], step_m: float = 0.5) -> np.ndarr
     """A line from (length m, curvature 1/m) pieces, heading integrated from the origin."""
     kappa = np.concatenate([np.full(int(length / step_m), k) for length, k in segments])
     heading = np.concatenate([[0.0], np.cumsum(kappa * step_m)])
-    return np.vstack([[0.0, 0.0], np.cumsum(step_m * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+    return np.vstack(
+        [[0.0, 0.0], np.cumsum(step_m * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)]
+    )
 
 
 def test_a_roundabout_pass_and_corners_are_road_shapes_not_zigzags() -> None:
@@ -205,7 +217,9 @@ def test_a_roundabout_pass_and_corners_are_road_shapes_not_zigzags() -> None:
     every 12 m is."""
     rng = np.random.default_rng(11)
     roundabout = _drive([(10.0, 0.0), (7.0, -0.1), (24.0, 1.0 / 12.0), (7.0, -0.1), (10.0, 0.0)])
-    corners = resample_polyline(np.array([[0.0, 0.0], [20.0, 0.0], [35.0, -8.0], [50.0, -12.0], [58.0, -25.0]]), 0.5)
+    corners = resample_polyline(
+        np.array([[0.0, 0.0], [20.0, 0.0], [35.0, -8.0], [50.0, -12.0], [58.0, -25.0]]), 0.5
+    )
     for line in (roundabout, corners):
         assert not is_zigzag(line + rng.normal(0.0, 0.03, line.shape), DEFAULT)
     x = np.arange(0.0, 60.0, 0.5)
@@ -238,16 +252,25 @@ def test_neighbour_searches_do_not_depend_on_the_block_size(monkeypatch) -> None
 
     rng = np.random.default_rng(11)
     x = np.linspace(0.0, 60.0, 61)
-    members = [association.Member(f"veh-1__t{k:02d}", 0, TripInstance(LD, _noisy(_curve(x, lane * 3.5), rng, 0.05),
-                                                                       DividerStyle.SOLID, n_observations=10), 0.05)
-               for k in range(12) for lane in (0, 1)]
+    members = [
+        association.Member(
+            f"veh-1__t{k:02d}",
+            0,
+            TripInstance(LD, _noisy(_curve(x, lane * 3.5), rng, 0.05), DividerStyle.SOLID, n_observations=10),
+            0.05,
+        )
+        for k in range(12)
+        for lane in (0, 1)
+    ]
     samples = association.sample_members(members, 1.0)
     gates = np.full(len(members), 0.3)
     one_block = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
     consensus = _consensus(samples.points_xy, samples.owner, gates, len(members))
     monkeypatch.setattr(association, "NEIGHBOUR_BLOCK_SAMPLES", 37)
     small_blocks = association.nearest_offsets(samples, 2.0, 1.0, False, 0.3)
-    np.testing.assert_array_equal(_consensus(samples.points_xy, samples.owner, gates, len(members)), consensus)
+    np.testing.assert_array_equal(
+        _consensus(samples.points_xy, samples.owner, gates, len(members)), consensus
+    )
     # a sample agrees with at most the 11 other copies of its lane (never its own member, never
     # the other lane), and most samples with most of them
     per_sample = (consensus - 1e-3 * np.bincount(samples.owner)) / np.bincount(samples.owner)
@@ -260,7 +283,6 @@ def test_neighbour_searches_do_not_depend_on_the_block_size(monkeypatch) -> None
     assert np.all(member % 2 == samples.owner[a] % 2)
     # ... a few centimetres across (two 5 cm noisy copies)
     assert np.median(lateral[inside]) < 0.1
-
 
 
 def _rounded(nodes: list[tuple[float, float]], corner_m: float = 10.0) -> np.ndarray:
@@ -300,7 +322,11 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
             a0 = float(rng.uniform(0.0, 0.4 * size))
             a1 = float(rng.uniform(a0 + 0.5 * size, size))
             along = np.arange(a0, a1, 1.0)
-            line = np.column_stack([along, np.full_like(along, c)]) if street < n else np.column_stack([np.full_like(along, c), along])
+            line = (
+                np.column_stack([along, np.full_like(along, c)])
+                if street < n
+                else np.column_stack([np.full_like(along, c), along])
+            )
             line = line[::-1] if rng.random() < 0.5 else line
             for b in range(n - 1):  # the blocks whose middle it saw
                 if a0 <= (b + 0.25) * block and a1 >= (b + 0.75) * block:
@@ -308,8 +334,14 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
         else:  # a turn at a junction: 25 m of a row, the corner, 25 m of a column
             x, y = block * rng.integers(1, n - 1), block * rng.integers(1, n - 1)
             line = _rounded([(x - 25.0, y), (x, y), (x, y + 25.0)])
-        trips[key] = [TripInstance(ElementType.CENTERLINE, _noisy(line, rng, 0.03, rng.normal(0.0, 0.05)),
-                                   None, n_observations=10)]
+        trips[key] = [
+            TripInstance(
+                ElementType.CENTERLINE,
+                _noisy(line, rng, 0.03, rng.normal(0.0, 0.05)),
+                None,
+                n_observations=10,
+            )
+        ]
 
     def one_line_per_block(lines: list[np.ndarray], trips_of_line: list[set[str]], among: set[str]) -> int:
         checked = 0
@@ -320,8 +352,11 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
             along = np.linspace((b + 0.25) * block, (b + 0.75) * block, 51)
             c = np.full_like(along, block * (street % n))
             middle = shapely.points(np.column_stack([along, c] if street < n else [c, along]))
-            on_it = [k for k, line in enumerate(lines)
-                     if np.median(shapely.distance(middle, shapely.LineString(line))) < 0.5]
+            on_it = [
+                k
+                for k, line in enumerate(lines)
+                if np.median(shapely.distance(middle, shapely.LineString(line))) < 0.5
+            ]
             assert len(on_it) == 1, (street, b, len(on_it))
             assert np.max(shapely.distance(middle, shapely.LineString(lines[on_it[0]]))) < 0.15
             assert trips_of_line[on_it[0]] >= keys
@@ -338,11 +373,18 @@ def test_a_street_grid_chained_by_turns_fuses_into_one_line_per_street() -> None
     assert len(streets) >= n // 2
     for xy in streets:  # each along one street: straight, on the grid
         assert min(np.ptp(xy[:, 0]), np.ptp(xy[:, 1])) < 1.0
-        assert np.min(np.abs(np.median(xy, axis=0) / block - np.round(np.median(xy, axis=0) / block))) * block < 0.2
+        assert (
+            np.min(np.abs(np.median(xy, axis=0) / block - np.round(np.median(xy, axis=0) / block))) * block
+            < 0.2
+        )
     result = generate_topology(trips, _noise(trips))
     lines = [f for f in result.features if f.type == ElementType.CENTERLINE]
-    assert one_line_per_block([f.points_xy_world for f in lines], [set(f.properties["trips"]) for f in lines],
-                              set(trips)) >= 30
+    assert (
+        one_line_per_block(
+            [f.points_xy_world for f in lines], [set(f.properties["trips"]) for f in lines], set(trips)
+        )
+        >= 30
+    )
 
 
 def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
@@ -363,12 +405,17 @@ def test_a_peeled_piece_along_a_fused_line_joins_it_and_others_stay() -> None:
     half = piece(np.column_stack([np.arange(60.0, 100.0, 1.0), np.zeros(40)]))
     on_other = piece(np.column_stack([xs, np.full_like(xs, 9.95)]))
     runs_on = piece(np.column_stack([np.arange(40.0, 90.0, 1.0), np.zeros(50)]))  # 10 m past the end
-    absorbed, rest = absorb_pieces([along, lane_away, crossing, half, on_other, runs_on], [line, other], DEFAULT)
+    absorbed, rest = absorb_pieces(
+        [along, lane_away, crossing, half, on_other, runs_on], [line, other], DEFAULT
+    )
     assert absorbed == [(0, 0), (4, 1), (5, 0)]
     assert rest[:3] == [lane_away, crossing, half]
     # what runs on past the line's end stays a piece, to be fused with whatever else goes on there
     assert len(rest) == 4 and rest[3].trip_key == runs_on.trip_key
-    assert 8.0 <= np.ptp(rest[3].instance.points_xy_world[:, 0]) <= 10.0 and rest[3].instance.points_xy_world[:, 0].min() > 79.0
+    assert (
+        8.0 <= np.ptp(rest[3].instance.points_xy_world[:, 0]) <= 10.0
+        and rest[3].instance.points_xy_world[:, 0].min() > 79.0
+    )
 
 
 def test_a_line_fused_twice_becomes_one_and_its_turn_stays() -> None:
@@ -378,9 +425,15 @@ def test_a_line_fused_twice_becomes_one_and_its_turn_stays() -> None:
     from csr_core.topology.fusion import FusedInstance, merge_twins
 
     def fused(xy: np.ndarray, trips: range) -> tuple[FusedInstance, tuple[Member, ...]]:
-        mem = tuple(Member(f"veh-1__t{k:02d}", 0, TripInstance(ElementType.CENTERLINE, xy, None, n_observations=5), 0.2)
-                    for k in trips)
-        return FusedInstance(ElementType.CENTERLINE, xy, None, tuple(range(len(mem))), (), 0.05, 1.0, 0.0, (), 0.0), mem
+        mem = tuple(
+            Member(
+                f"veh-1__t{k:02d}", 0, TripInstance(ElementType.CENTERLINE, xy, None, n_observations=5), 0.2
+            )
+            for k in trips
+        )
+        return FusedInstance(
+            ElementType.CENTERLINE, xy, None, tuple(range(len(mem))), (), 0.05, 1.0, 0.0, (), 0.0
+        ), mem
 
     x = np.arange(0.0, 100.5, 0.5)
     lane = fused(np.column_stack([x, np.zeros_like(x)]), range(0, 6))

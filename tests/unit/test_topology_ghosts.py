@@ -34,8 +34,11 @@ def _instances(lines: list[np.ndarray]) -> list[TripInstance]:
 
 
 def _topology(instances: dict[str, list[np.ndarray]], paths: dict[str, np.ndarray]):
-    return generate_topology({k: _instances(v) for k, v in instances.items()}, {k: NOISE for k in instances},
-                             paths_xy_per_trip=paths)
+    return generate_topology(
+        {k: _instances(v) for k, v in instances.items()},
+        {k: NOISE for k in instances},
+        paths_xy_per_trip=paths,
+    )
 
 
 def _near(features, y_m: float, x_m: float = 100.0) -> list[MapFeature]:
@@ -88,14 +91,16 @@ def test_a_line_of_a_road_only_one_trip_drove_stays_in_the_map() -> None:
 
 def test_passing_counts_want_the_path_alongside_within_reach() -> None:
     line = MapFeature(LD, _along_x(1.75, 50.0, 150.0), DividerStyle.SOLID, "f", {"trips": ["seen"]})
-    paths = path_probes({
-        "seen": _along_x(0.0),                      # saw it: never counted
-        "alongside": _along_x(-3.5),                # 5.25 m beside it, same direction
-        "opposite": _along_x(8.0)[::-1],            # 6.25 m beside it, driving the other way
-        "far": _along_x(1.75 + DEFAULT.PASS_LATERAL_M + 5.0),  # beyond the lateral reach
-        "crossing": _along_y(100.0),                # crosses it
-        "short": _along_x(0.0, 0.0, 70.0),          # alongside a fifth of it only
-    })
+    paths = path_probes(
+        {
+            "seen": _along_x(0.0),  # saw it: never counted
+            "alongside": _along_x(-3.5),  # 5.25 m beside it, same direction
+            "opposite": _along_x(8.0)[::-1],  # 6.25 m beside it, driving the other way
+            "far": _along_x(1.75 + DEFAULT.PASS_LATERAL_M + 5.0),  # beyond the lateral reach
+            "crossing": _along_y(100.0),  # crosses it
+            "short": _along_x(0.0, 0.0, 70.0),  # alongside a fifth of it only
+        }
+    )
     assert passing_counts([line], paths, DEFAULT) == [2]
     crosswalk = MapFeature(ElementType.CROSSWALK, np.array([[0.0, 0], [4, 0], [4, 3], [0, 3]]), None, "c", {})
     assert passing_counts([crosswalk], paths, DEFAULT) == [0]  # polygons: no along-the-road evidence

@@ -27,9 +27,15 @@ def _road(x0: float, length_m: float = 150.0, n_lines: int = 3) -> list[tuple[El
 
 def _trip(elements, rng: np.random.Generator, shift_y_m: float = 0.0) -> list[TripInstance]:
     bias = rng.normal(0.0, 0.05)
-    return [TripInstance(t, p + rng.normal(0.0, 0.04, p.shape) + [0.0, bias + shift_y_m],
-                         DividerStyle.DASHED if t == ElementType.LANE_DIVIDER else None, n_observations=12)
-            for t, p in elements]
+    return [
+        TripInstance(
+            t,
+            p + rng.normal(0.0, 0.04, p.shape) + [0.0, bias + shift_y_m],
+            DividerStyle.DASHED if t == ElementType.LANE_DIVIDER else None,
+            n_observations=12,
+        )
+        for t, p in elements
+    ]
 
 
 def _build(n_trips: int, seed: int, start: int = 0) -> tuple[dict, dict]:
@@ -44,8 +50,12 @@ def test_stable_ids_survive_adding_trips_rebuild_and_incremental() -> None:
     assert len(first.features) == 3
     more, more_noise = _build(3, seed=11, start=3)
     # rebuild with all trips, ids continue
-    rebuilt = generate_topology({**trips, **more}, {**noise, **more_noise}, previous=first,
-                                trip_times={k: k for k in {**trips, **more}})
+    rebuilt = generate_topology(
+        {**trips, **more},
+        {**noise, **more_noise},
+        previous=first,
+        trip_times={k: k for k in {**trips, **more}},
+    )
     assert sorted(f.feature_id for f in rebuilt.features) == sorted(f.feature_id for f in first.features)
     assert all(f.properties["support_trips"] == 6 for f in rebuilt.features)
     # incremental update, ids continue, first_seen kept, last_confirmed moves on
@@ -155,10 +165,12 @@ def test_a_match_pair_with_a_high_residual_flags_the_instances_near_it() -> None
     from types import SimpleNamespace
 
     trips, noise = _build(4, seed=15)
-    pair = SimpleNamespace(centre_xy_world=(70.0, 3.0), residual_rms_m=0.5, trip_key_i="veh-1__t00",
-                           trip_key_j="veh-1__t01")  # alignment.MatchPairRecord fields used
-    fine = SimpleNamespace(centre_xy_world=(70.0, 3.0), residual_rms_m=0.1, trip_key_i="veh-1__t00",
-                           trip_key_j="veh-1__t01")
+    pair = SimpleNamespace(
+        centre_xy_world=(70.0, 3.0), residual_rms_m=0.5, trip_key_i="veh-1__t00", trip_key_j="veh-1__t01"
+    )  # alignment.MatchPairRecord fields used
+    fine = SimpleNamespace(
+        centre_xy_world=(70.0, 3.0), residual_rms_m=0.1, trip_key_i="veh-1__t00", trip_key_j="veh-1__t01"
+    )
     flagged = generate_topology(trips, noise, match_pairs=[pair])
     assert all("high_residual_pair" in f.properties["flags"] for f in flagged.features)
     clean = generate_topology(trips, noise, match_pairs=[fine])

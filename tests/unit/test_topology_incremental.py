@@ -33,9 +33,14 @@ def _lateral_to(points: np.ndarray, line: np.ndarray) -> np.ndarray:
     return np.abs(project_on_polyline(points, _dense(line))[1])
 
 
-def _trip(key: str, lines: list[np.ndarray], etype: ElementType = LD, t: str = "2026-01-01T00:00:00Z") -> tuple:
-    return ({key: [TripInstance(etype, p, DividerStyle.SOLID, n_observations=10) for p in lines]},
-            {key: NOISE}, {key: t})
+def _trip(
+    key: str, lines: list[np.ndarray], etype: ElementType = LD, t: str = "2026-01-01T00:00:00Z"
+) -> tuple:
+    return (
+        {key: [TripInstance(etype, p, DividerStyle.SOLID, n_observations=10) for p in lines]},
+        {key: NOISE},
+        {key: t},
+    )
 
 
 def _noisy_copy(truth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -58,7 +63,10 @@ def test_adding_trips_one_by_one_keeps_a_tight_curve() -> None:
     each time) and as close to it as the batch fusion of all 33 trips."""
     rng = np.random.default_rng(3)
     truth = _arc(25.0, 0.0, np.pi / 2)
-    trips = [_trip(f"veh-1__t{k:02d}", [_noisy_copy(truth, rng)], t=f"2026-01-01T00:{k:02d}:00Z") for k in range(33)]
+    trips = [
+        _trip(f"veh-1__t{k:02d}", [_noisy_copy(truth, rng)], t=f"2026-01-01T00:{k:02d}:00Z")
+        for k in range(33)
+    ]
 
     def merged(parts) -> tuple[dict, dict, dict]:
         inst: dict = {}
@@ -97,11 +105,15 @@ def test_a_new_trip_a_metre_off_is_rejected_and_does_not_move_the_line() -> None
     bent[30:50, 1] += 1.0  # a metre off over 20 m (e.g. a wrongly spliced detection)
     state = update_topology(state, *_trip("veh-9__bad", [bent])[:2])
     # the bent run is peeled off and stands alone, flagged; the divider keeps its line
-    main, *rest = sorted((f for f in state.features if f.type == LD), key=lambda f: -f.properties["support_trips"])
+    main, *rest = sorted(
+        (f for f in state.features if f.type == LD), key=lambda f: -f.properties["support_trips"]
+    )
     assert float(np.max(_lateral_to(main.points_xy_world[3:-3], before))) < 0.02
     assert main.properties["support_trips"] == 11
-    assert all(f.properties["trips"] == ["veh-9__bad"] and set(f.properties["flags"]) - {"outlier_trip"}
-               for f in rest)
+    assert all(
+        f.properties["trips"] == ["veh-9__bad"] and set(f.properties["flags"]) - {"outlier_trip"}
+        for f in rest
+    )
     stray = np.concatenate([f.points_xy_world for f in rest]) if rest else np.zeros((0, 2))
     assert len(stray) and float(np.median(stray[:, 1])) > 0.8  # what was peeled off is the bent run
 
@@ -117,14 +129,21 @@ def test_trips_chained_through_lane_changes_fuse_with_their_kind() -> None:
     change_ab = np.column_stack([x, np.clip((x - 90.0) / 20.0, 0.0, 1.0) * 3.5])
     change_bc = np.column_stack([x, 3.5 + np.clip((x - 90.0) / 20.0, 0.0, 1.0) * 3.5])
     paths = [lane_a] * 6 + [change_ab] * 4 + [lane_b] * 12 + [change_bc] * 4 + [lane_c] * 14
-    inst = {f"veh-1__t{k:02d}": [TripInstance(CL, p + rng.normal(0.0, 0.04, p.shape), None, 10)]
-            for k, p in enumerate(paths)}
+    inst = {
+        f"veh-1__t{k:02d}": [TripInstance(CL, p + rng.normal(0.0, 0.04, p.shape), None, 10)]
+        for k, p in enumerate(paths)
+    }
     result = generate_topology(inst, {k: NOISE for k in inst})
     long_ones = [f for f in result.features if f.type == CL and len(f.points_xy_world) > 40]
-    assert min(f.properties["support_trips"] for f in long_ones) >= 4, \
-        sorted(f.properties["support_trips"] for f in long_ones)
+    assert min(f.properties["support_trips"] for f in long_ones) >= 4, sorted(
+        f.properties["support_trips"] for f in long_ones
+    )
     for lane, n_trips in ((lane_a, 6), (lane_b, 12), (lane_c, 14)):
-        on = [f for f in long_ones if float(np.percentile(_lateral_to(f.points_xy_world, lane), 90)) < 0.1
-              and len(f.points_xy_world) > 150]
+        on = [
+            f
+            for f in long_ones
+            if float(np.percentile(_lateral_to(f.points_xy_world, lane), 90)) < 0.1
+            and len(f.points_xy_world) > 150
+        ]
         assert on, f"no fused centreline along the lane at y={lane[0, 1]}"
         assert max(f.properties["support_trips"] for f in on) >= n_trips

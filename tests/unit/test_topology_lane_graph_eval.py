@@ -16,8 +16,11 @@ def _cl(fid, *xy):
 
 
 # a through lane in two pieces (0 -> 50 -> 100 m along x) and a turn lane leaving at 50 m
-TRUTH = (_cl("a", (0, 0), (50, 0)), _cl("b", (50, 0), (100, 0)),
-         _cl("c", (50, 0), (58, 2), (64, 8), (66, 30)))
+TRUTH = (
+    _cl("a", (0, 0), (50, 0)),
+    _cl("b", (50, 0), (100, 0)),
+    _cl("c", (50, 0), (58, 2), (64, 8), (66, 30)),
+)
 FRAMES = np.array([(x, 0.0) for x in range(0, 101, 2)] + [(66.0, y) for y in range(0, 31, 2)])
 
 
@@ -61,8 +64,13 @@ def test_the_comparison_is_drawn(tmp_path):
     from csr_core.topology.evaluate_lane_graph import plot_comparison
 
     # the wrong turn of the test above: one truth connection missed, one map connection false
-    cmp = compare_lane_graphs((TRUTH[0], TRUTH[1], _cl("w", (20, 0), (28, -2), (34, -8), (36, -30))), TRUTH,
-                              FRAMES, 12.0, TopologyParams())
+    cmp = compare_lane_graphs(
+        (TRUTH[0], TRUTH[1], _cl("w", (20, 0), (28, -2), (34, -8), (36, -30))),
+        TRUTH,
+        FRAMES,
+        12.0,
+        TopologyParams(),
+    )
     assert (~cmp.got).sum() == 1 and (~cmp.right).sum() >= 1
     out = tmp_path / "lane_graph.png"
     plot_comparison(cmp, out, (0.0, 100.0, -35.0, 35.0))

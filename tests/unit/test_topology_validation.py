@@ -13,18 +13,36 @@ from csr_core.types import ElementType, MapFeature
 pytestmark = pytest.mark.unit
 
 
-def _line(fid: str, y: np.ndarray | float, *, support: int = 4, unc: float = 0.1, x0: float = 0.0,
-          length: float = 40.0, etype: ElementType = ElementType.CENTERLINE, **props) -> MapFeature:
+def _line(
+    fid: str,
+    y: np.ndarray | float,
+    *,
+    support: int = 4,
+    unc: float = 0.1,
+    x0: float = 0.0,
+    length: float = 40.0,
+    etype: ElementType = ElementType.CENTERLINE,
+    **props,
+) -> MapFeature:
     x = np.arange(x0, x0 + length + 1e-9, 1.0)
     y = np.broadcast_to(np.asarray(y, float), x.shape) if np.ndim(y) == 0 else np.asarray(y, float)
-    return MapFeature(etype, np.column_stack([x, y]), feature_id=fid,
-                      properties={"support_trips": support, "uncertainty_m": unc, "trips": [f"t{k}" for k in range(support)],
-                                  **props})
+    return MapFeature(
+        etype,
+        np.column_stack([x, y]),
+        feature_id=fid,
+        properties={
+            "support_trips": support,
+            "uncertainty_m": unc,
+            "trips": [f"t{k}" for k in range(support)],
+            **props,
+        },
+    )
 
 
 def _kinds(features: list[MapFeature], cover: list[int] | None = None) -> dict[str | None, set[str]]:
-    flags, _ = validate(features, cover if cover is not None else [f.properties["support_trips"] for f in features],
-                        DEFAULT)
+    flags, _ = validate(
+        features, cover if cover is not None else [f.properties["support_trips"] for f in features], DEFAULT
+    )
     out: dict[str | None, set[str]] = {f.feature_id: set() for f in features}
     for fl in flags:
         out[fl.feature_id].add(fl.kind)
@@ -48,13 +66,18 @@ def test_the_duplicate_bound_follows_the_uncertainty_of_the_two_lines() -> None:
 def test_adjacent_lanes_and_diverging_branches_are_not_copies() -> None:
     x = np.arange(0.0, 40.0 + 1e-9, 1.0)
     branch = np.clip((x - 10.0) * 0.1, 0.0, None)  # leaves the through lane at 10 m, 2 m off at 30 m
-    kinds = _kinds([_line("through", 0.0, support=5), _line("left", 3.5, support=1),
-                    _line("branch", branch, support=1)])
+    kinds = _kinds(
+        [_line("through", 0.0, support=5), _line("left", 3.5, support=1), _line("branch", branch, support=1)]
+    )
     assert all("implausible_lane_width" not in k for k in kinds.values())
 
 
 def test_low_support_is_a_single_trip_or_a_minority_of_the_trips_that_passed() -> None:
-    lines = [_line("one", 0.0, support=1), _line("two", 20.0, support=2), _line("two_of_eight", 40.0, support=2)]
+    lines = [
+        _line("one", 0.0, support=1),
+        _line("two", 20.0, support=2),
+        _line("two_of_eight", 40.0, support=2),
+    ]
     kinds = _kinds(lines, cover=[1, 2, 8])
     assert "low_support" in kinds["one"]
     assert "low_support" not in kinds["two"]  # two trips within the gate of each other confirm each other
@@ -112,9 +135,19 @@ def test_judged_rows_flatten_the_verdicts_flags_and_scalar_properties() -> None:
     from csr_core.topology.evaluate import judged_rows
 
     line = np.column_stack([np.arange(0.0, 30.5, 0.5), np.zeros(61)])
-    f = MapFeature(ElementType.ROAD_BOUNDARY, line, feature_id="rb-1",
-                   properties={"flags": ["low_support", "gap"], "support_trips": 1, "passed_trips": 2,
-                               "uncertainty_m": 0.2, "trips": ["a"], "first_seen": "2026-11-01T00:00:00Z"})
+    f = MapFeature(
+        ElementType.ROAD_BOUNDARY,
+        line,
+        feature_id="rb-1",
+        properties={
+            "flags": ["low_support", "gap"],
+            "support_trips": 1,
+            "passed_trips": 2,
+            "uncertainty_m": 0.2,
+            "trips": ["a"],
+            "first_seen": "2026-11-01T00:00:00Z",
+        },
+    )
     (row,) = judged_rows([(f, True, False)])
     assert row["feature_id"] == "rb-1" and row["type"] == "road_boundary"
     assert row["length_m"] == pytest.approx(30.0)

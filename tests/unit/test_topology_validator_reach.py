@@ -25,11 +25,22 @@ from csr_core.topology.validator_reach import (
 pytestmark = pytest.mark.unit
 
 
-def _row(wrong: bool, suspect: bool = False, support: int = 1, scatter: float = 0.5, rejected: float = 0.0,
-         **extra) -> dict:
-    return {"type": "lane_divider", "length_m": 30.0, "wrong": wrong, "suspect": suspect, "flags": [],
-            "support_trips": support, "support_observations": 40, "scatter_ratio": scatter,
-            "rejected_weight_share": rejected, "uncertainty_m": 0.2, **extra}
+def _row(
+    wrong: bool, suspect: bool = False, support: int = 1, scatter: float = 0.5, rejected: float = 0.0, **extra
+) -> dict:
+    return {
+        "type": "lane_divider",
+        "length_m": 30.0,
+        "wrong": wrong,
+        "suspect": suspect,
+        "flags": [],
+        "support_trips": support,
+        "support_observations": 40,
+        "scatter_ratio": scatter,
+        "rejected_weight_share": rejected,
+        "uncertainty_m": 0.2,
+        **extra,
+    }
 
 
 def test_evidence_classes_use_the_validators_own_thresholds():
@@ -40,9 +51,13 @@ def test_evidence_classes_use_the_validators_own_thresholds():
 
 
 def test_the_ceiling_leaves_out_the_wrong_lines_that_agreeing_trips_saw():
-    rows = ([_row(True, suspect=True)] * 6 + [_row(False, suspect=True)] * 10
-            + [_row(True, support=2, scatter=3.0, suspect=True)] * 2
-            + [_row(True, support=4)] * 2 + [_row(False, support=4)] * 80)
+    rows = (
+        [_row(True, suspect=True)] * 6
+        + [_row(False, suspect=True)] * 10
+        + [_row(True, support=2, scatter=3.0, suspect=True)] * 2
+        + [_row(True, support=4)] * 2
+        + [_row(False, support=4)] * 80
+    )
     table = evidence_table(rows)
     assert table[ONE_TRIP] == {"instances": 16, "wrong": 6, "flagged": 16, "caught": 6}
     assert table[TRIPS_DISAGREE] == {"instances": 2, "wrong": 2, "flagged": 2, "caught": 2}
@@ -77,9 +92,16 @@ def _fleets(separating: bool, seed: int) -> tuple[list[dict], list[str]]:
             length = rng.uniform(2, 8) if (wrong and separating) else rng.uniform(10, 200)
             if not separating:
                 length = rng.uniform(2, 200)
-            rows.append(_row(wrong, support=int(rng.integers(1, 4)), scatter=float(rng.uniform(0, 1.5)),
-                             length_m=float(length), passed_trips=int(rng.integers(0, 3)),
-                             coverage_trips=int(rng.integers(1, 6))))
+            rows.append(
+                _row(
+                    wrong,
+                    support=int(rng.integers(1, 4)),
+                    scatter=float(rng.uniform(0, 1.5)),
+                    length_m=float(length),
+                    passed_trips=int(rng.integers(0, 3)),
+                    coverage_trips=int(rng.integers(1, 6)),
+                )
+            )
             fleets.append(f"fleet-{fleet}")
     return rows, fleets
 

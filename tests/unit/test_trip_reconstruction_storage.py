@@ -85,7 +85,8 @@ def test_the_white_solve_follows_a_reconstruction_through_crop_and_reframe():
     np.testing.assert_array_equal(piece.white_poses_xyyaw_world, prior[20:120])
     other = LocalFrame(frame.origin_lat + 0.01, frame.origin_lon + 0.01)
     moved = reframe_reconstruction(recon, frame, other)
-    np.testing.assert_allclose(moved.white_poses_xyyaw_world[:, :2],
-                               other.to_local(frame.to_lonlat(prior[:, :2])), atol=1e-6)
+    np.testing.assert_allclose(
+        moved.white_poses_xyyaw_world[:, :2], other.to_local(frame.to_lonlat(prior[:, :2])), atol=1e-6
+    )
     without = replace(recon, white_poses_xyyaw_world=None)
     assert "white_poses_xyyaw_world" not in decode_arrays(row_values(without, frame)["arrays"])

@@ -43,7 +43,11 @@ def _presence(
 
 
 def occluder_boxes(
-    t_s: np.ndarray, poses_xyyaw_world: np.ndarray, speed_mps: np.ndarray, p: OccluderParamsB, rng: np.random.Generator
+    t_s: np.ndarray,
+    poses_xyyaw_world: np.ndarray,
+    speed_mps: np.ndarray,
+    p: OccluderParamsB,
+    rng: np.random.Generator,
 ) -> np.ndarray:
     """(N, 4, 5) boxes per frame in the world frame (cx, cy, yaw, length, width); NaN rows for
     absent slots."""

@@ -45,14 +45,18 @@ def draw_odometer_b(params: OdometryParamsB, rng: np.random.Generator) -> Odomet
     )
 
 
-def fine_truth(t_s: np.ndarray, poses_xyyaw_world: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+def fine_truth(
+    t_s: np.ndarray, poses_xyyaw_world: np.ndarray, rate_hz: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The true trajectory at ``rate_hz``: times (F,) and poses (F, 3), yaw unwrapped; frame k is
     sample ``k * n_sub`` with ``n_sub = round(rate_hz * frame spacing)``."""
     n_sub = max(1, int(round(rate_hz * float(np.median(np.diff(t_s))))))
     u = np.arange((len(t_s) - 1) * n_sub + 1) / n_sub
     t_fine = np.interp(u, np.arange(len(t_s)), t_s)
     yaw = np.unwrap(poses_xyyaw_world[:, 2])
-    cols = [PchipInterpolator(t_s, c)(t_fine) for c in (poses_xyyaw_world[:, 0], poses_xyyaw_world[:, 1], yaw)]
+    cols = [
+        PchipInterpolator(t_s, c)(t_fine) for c in (poses_xyyaw_world[:, 0], poses_xyyaw_world[:, 1], yaw)
+    ]
     return t_fine, np.column_stack(cols)
 
 

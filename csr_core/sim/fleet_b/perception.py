@@ -42,7 +42,12 @@ from csr_core.sim.fleet_b.params import PerceptionParamsB
 from csr_core.sim.world import TruthElement
 from csr_core.types import DividerStyle, ElementType
 
-_LINE_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE, ElementType.STOP_LINE)
+_LINE_TYPES = (
+    ElementType.LANE_DIVIDER,
+    ElementType.ROAD_BOUNDARY,
+    ElementType.CENTERLINE,
+    ElementType.STOP_LINE,
+)
 _NOT_DASHED, _GAP, _MERGED = -1, -2, -3
 _GOLDEN = 0.6180339887498949
 _FP_TYPES = (ElementType.LANE_DIVIDER, ElementType.ROAD_BOUNDARY, ElementType.CENTERLINE)
@@ -89,8 +94,10 @@ def build_truth_index_b(elements: tuple[TruthElement, ...], params: PerceptionPa
         dashed = e.type == ElementType.LANE_DIVIDER and e.style == DividerStyle.DASHED
         dash.append(dash_numbers(e.element_id, s, params) if dashed else np.full(len(s), _NOT_DASHED))
     samples = np.vstack(xy) if xy else np.zeros((0, 2))
-    outlines = tuple(geo.resample(np.vstack([p.points_xy_world, p.points_xy_world[:1]]), params.sample_step_m)
-                     for p in polys)
+    outlines = tuple(
+        geo.resample(np.vstack([p.points_xy_world, p.points_xy_world[:1]]), params.sample_step_m)
+        for p in polys
+    )
     return TruthIndexB(
         lines,
         samples,
@@ -139,9 +146,7 @@ def sigma_at_range_m(base_m: float, quad_per_m2: float, r_m: np.ndarray | float)
     return base_m + quad_per_m2 * np.square(np.asarray(r_m, dtype=float))
 
 
-def miss_probability(
-    r_m: float, occluded_share: float, small: bool, params: PerceptionParamsB
-) -> float:
+def miss_probability(r_m: float, occluded_share: float, small: bool, params: PerceptionParamsB) -> float:
     r_max = max(abs(v) for v in params.range_x_m)
     p = params.miss_prob_base + params.miss_prob_range * (r_m / r_max) ** 2
     p += params.miss_prob_occlusion * occluded_share + (params.small_element_miss_prob if small else 0.0)
@@ -157,8 +162,12 @@ def _score(r_m: float, occluded_share: float, params: PerceptionParamsB, rng: np
 
 def _apply_rig(points_xy: np.ndarray, rig: np.ndarray) -> np.ndarray:
     c, s = np.cos(rig[2]), np.sin(rig[2])
-    return np.column_stack([c * points_xy[:, 0] - s * points_xy[:, 1] + rig[0],
-                            s * points_xy[:, 0] + c * points_xy[:, 1] + rig[1]])
+    return np.column_stack(
+        [
+            c * points_xy[:, 0] - s * points_xy[:, 1] + rig[0],
+            s * points_xy[:, 0] + c * points_xy[:, 1] + rig[1],
+        ]
+    )
 
 
 def _in_box(local: np.ndarray, params: PerceptionParamsB) -> np.ndarray:
@@ -175,7 +184,10 @@ def _to_vehicle(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
 def _style(line: TruthElement, r_m: float, params: PerceptionParamsB, rng: np.random.Generator) -> str:
     style = line.style or DividerStyle.UNKNOWN
     r_max = max(abs(v) for v in params.range_x_m)
-    if style in (DividerStyle.SOLID, DividerStyle.DASHED) and rng.random() < params.style_confusion_prob * r_m / r_max:
+    if (
+        style in (DividerStyle.SOLID, DividerStyle.DASHED)
+        and rng.random() < params.style_confusion_prob * r_m / r_max
+    ):
         style = DividerStyle.DASHED if style == DividerStyle.SOLID else DividerStyle.SOLID
     return style.value
 
@@ -208,7 +220,8 @@ def perceive_lines(
     line = index.sample_line[cand]
     n_lines = len(index.lines)
     occluded_share = 1.0 - np.bincount(line[visible], minlength=n_lines) / np.maximum(
-        np.bincount(line[in_range], minlength=n_lines), 1)
+        np.bincount(line[in_range], minlength=n_lines), 1
+    )
     vis = np.flatnonzero(visible)
     if len(vis) == 0:
         return []
@@ -223,7 +236,9 @@ def perceive_lines(
     r_max = max(abs(v) for v in params.range_x_m)
     occ = occluded_share[li[first]]
     p_miss = params.miss_prob_base + params.miss_prob_range * (r_mean / r_max) ** 2
-    p_miss = np.minimum(p_miss + params.miss_prob_occlusion * occ + params.small_element_miss_prob * small, 1.0)
+    p_miss = np.minimum(
+        p_miss + params.miss_prob_occlusion * occ + params.small_element_miss_prob * small, 1.0
+    )
     # the ordinal of each run among the runs of its (line, dash) in this frame
     run_key = li[first] * 1_000_003 + ky[first]
     ordinal = np.zeros(len(first), dtype=np.int64)
@@ -247,22 +262,41 @@ def perceive_lines(
     s_new = s_m[first][run_of_pt] + frac * length_m[run_of_pt] + run_of_pt * 1.0e6
     pts = np.column_stack([np.interp(s_new, s_global, pts_v[:, 0]), np.interp(s_new, s_global, pts_v[:, 1])])
     # noise: per-track bias and per-instance offset normal to the chord, per-point white noise
-    tracks = [tracker.assign((index.lines[li[first[j]]].element_id, int(ky[first[j]]), int(ordinal[j])),
-                             frame_k, rng) for j in runs.tolist()]
+    tracks = [
+        tracker.assign(
+            (index.lines[li[first[j]]].element_id, int(ky[first[j]]), int(ordinal[j])), frame_k, rng
+        )
+        for j in runs.tolist()
+    ]
     ends = starts + n_pts - 1
     chord = pts[ends] - pts[starts]
-    normal = np.column_stack([-chord[:, 1], chord[:, 0]]) / np.maximum(np.linalg.norm(chord, axis=1), 1e-9)[:, None]
+    normal = (
+        np.column_stack([-chord[:, 1], chord[:, 0]])
+        / np.maximum(np.linalg.norm(chord, axis=1), 1e-9)[:, None]
+    )
     offset = np.array([b for _, b in tracks]) + rng.standard_normal(len(runs)) * sigma_at_range_m(
-        params.offset_sigma_base_m, params.offset_sigma_quad_per_m2, r_mean[runs])
-    factor = np.array([params.centerline_noise_factor if index.lines[li[first[j]]].type == ElementType.CENTERLINE
-                       else 1.0 for j in runs.tolist()])
-    sig = sigma_at_range_m(params.point_sigma_base_m, params.point_sigma_quad_per_m2, np.linalg.norm(pts, axis=1))
+        params.offset_sigma_base_m, params.offset_sigma_quad_per_m2, r_mean[runs]
+    )
+    factor = np.array(
+        [
+            params.centerline_noise_factor
+            if index.lines[li[first[j]]].type == ElementType.CENTERLINE
+            else 1.0
+            for j in runs.tolist()
+        ]
+    )
+    sig = sigma_at_range_m(
+        params.point_sigma_base_m, params.point_sigma_quad_per_m2, np.linalg.norm(pts, axis=1)
+    )
     k_of_pt = np.repeat(np.arange(len(runs)), n_pts)
     pts = pts + factor[k_of_pt, None] * (
-        (offset * normal.T).T[k_of_pt] + sig[:, None] * rng.standard_normal(pts.shape))
+        (offset * normal.T).T[k_of_pt] + sig[:, None] * rng.standard_normal(pts.shape)
+    )
     coords = np.round(_apply_rig(pts, rig), 3).tolist()
     logit = params.score_logit_base - params.score_logit_range * r_mean[runs] / r_max - 2.0 * occ[runs]
-    score = np.round(1.0 / (1.0 + np.exp(-(logit + params.score_logit_sigma * rng.standard_normal(len(runs))))), 3)
+    score = np.round(
+        1.0 / (1.0 + np.exp(-(logit + params.score_logit_sigma * rng.standard_normal(len(runs))))), 3
+    )
     out: list[dict] = []
     for k, j in enumerate(runs.tolist()):
         truth = index.lines[li[first[j]]]
@@ -309,15 +343,24 @@ def perceive_polygons(
         if len(corners) < 3 or rng.random() < miss_probability(r_c, share, True, params):
             continue
         track_id, _ = tracker.assign((poly_el.element_id, 0, 0), frame_k, rng)
-        sig = sigma_at_range_m(params.point_sigma_base_m, params.point_sigma_quad_per_m2,
-                               np.linalg.norm(corners, axis=1))
+        sig = sigma_at_range_m(
+            params.point_sigma_base_m, params.point_sigma_quad_per_m2, np.linalg.norm(corners, axis=1)
+        )
         corners = corners + sig[:, None] * rng.standard_normal(corners.shape)
-        out.append({"type": poly_el.type.value, "points": np.round(_apply_rig(corners, rig), 3).tolist()[:200],
-                    "score": _score(r_c, share, params, rng), "track_id": track_id})
+        out.append(
+            {
+                "type": poly_el.type.value,
+                "points": np.round(_apply_rig(corners, rig), 3).tolist()[:200],
+                "score": _score(r_c, share, params, rng),
+                "track_id": track_id,
+            }
+        )
     return out
 
 
-def false_positives(params: PerceptionParamsB, rig: np.ndarray, tracker: Tracker, rng: np.random.Generator) -> list[dict]:
+def false_positives(
+    params: PerceptionParamsB, rig: np.ndarray, tracker: Tracker, rng: np.random.Generator
+) -> list[dict]:
     """Spurious instances of one frame: straight, roughly along the driving direction."""
     out = []
     (x0, x1), (y0, y1) = params.range_x_m, params.range_y_m

@@ -34,8 +34,11 @@ class VehicleB:
 
 def draw_vehicle_b(vehicle_id: str, params: FleetBParams, rng: np.random.Generator) -> VehicleB:
     p = params.perception
-    rig = (float(rng.normal(0.0, p.extrinsic_xy_sigma_m)), float(rng.normal(0.0, p.extrinsic_xy_sigma_m)),
-           float(rng.normal(0.0, p.extrinsic_yaw_sigma_rad)))
+    rig = (
+        float(rng.normal(0.0, p.extrinsic_xy_sigma_m)),
+        float(rng.normal(0.0, p.extrinsic_xy_sigma_m)),
+        float(rng.normal(0.0, p.extrinsic_yaw_sigma_rad)),
+    )
     return VehicleB(vehicle_id, draw_receiver_b(params.gnss, rng), draw_odometer_b(params.odometry, rng), rig)
 
 
@@ -84,7 +87,9 @@ def simulate_trip_b(
         "duration_s": round(float(t[-1]), 1),
         "length_m": round(float(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1).sum()), 1),
         "route": "loop" if loops else "random",
-        "gnss_status_share": {n: round(float(np.mean(gnss.status == s)), 3) for s, n in enumerate(_STATUS_NAMES)},
+        "gnss_status_share": {
+            n: round(float(np.mean(gnss.status == s)), 3) for s, n in enumerate(_STATUS_NAMES)
+        },
         "gnss_error_median_m": round(float(np.median(err)), 3) if err.size else None,
         "gnss_receiver": vehicle.receiver.kind,
         "gnss_latency_s": round(vehicle.receiver.latency_s, 4),
@@ -126,7 +131,9 @@ def _upload(
                 g["heading_deg"] = course[k]
             g["std_m"] = std[k]
         o = odom_r[k]
-        frames.append({"t": tk, "gnss": g, "odom": {"x": o[0], "y": o[1], "yaw": o[2]}, "elements": elements[k]})
+        frames.append(
+            {"t": tk, "gnss": g, "odom": {"x": o[0], "y": o[1], "yaw": o[2]}, "elements": elements[k]}
+        )
     p = params.perception
     return {
         "schema_version": SCHEMA_VERSION,

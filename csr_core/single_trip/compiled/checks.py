@@ -16,9 +16,15 @@ from csr_core.single_trip.compiled.search import nearest_index
 
 
 @njit(cache=True)
-def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: np.ndarray, obs: np.ndarray,
-                            cos_max: float, near_m: float, window_m: float
-                            ) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
+def runs_along_observations(
+    line_xy: np.ndarray,
+    points_w: np.ndarray,
+    obs_id: np.ndarray,
+    obs: np.ndarray,
+    cos_max: float,
+    near_m: float,
+    window_m: float,
+) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
     """The cut of ``splicing.runs_along_observations`` (see there): the segments between
     consecutive points of one observation of ``obs`` (values of ``obs_id``), those whose midpoint
     lies within ``near_m`` of the line (nearer than: strictly) counted at the nearest line
@@ -42,7 +48,9 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
             n_seg += 1
     if n_seg == 0:
         return True, np.empty((0, 2), dtype=np.int64)
-    nearest, dist2 = nearest_index(mid[:n_seg], np.ascontiguousarray(line_xy[:, 0]), np.ascontiguousarray(line_xy[:, 1]))
+    nearest, dist2 = nearest_index(
+        mid[:n_seg], np.ascontiguousarray(line_xy[:, 0]), np.ascontiguousarray(line_xy[:, 1])
+    )
     along_len = np.zeros(n)
     across_len = np.zeros(n)
     any_near = any_across = False
@@ -87,8 +95,9 @@ def runs_along_observations(line_xy: np.ndarray, points_w: np.ndarray, obs_id: n
 
 
 @njit(cache=True)
-def frames_near(samples: np.ndarray, poses_xyyaw: np.ndarray, frames: np.ndarray, reach_m: float, corner_m: float
-                ) -> np.ndarray:  # pragma: no cover - compiled
+def frames_near(
+    samples: np.ndarray, poses_xyyaw: np.ndarray, frames: np.ndarray, reach_m: float, corner_m: float
+) -> np.ndarray:  # pragma: no cover - compiled
     """Indices into ``frames`` of the frames whose vehicle lies within ``reach_m`` of the bounding
     box of ``samples (S, 2)`` on both axes and within ``corner_m`` (at most) of one of them."""
     x_lo, y_lo = samples[:, 0].min() - reach_m, samples[:, 1].min() - reach_m
@@ -110,7 +119,9 @@ def frames_near(samples: np.ndarray, poses_xyyaw: np.ndarray, frames: np.ndarray
 
 
 @njit(cache=True)
-def frames_in_range(samples: np.ndarray, poses_xyyaw: np.ndarray, box: np.ndarray) -> np.ndarray:  # pragma: no cover
+def frames_in_range(
+    samples: np.ndarray, poses_xyyaw: np.ndarray, box: np.ndarray
+) -> np.ndarray:  # pragma: no cover
     """(F,) whether any of ``samples (S, 2)`` (world) lies inside ``box`` (x0, x1, y0, y1, the
     vehicle frame) of each pose ``(F, 3)``."""
     out = np.zeros(poses_xyyaw.shape[0], dtype=np.bool_)

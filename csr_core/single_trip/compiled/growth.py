@@ -32,8 +32,9 @@ def _walk_in(xs: np.ndarray, ys: np.ndarray, step: int, start: int, span_m: floa
 
 
 @njit(cache=True)
-def _end_tangent(xs: np.ndarray, ys: np.ndarray, at_tail: bool, tangent_m: float, bends: bool
-                 ) -> tuple[bool, float, float, float, float, float]:  # pragma: no cover - compiled
+def _end_tangent(
+    xs: np.ndarray, ys: np.ndarray, at_tail: bool, tangent_m: float, bends: bool
+) -> tuple[bool, float, float, float, float, float]:  # pragma: no cover - compiled
     """(ok, x, y, tx, ty, kappa) at the tail (or head) of a polyline: ``splicing``'s end tangent
     over the last ``tangent_m`` and, with ``bends``, the curvature from the chord before it."""
     n = len(xs)
@@ -78,8 +79,9 @@ def kasa_circle(pts: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cove
 
 
 @njit(cache=True)
-def _bend_continues(tail_xy: np.ndarray, cand: np.ndarray, end_x: float, end_y: float, max_gap_m: float
-                    ) -> bool:  # pragma: no cover - compiled
+def _bend_continues(
+    tail_xy: np.ndarray, cand: np.ndarray, end_x: float, end_y: float, max_gap_m: float
+) -> bool:  # pragma: no cover - compiled
     """Whether the points ``cand`` past a backbone end continue it round a bend: one circle fits
     the backbone's last points ``tail_xy`` and them within ``BEND_SHAPE_TOL_M``, no tighter than
     ``BEND_MIN_RADIUS_M``, the nearest of them within ``max_gap_m`` of the end."""
@@ -92,7 +94,7 @@ def _bend_continues(tail_xy: np.ndarray, cand: np.ndarray, end_x: float, end_y: 
         return False
     pts = np.concatenate((tail_xy, cand))
     centre, r2 = kasa_circle(pts)
-    if not np.isfinite(r2) or r2 <= BEND_MIN_RADIUS_M ** 2:
+    if not np.isfinite(r2) or r2 <= BEND_MIN_RADIUS_M**2:
         return False
     r = math.sqrt(r2)
     worst = 0.0
@@ -102,9 +104,16 @@ def _bend_continues(tail_xy: np.ndarray, cand: np.ndarray, end_x: float, end_y: 
 
 
 @njit(cache=True)
-def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float, tangent_m: float,
-                  lateral_gate_m: float, lateral_gate_slope: float, max_gap_m: float, follow_bends: bool
-                  ) -> np.ndarray:  # pragma: no cover - compiled
+def grow_backbone(
+    points_w: np.ndarray,
+    obs_ends: np.ndarray,
+    min_step_m: float,
+    tangent_m: float,
+    lateral_gate_m: float,
+    lateral_gate_slope: float,
+    max_gap_m: float,
+    follow_bends: bool,
+) -> np.ndarray:  # pragma: no cover - compiled
     """``splicing.grow_backbone`` (see there): the first observation, extended at either end by the
     points of later ones beyond it along its end tangent (or arc, ``follow_bends``) and near it."""
     total = points_w.shape[0]
@@ -119,7 +128,7 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float,
     tangents = np.zeros((2, 6))  # ok, x, y, tx, ty, kappa
     for o in range(n_obs):
         a, b = obs_ends[o, 0], obs_ends[o, 1]
-        p = points_w[a:b + 1]
+        p = points_w[a : b + 1]
         dx, dy = p[-1, 0] - p[0, 0], p[-1, 1] - p[0, 1]
         if has_ref and dx * ref_x + dy * ref_y < 0:
             p = p[::-1]
@@ -136,13 +145,27 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float,
         for end in range(2):
             at_tail = end == 0
             if not known[end]:
-                ok, bx, by, tx, ty, kappa = _end_tangent(xs[head:tail], ys[head:tail], at_tail, tangent_m, follow_bends)
+                ok, bx, by, tx, ty, kappa = _end_tangent(
+                    xs[head:tail], ys[head:tail], at_tail, tangent_m, follow_bends
+                )
                 tangents[end, 0] = 1.0 if ok else 0.0
-                tangents[end, 1], tangents[end, 2], tangents[end, 3], tangents[end, 4], tangents[end, 5] = bx, by, tx, ty, kappa
+                tangents[end, 1], tangents[end, 2], tangents[end, 3], tangents[end, 4], tangents[end, 5] = (
+                    bx,
+                    by,
+                    tx,
+                    ty,
+                    kappa,
+                )
                 known[end] = True
             if tangents[end, 0] == 0.0:
                 continue
-            bx, by, tx, ty, kappa = tangents[end, 1], tangents[end, 2], tangents[end, 3], tangents[end, 4], tangents[end, 5]
+            bx, by, tx, ty, kappa = (
+                tangents[end, 1],
+                tangents[end, 2],
+                tangents[end, 3],
+                tangents[end, 4],
+                tangents[end, 5],
+            )
             first = (p[0, 0] - bx) * tx + (p[0, 1] - by) * ty
             last = (p[-1, 0] - bx) * tx + (p[-1, 1] - by) * ty
             if max(first, last) <= min_step_m:  # most observations do not reach beyond this end
@@ -164,12 +187,17 @@ def grow_backbone(points_w: np.ndarray, obs_ends: np.ndarray, min_step_m: float,
                         n_beyond += 1
             chosen = beyond[:n_beyond]
             if n_beyond == 0 and follow_bends:
-                j = _walk_in(xs[head:tail], ys[head:tail], -1 if at_tail else 1, tail - head - 1 if at_tail else 0,
-                             2 * tangent_m)
+                j = _walk_in(
+                    xs[head:tail],
+                    ys[head:tail],
+                    -1 if at_tail else 1,
+                    tail - head - 1 if at_tail else 0,
+                    2 * tangent_m,
+                )
                 lo, hi = (head + j, tail - 1) if at_tail else (head, head + j)
                 tail_xy = np.empty((hi - lo + 1, 2))
-                tail_xy[:, 0] = xs[lo:hi + 1]
-                tail_xy[:, 1] = ys[lo:hi + 1]
+                tail_xy[:, 0] = xs[lo : hi + 1]
+                tail_xy[:, 1] = ys[lo : hi + 1]
                 if _bend_continues(tail_xy, p[past[:n_past]], bx, by, max_gap_m):
                     chosen = past[:n_past]
             if len(chosen) == 0:

@@ -13,8 +13,16 @@ from numba import njit
 
 
 @njit(cache=True)
-def track_observations(raw_points_v: np.ndarray, raw_offsets: np.ndarray, pieces: np.ndarray, cos_yaw: np.ndarray,
-                       sin_yaw: np.ndarray, pose_x: np.ndarray, pose_y: np.ndarray, max_step_m: float):  # pragma: no cover
+def track_observations(
+    raw_points_v: np.ndarray,
+    raw_offsets: np.ndarray,
+    pieces: np.ndarray,
+    cos_yaw: np.ndarray,
+    sin_yaw: np.ndarray,
+    pose_x: np.ndarray,
+    pose_y: np.ndarray,
+    max_step_m: float,
+):  # pragma: no cover
     """A track's observations as its splice takes them: the detections ``pieces`` (m,) (rows of
     ``raw_offsets`` into ``raw_points_v``, vehicle frame, as sent) with points inserted so that no
     step exceeds ``max_step_m`` (each step cut into ceil(length / ``max_step_m``) equal parts; none
@@ -28,8 +36,10 @@ def track_observations(raw_points_v: np.ndarray, raw_offsets: np.ndarray, pieces
         for i in range(a, b - 1):
             k = 1
             if max_step_m > 0:
-                seg = math.sqrt((raw_points_v[i + 1, 0] - raw_points_v[i, 0]) ** 2
-                                + (raw_points_v[i + 1, 1] - raw_points_v[i, 1]) ** 2)
+                seg = math.sqrt(
+                    (raw_points_v[i + 1, 0] - raw_points_v[i, 0]) ** 2
+                    + (raw_points_v[i + 1, 1] - raw_points_v[i, 1]) ** 2
+                )
                 k = max(int(math.ceil(seg / max_step_m)), 1)
             total += k
         counts[o] = total
@@ -68,8 +78,9 @@ def track_observations(raw_points_v: np.ndarray, raw_offsets: np.ndarray, pieces
 
 
 @njit(cache=True)
-def pair_distance(points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float
-                  ) -> np.ndarray:  # pragma: no cover - compiled
+def pair_distance(
+    points: np.ndarray, polys: np.ndarray, max_extrapolation_m: float, cap_m: float
+) -> np.ndarray:  # pragma: no cover - compiled
     """Truncated distance (M, P) of each point of ``points (M, P, 2)`` to the matching polyline of
     ``polys (M, K, 2)`` (``tracking.pair_distance``): to its segments, or to its extension along
     its chord within ``max_extrapolation_m`` of either end; at most ``cap_m``."""

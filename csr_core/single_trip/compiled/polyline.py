@@ -60,7 +60,9 @@ def geometry_columns(backbone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # 
 
 
 @njit(cache=True)
-def project(points: np.ndarray, columns: np.ndarray, arclength: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+def project(
+    points: np.ndarray, columns: np.ndarray, arclength: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Arclength s and signed lateral offset d (left positive) of ``points (P, 2)`` on a densely
     sampled backbone (``columns (4, B)``: x, y, unit tangent x, y; its ``arclength (B,)``): from
     its nearest point (``nearest_index``), along its tangent."""
@@ -68,8 +70,9 @@ def project(points: np.ndarray, columns: np.ndarray, arclength: np.ndarray) -> t
 
 
 @njit(cache=True)
-def project_at(points: np.ndarray, nearest: np.ndarray, columns: np.ndarray, arclength: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+def project_at(
+    points: np.ndarray, nearest: np.ndarray, columns: np.ndarray, arclength: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """``project`` with the nearest backbone point of each point given (a KD-tree's answer)."""
     n = points.shape[0]
     s = np.empty(n)

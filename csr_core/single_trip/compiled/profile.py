@@ -26,7 +26,9 @@ def median(values: np.ndarray) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def cluster_sd(s: np.ndarray, d: np.ndarray, bin_m: float, cell_d_m: float, reach_bins: int) -> np.ndarray:  # pragma: no cover
+def cluster_sd(
+    s: np.ndarray, d: np.ndarray, bin_m: float, cell_d_m: float, reach_bins: int
+) -> np.ndarray:  # pragma: no cover
     """Labels (P,) of the occupied cells (``bin_m`` along s x ``cell_d_m`` across) grown by
     ``reach_bins`` cells either way along s and joined where they touch by a side or a corner,
     numbered in raster order from 0 (as ``scipy.ndimage.label`` numbers them, less one)."""
@@ -79,7 +81,9 @@ def cluster_sd(s: np.ndarray, d: np.ndarray, bin_m: float, cell_d_m: float, reac
 
 
 @njit(cache=True)
-def binned_profile(s: np.ndarray, d: np.ndarray, bin_m: float) -> tuple[np.ndarray, int, np.ndarray]:  # pragma: no cover
+def binned_profile(
+    s: np.ndarray, d: np.ndarray, bin_m: float
+) -> tuple[np.ndarray, int, np.ndarray]:  # pragma: no cover
     """Arclength bins (P,) of width ``bin_m`` from the smallest s, their number, and the per-bin
     upper-middle value of d (NaN for an empty bin)."""
     s0 = s.min()
@@ -121,7 +125,9 @@ def mixture_sigma(d: np.ndarray, bins: np.ndarray, med: np.ndarray) -> float:  #
 
 
 @njit(cache=True)
-def robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float) -> tuple[float, float]:  # pragma: no cover
+def robust_ends(
+    s: np.ndarray, obs_id: np.ndarray, window_m: float
+) -> tuple[float, float]:  # pragma: no cover
     """The median of the observations' lowest arclengths within ``window_m`` of the lowest one,
     and the same for the highest (``obs_id`` in any order)."""
     n = len(s)
@@ -142,7 +148,7 @@ def robust_ends(s: np.ndarray, obs_id: np.ndarray, window_m: float) -> tuple[flo
         else:
             lo[k] = min(lo[k], s[i])
             hi[k] = max(hi[k], s[i])
-    lo, hi = lo[:k + 1], hi[:k + 1]
+    lo, hi = lo[: k + 1], hi[: k + 1]
     s_lo = median(lo[lo <= lo.min() + window_m])
     s_hi = median(hi[hi >= hi.max() - window_m])
     return s_lo, max(s_hi, s_lo)
@@ -164,9 +170,20 @@ def _smooth_zero_padded(values: np.ndarray, kernel: np.ndarray) -> np.ndarray:  
 
 
 @njit(cache=True)
-def fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, bins: np.ndarray, n_bins: int, med: np.ndarray,
-                outlier_sigmas: float, bin_m: float, kernel: np.ndarray, spacing_m: float,
-                columns: np.ndarray, arclength: np.ndarray):  # pragma: no cover - compiled
+def fit_profile(
+    s: np.ndarray,
+    d: np.ndarray,
+    obs_id: np.ndarray,
+    bins: np.ndarray,
+    n_bins: int,
+    med: np.ndarray,
+    outlier_sigmas: float,
+    bin_m: float,
+    kernel: np.ndarray,
+    spacing_m: float,
+    columns: np.ndarray,
+    arclength: np.ndarray,
+):  # pragma: no cover - compiled
     """The robust lateral profile of one element (``splicing._fit_profile``) from the bins of
     ``binned_profile``: points further than ``outlier_sigmas`` robust sigmas from their bin's
     median left out, the rest averaged per bin and smoothed along s by ``kernel``, the ends from
@@ -212,10 +229,21 @@ def fit_profile(s: np.ndarray, d: np.ndarray, obs_id: np.ndarray, bins: np.ndarr
 
 
 @njit(cache=True)
-def splice_residuals(n_points: int, sel: np.ndarray, inl: np.ndarray, s_sel: np.ndarray, d_sel: np.ndarray,
-                     d_fit: np.ndarray, original: np.ndarray, obs_id: np.ndarray, obs_ends: np.ndarray,
-                     end_free: np.ndarray, s_lo: float, s_hi: float, end_window_m: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+def splice_residuals(
+    n_points: int,
+    sel: np.ndarray,
+    inl: np.ndarray,
+    s_sel: np.ndarray,
+    d_sel: np.ndarray,
+    d_fit: np.ndarray,
+    original: np.ndarray,
+    obs_id: np.ndarray,
+    obs_ends: np.ndarray,
+    end_free: np.ndarray,
+    s_lo: float,
+    s_hi: float,
+    end_window_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """The residuals of one splice (``splicing._splice_on``): lateral, of the inlier points as sent
     (``original``) against the fitted profile; along-track, of the observation ends that are element
     ends (``end_free``, per observation: first, last point) within ``end_window_m`` of the
@@ -268,7 +296,9 @@ def runs_along(s: np.ndarray, points: np.ndarray, obs_id: np.ndarray) -> float: 
         while k + 1 < n and obs_id[order[k + 1]] == obs_id[first]:
             k += 1
         last = order[k]
-        chord = math.sqrt((points[last, 0] - points[first, 0]) ** 2 + (points[last, 1] - points[first, 1]) ** 2)
+        chord = math.sqrt(
+            (points[last, 0] - points[first, 0]) ** 2 + (points[last, 1] - points[first, 1]) ** 2
+        )
         if chord > 2.0:
             ratios[m] = abs(s[last] - s[first]) / chord
             m += 1

@@ -14,7 +14,9 @@ from numba import njit
 
 
 @njit(cache=True)
-def sort_along_wider_axis(ref_x: np.ndarray, ref_y: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:  # pragma: no cover
+def sort_along_wider_axis(
+    ref_x: np.ndarray, ref_y: np.ndarray
+) -> tuple[bool, np.ndarray, np.ndarray]:  # pragma: no cover
     """Reference points (R >= 1) sorted along their wider axis, for ``nearest_in_sorted``: (the
     axis is x, the order, the sorted coordinates along it)."""
     wide_x = ref_x.max() - ref_x.min() >= ref_y.max() - ref_y.min()
@@ -24,8 +26,14 @@ def sort_along_wider_axis(ref_x: np.ndarray, ref_y: np.ndarray) -> tuple[bool, n
 
 
 @njit(cache=True)
-def nearest_in_sorted(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, wide_x: bool, order: np.ndarray,
-                      sorted_key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+def nearest_in_sorted(
+    points: np.ndarray,
+    ref_x: np.ndarray,
+    ref_y: np.ndarray,
+    wide_x: bool,
+    order: np.ndarray,
+    sorted_key: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """``nearest_index`` on references already sorted (``sort_along_wider_axis``)."""
     n_ref = len(ref_x)
     n = points.shape[0]
@@ -54,7 +62,9 @@ def nearest_in_sorted(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, 
 
 
 @njit(cache=True)
-def nearest_index(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+def nearest_index(
+    points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Index (P,) of the nearest of the reference points (``ref_x``, ``ref_y``, (R,), R >= 1) to
     each of ``points (P, 2)`` (the first of equals, as ``argmin`` over all pairs) and the squared
     distance to it. Exact: the references sorted along their wider axis, each search walks out
@@ -65,8 +75,15 @@ def nearest_index(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray) -> t
 
 
 @njit(cache=True)
-def within_radius(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, wide_x: bool, order: np.ndarray,
-                  sorted_key: np.ndarray, radius_m: float) -> np.ndarray:  # pragma: no cover - compiled
+def within_radius(
+    points: np.ndarray,
+    ref_x: np.ndarray,
+    ref_y: np.ndarray,
+    wide_x: bool,
+    order: np.ndarray,
+    sorted_key: np.ndarray,
+    radius_m: float,
+) -> np.ndarray:  # pragma: no cover - compiled
     """(P,) whether each of ``points (P, 2)`` lies within ``radius_m`` (at most) of one of the
     reference points, sorted by ``sort_along_wider_axis``: those within the radius along the axis
     are tested until one is within it."""
@@ -74,7 +91,9 @@ def within_radius(points: np.ndarray, ref_x: np.ndarray, ref_y: np.ndarray, wide
     for k in range(points.shape[0]):
         px, py = points[k, 0], points[k, 1]
         q = px if wide_x else py
-        for j in range(np.searchsorted(sorted_key, q - radius_m), np.searchsorted(sorted_key, q + radius_m, side="right")):
+        for j in range(
+            np.searchsorted(sorted_key, q - radius_m), np.searchsorted(sorted_key, q + radius_m, side="right")
+        ):
             i = order[j]
             if math.sqrt((ref_x[i] - px) ** 2 + (ref_y[i] - py) ** 2) <= radius_m:
                 out[k] = True
@@ -94,20 +113,43 @@ class SortedPoints:
 
     def within(self, points: np.ndarray, radius_m: float) -> np.ndarray:
         """(P,) whether each of ``points (P, 2)`` lies within ``radius_m`` (at most) of one of them."""
-        return within_radius(np.ascontiguousarray(points, dtype=float), self.x, self.y, self.wide_x, self.order,
-                             self.sorted_key, float(radius_m))
+        return within_radius(
+            np.ascontiguousarray(points, dtype=float),
+            self.x,
+            self.y,
+            self.wide_x,
+            self.order,
+            self.sorted_key,
+            float(radius_m),
+        )
 
 
 @njit(cache=True)
-def seen_within(points: np.ndarray, observed: np.ndarray, step: np.ndarray, step_len: np.ndarray, step_m: float,
-                gate_m: float, wide_x: bool, order: np.ndarray, sorted_key: np.ndarray) -> np.ndarray:  # pragma: no cover
+def seen_within(
+    points: np.ndarray,
+    observed: np.ndarray,
+    step: np.ndarray,
+    step_len: np.ndarray,
+    step_m: float,
+    gate_m: float,
+    wide_x: bool,
+    order: np.ndarray,
+    sorted_key: np.ndarray,
+) -> np.ndarray:  # pragma: no cover
     """(M,) whether each of ``points (M, 2)`` has an observed point within ``gate_m``: one of
     ``observed (N >= 1, 2)`` as given or, with ``step_m`` > 0, one of the points that densify each
     ``step (N, 2)`` (to the next point of its polyline, of length ``step_len``; zero after a
     polyline's last point) to at most ``step_m`` (``paint_breaks.ObservedPoints``). ``wide_x``,
     ``order``, ``sorted_key``: ``observed`` sorted by ``sort_along_wider_axis``."""
-    seen = within_radius(points, np.ascontiguousarray(observed[:, 0]), np.ascontiguousarray(observed[:, 1]), wide_x,
-                         order, sorted_key, gate_m)  # the points as given
+    seen = within_radius(
+        points,
+        np.ascontiguousarray(observed[:, 0]),
+        np.ascontiguousarray(observed[:, 1]),
+        wide_x,
+        order,
+        sorted_key,
+        gate_m,
+    )  # the points as given
     if step_m <= 0:
         return seen
     gate2 = gate_m * gate_m
@@ -121,7 +163,10 @@ def seen_within(points: np.ndarray, observed: np.ndarray, step: np.ndarray, step
         hi = np.searchsorted(sorted_key, q + reach, side="right")
         for j in range(lo, hi):
             i = order[j]
-            if step_len[i] == 0.0 or math.hypot(observed[i, 0] - vx, observed[i, 1] - vy) > gate_m + step_len[i]:
+            if (
+                step_len[i] == 0.0
+                or math.hypot(observed[i, 0] - vx, observed[i, 1] - vy) > gate_m + step_len[i]
+            ):
                 continue  # no point of this step comes within the gate
             n = max(int(math.ceil(step_len[i] / step_m)), 1)
             for m in range(n):

@@ -29,21 +29,36 @@ _MODULES = (checks, growth, observations, polyline, profile, search)
 
 
 def _warm_up_specs() -> list[SynthSpec]:
-    lines = (SynthLine(ElementType.ROAD_BOUNDARY, -1.9),
-             SynthLine(ElementType.LANE_DIVIDER, 1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0)),
-             SynthLine(ElementType.CENTERLINE, 3.5),
-             SynthLine(ElementType.LANE_DIVIDER, 5.25, style=DividerStyle.SOLID),
-             SynthLine(ElementType.ROAD_BOUNDARY, 8.9))
-    crossings = (SynthCrossing(ElementType.STOP_LINE, 150.0, -1.9, 5.25),
-                 SynthCrossing(ElementType.CROSSWALK, 160.0, -1.9, 8.9))
-    return [SynthSpec(length_m=250.0, element_sigma_m=0.03, gnss_sigma_m=0.3, odom_sigma_per_m=0.002, seed=1,
-                      lines=lines, crossings=crossings),
-            SynthSpec(length_m=200.0, curvature_1pm=0.03, element_sigma_m=0.03, seed=2, lines=lines)]
+    lines = (
+        SynthLine(ElementType.ROAD_BOUNDARY, -1.9),
+        SynthLine(ElementType.LANE_DIVIDER, 1.75, style=DividerStyle.DASHED, dash_m=(3.0, 6.0)),
+        SynthLine(ElementType.CENTERLINE, 3.5),
+        SynthLine(ElementType.LANE_DIVIDER, 5.25, style=DividerStyle.SOLID),
+        SynthLine(ElementType.ROAD_BOUNDARY, 8.9),
+    )
+    crossings = (
+        SynthCrossing(ElementType.STOP_LINE, 150.0, -1.9, 5.25),
+        SynthCrossing(ElementType.CROSSWALK, 160.0, -1.9, 8.9),
+    )
+    return [
+        SynthSpec(
+            length_m=250.0,
+            element_sigma_m=0.03,
+            gnss_sigma_m=0.3,
+            odom_sigma_per_m=0.002,
+            seed=1,
+            lines=lines,
+            crossings=crossings,
+        ),
+        SynthSpec(length_m=200.0, curvature_1pm=0.03, element_sigma_m=0.03, seed=2, lines=lines),
+    ]
 
 
 def _warm_up_rest() -> None:
     """The kernels the synthetic roads do not reach, through the pipeline's own wrappers."""
-    arc = np.column_stack([20.0 * np.sin(np.linspace(0.0, 0.8, 30)), 20.0 - 20.0 * np.cos(np.linspace(0.0, 0.8, 30))])
+    arc = np.column_stack(
+        [20.0 * np.sin(np.linspace(0.0, 0.8, 30)), 20.0 - 20.0 * np.cos(np.linspace(0.0, 0.8, 30))]
+    )
     for follow_bends in (False, True):
         grow_backbone(arc, np.array([[0, 9], [10, 19], [20, 29]]), follow_bends=follow_bends)
     poses = np.column_stack([arc, np.zeros(len(arc))])
@@ -53,9 +68,12 @@ def _warm_up_rest() -> None:
 
 def kernels() -> dict[str, CPUDispatcher]:
     """Every kernel defined in the package, by its qualified name."""
-    return {f"{module.__name__.rsplit('.', 1)[-1]}.{name}": obj
-            for module in _MODULES for name, obj in vars(module).items()
-            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == module.__name__}
+    return {
+        f"{module.__name__.rsplit('.', 1)[-1]}.{name}": obj
+        for module in _MODULES
+        for name, obj in vars(module).items()
+        if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == module.__name__
+    }
 
 
 def warm_up() -> float:
@@ -72,6 +90,8 @@ def warm_up() -> float:
 def main() -> int:
     cpu_s = warm_up()
     n_compiled = sum(len(kernel.signatures) for kernel in kernels().values())
-    print(f"csr_core.single_trip.compiled: {len(kernels())} kernels, {n_compiled} signatures compiled or "  # noqa: T201
-          f"loaded from numba's cache in {cpu_s:.1f} CPU s")
+    print(  # noqa: T201
+        f"csr_core.single_trip.compiled: {len(kernels())} kernels, {n_compiled} signatures compiled or "  # noqa: T201
+        f"loaded from numba's cache in {cpu_s:.1f} CPU s"
+    )
     return 0

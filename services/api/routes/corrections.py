@@ -34,7 +34,9 @@ from services.tile_frames import record_sides, sides_of, tile_frame
 
 router = APIRouter(prefix="/v1", tags=["corrections"])
 
-Frames = Annotated[list[int], Field(min_length=2, max_length=2, description="first and last frame (inclusive)")]
+Frames = Annotated[
+    list[int], Field(min_length=2, max_length=2, description="first and last frame (inclusive)")
+]
 
 
 class CorrectionRequest(BaseModel):
@@ -57,15 +59,24 @@ class CorrectionRequest(BaseModel):
     def _fields_of_kind(self) -> CorrectionRequest:
         if self.kind == "reject_pair" and not self.pair_id:
             raise ValueError("reject_pair needs pair_id")
-        if self.kind == "add_pair" and (self.trip_i is None or self.frames_i is None or self.frames_j is None):
+        if self.kind == "add_pair" and (
+            self.trip_i is None or self.frames_i is None or self.frames_j is None
+        ):
             raise ValueError("add_pair needs trip_i, frames_i, frames_j (and trip_j, or null for the map)")
         return self
 
 
 # The columns a listed pair is built from (its record as JSON text: parsed with orjson, several
 # times faster than the JSON type's json.loads); the listing's sort key (confidence, id) comes last.
-PAIR_COLUMNS = (MatchPair.status, MatchPair.job_id, MatchPair.trip_pk_i, MatchPair.trip_pk_j,
-                MatchPair.residual_rms_m, cast(MatchPair.record, Text).label("record_json"), MatchPair.created_at)
+PAIR_COLUMNS = (
+    MatchPair.status,
+    MatchPair.job_id,
+    MatchPair.trip_pk_i,
+    MatchPair.trip_pk_j,
+    MatchPair.residual_rms_m,
+    cast(MatchPair.record, Text).label("record_json"),
+    MatchPair.created_at,
+)
 PAIR_ORDER = (MatchPair.confidence, MatchPair.id)
 
 
@@ -82,12 +93,21 @@ def pair_json(pair: Any, record: dict[str, Any], tile: str, centre_lonlat: Seque
     and the record's ``centre_xy_world`` in lon/lat."""
     (_, frames_i), (_, frames_j) = sides_of(pair.trip_pk_i, pair.trip_pk_j, record)
     return {
-        "id": pair.id, "tile": tile, "status": pair.status, "job_id": pair.job_id,
-        "trip_i": pair.trip_pk_i, "frames_i": list(frames_i), "trip_j": pair.trip_pk_j, "frames_j": list(frames_j),
-        "confidence": pair.confidence, "residual_rms_m": pair.residual_rms_m,
+        "id": pair.id,
+        "tile": tile,
+        "status": pair.status,
+        "job_id": pair.job_id,
+        "trip_i": pair.trip_pk_i,
+        "frames_i": list(frames_i),
+        "trip_j": pair.trip_pk_j,
+        "frames_j": list(frames_j),
+        "confidence": pair.confidence,
+        "residual_rms_m": pair.residual_rms_m,
         "centre": [float(centre_lonlat[0]), float(centre_lonlat[1])],
-        "relative_pose_xyyaw": record["relative_pose_xyyaw"], "n_element_matches": len(record["instance_matches"]),
-        "human": bool(record.get("human", False)), "created_at": pair.created_at.isoformat(),
+        "relative_pose_xyyaw": record["relative_pose_xyyaw"],
+        "n_element_matches": len(record["instance_matches"]),
+        "human": bool(record.get("human", False)),
+        "created_at": pair.created_at.isoformat(),
     }
 
 
@@ -104,26 +124,42 @@ def pairs_json(pairs: Sequence[Any], z: int, x: int, y: int) -> list[dict[str, A
 
 def correction_json(c: Correction) -> dict[str, Any]:
     return {
-        "id": c.id, "tile": f"{c.z}/{c.x}/{c.y}", "kind": c.kind,
+        "id": c.id,
+        "tile": f"{c.z}/{c.x}/{c.y}",
+        "kind": c.kind,
         "payload": {k: v for k, v in c.payload.items() if k not in ("undo_job_id", "undo_version_id")},
-        "author_key_id": c.author_key_id, "created_at": c.created_at.isoformat(), "job_id": c.job_id,
-        "result_version_id": c.result_version_id, "undone_at": c.undone_at.isoformat() if c.undone_at else None,
-        "undone_by": c.undone_by, "undo_job_id": c.payload.get("undo_job_id"),
+        "author_key_id": c.author_key_id,
+        "created_at": c.created_at.isoformat(),
+        "job_id": c.job_id,
+        "result_version_id": c.result_version_id,
+        "undone_at": c.undone_at.isoformat() if c.undone_at else None,
+        "undone_by": c.undone_by,
+        "undo_job_id": c.payload.get("undo_job_id"),
         "undo_version_id": c.payload.get("undo_version_id"),
     }
 
 
 @router.get("/tiles/{z}/{x}/{y}/match-pairs")
-def list_match_pairs(_: Reader, request: Request, session: ReadSessionDep, z: int, x: int, y: int,
-                     status: Annotated[str | None, Query(description="active, added, rejected or superseded")] = None,
-                     limit: Limit = DEFAULT_LIMIT, cursor: Cursor = None) -> Response:
+def list_match_pairs(
+    _: Reader,
+    request: Request,
+    session: ReadSessionDep,
+    z: int,
+    x: int,
+    y: int,
+    status: Annotated[str | None, Query(description="active, added, rejected or superseded")] = None,
+    limit: Limit = DEFAULT_LIMIT,
+    cursor: Cursor = None,
+) -> Response:
     """A page of the tile's match pairs (all but ``superseded``, or those of ``status``), lowest
     confidence first (then by id); ``next`` is the following page's URL (services.api.pagination)."""
     after = decode_cursor(cursor, (float, str)) if cursor is not None else None
     stmt = select(*PAIR_COLUMNS, *PAIR_ORDER).where(MatchPair.z == z, MatchPair.x == x, MatchPair.y == y)
     stmt = stmt.where(MatchPair.status == status) if status else stmt.where(MatchPair.status != "superseded")
     page = keyset_page(session, stmt, PAIR_ORDER, limit=limit, after=after)
-    return page_response(request, {"tile": f"{z}/{x}/{y}", "match_pairs": pairs_json(page.rows, z, x, y)}, page)
+    return page_response(
+        request, {"tile": f"{z}/{x}/{y}", "match_pairs": pairs_json(page.rows, z, x, y)}, page
+    )
 
 
 def _trip_in_tile(session, trip_pk: str, frames: list[int], z: int, x: int, y: int, field: str) -> None:
@@ -131,27 +167,43 @@ def _trip_in_tile(session, trip_pk: str, frames: list[int], z: int, x: int, y: i
     if trip is None:
         raise ApiError(422, "invalid", f"trip {trip_pk} does not exist", location=field)
     if not 0 <= frames[0] <= frames[1] < trip.n_frames:
-        raise ApiError(422, "invalid", f"frames {frames} are not within the trip's {trip.n_frames} frames",
-                       location=field.replace("trip", "frames"))
+        raise ApiError(
+            422,
+            "invalid",
+            f"frames {frames} are not within the trip's {trip.n_frames} frames",
+            location=field.replace("trip", "frames"),
+        )
     if session.get(TripTile, (trip_pk, z, x, y)) is None:
         raise ApiError(422, "invalid", f"trip {trip_pk} does not cross tile {z}/{x}/{y}", location=field)
 
 
 @router.post("/tiles/{z}/{x}/{y}/corrections", status_code=202)
-def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: int, y: int,
-                      body: CorrectionRequest) -> dict[str, Any]:
+def submit_correction(
+    caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: int, y: int, body: CorrectionRequest
+) -> dict[str, Any]:
     with session.begin():
         payload: dict[str, Any]
         if body.kind == "reject_pair":
             pair = session.get(MatchPair, body.pair_id, with_for_update=True)
             if pair is None or (pair.z, pair.x, pair.y) != (z, x, y):
-                raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no match pair {body.pair_id}",
-                               location="pair_id")
+                raise ApiError(
+                    404, "not_found", f"tile {z}/{x}/{y} has no match pair {body.pair_id}", location="pair_id"
+                )
             if pair.status not in ("active", "added"):
-                raise ApiError(409, "conflict", f"match pair {pair.id} is {pair.status}: nothing to reject",
-                               location="pair_id")
+                raise ApiError(
+                    409,
+                    "conflict",
+                    f"match pair {pair.id} is {pair.status}: nothing to reject",
+                    location="pair_id",
+                )
             (ti, fi), (tj, fj) = record_sides(pair)
-            payload = {"pair_id": pair.id, "trip_i": ti, "frames_i": list(fi), "trip_j": tj, "frames_j": list(fj)}
+            payload = {
+                "pair_id": pair.id,
+                "trip_i": ti,
+                "frames_i": list(fi),
+                "trip_j": tj,
+                "frames_j": list(fj),
+            }
             pair.status = "rejected"
         else:
             # add_pair: CorrectionRequest's validator requires these
@@ -159,13 +211,27 @@ def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: i
             _trip_in_tile(session, body.trip_i, body.frames_i, z, x, y, "trip_i")
             if body.trip_j is not None:
                 _trip_in_tile(session, body.trip_j, body.frames_j, z, x, y, "trip_j")
-            payload = {"trip_i": body.trip_i, "frames_i": body.frames_i, "trip_j": body.trip_j,
-                       "frames_j": body.frames_j, "offset_xyyaw": body.offset_xyyaw}
+            payload = {
+                "trip_i": body.trip_i,
+                "frames_i": body.frames_i,
+                "trip_j": body.trip_j,
+                "frames_j": body.frames_j,
+                "offset_xyyaw": body.offset_xyyaw,
+            }
         if body.note:
             payload["note"] = body.note
         job = repo.add_job(session, kind="correct_tile", subject=f"{z}/{x}/{y}")
-        correction = Correction(id=repo.new_id(), z=z, x=x, y=y, kind=body.kind, payload=payload,
-                                author_key_id=caller.key_id, created_at=utcnow(), job_id=job.id)
+        correction = Correction(
+            id=repo.new_id(),
+            z=z,
+            x=x,
+            y=y,
+            kind=body.kind,
+            payload=payload,
+            author_key_id=caller.key_id,
+            created_at=utcnow(),
+            job_id=job.id,
+        )
         session.add(correction)
         session.flush()
         answer = {**correction_json(correction), "status": "queued"}
@@ -174,13 +240,16 @@ def submit_correction(caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: i
 
 
 @router.get("/corrections")
-def list_corrections(_: Reader, session: ReadSessionDep, z: int | None = None, x: int | None = None,
-                     y: int | None = None) -> dict[str, Any]:
+def list_corrections(
+    _: Reader, session: ReadSessionDep, z: int | None = None, x: int | None = None, y: int | None = None
+) -> dict[str, Any]:
     stmt = select(Correction)
     for column, value in ((Correction.z, z), (Correction.x, x), (Correction.y, y)):
         if value is not None:
             stmt = stmt.where(column == value)
-    return {"corrections": [correction_json(c) for c in session.scalars(stmt.order_by(Correction.created_at))]}
+    return {
+        "corrections": [correction_json(c) for c in session.scalars(stmt.order_by(Correction.created_at))]
+    }
 
 
 @router.post("/corrections/{correction_id}/undo", status_code=202)

@@ -66,7 +66,9 @@ def export_lanelet2_osm(
     try:
         body, lanelet_map = export_lanelet2(features, frame=frame)
     except CsrError as exc:
-        raise ApiError(422, "export", f"the map in this bbox cannot be exported: {exc}", location="query.bbox") from exc
+        raise ApiError(
+            422, "export", f"the map in this bbox cannot be exported: {exc}", location="query.bbox"
+        ) from exc
     report = {**lanelet_map.report.as_dict(), "features_unknown_type": unknown, "map_version": map_version}
     headers = {
         "Content-Disposition": f'attachment; filename="csr-lanelet2-{map_version}.osm"',

@@ -25,8 +25,14 @@ def healthz(ctx: Ctx) -> JSONResponse:
     if ctx.settings.embedded_jobs:
         return JSONResponse({"status": "ok", "database": ctx.engine.dialect.name, "jobs": "embedded"})
     broker = "ok" if ctx.runner.broker_reachable() else "unreachable"
-    return JSONResponse({"status": "ok" if broker == "ok" else "degraded", "database": ctx.engine.dialect.name,
-                         "jobs": "distributed", "broker": broker})
+    return JSONResponse(
+        {
+            "status": "ok" if broker == "ok" else "degraded",
+            "database": ctx.engine.dialect.name,
+            "jobs": "distributed",
+            "broker": broker,
+        }
+    )
 
 
 @router.get("/metrics")

@@ -173,8 +173,12 @@ def retry_job(job_id: str, _: Admin, ctx: Ctx, session: SessionDep) -> JSONRespo
         if repo.lease_has_expired(failed, now=utcnow()):
             repo.supersede_stuck_job(failed, now=utcnow())
         if failed.state != "failed":
-            raise ApiError(409, "not_failed", f"job {job_id} is {failed.state}: only a failed job, or a running "
-                           "one whose lease ran out, is retried")
+            raise ApiError(
+                409,
+                "not_failed",
+                f"job {job_id} is {failed.state}: only a failed job, or a running "
+                "one whose lease ran out, is retried",
+            )
         newer = session.scalars(
             select(Job.id)
             .where(Job.kind == failed.kind, Job.subject == failed.subject, Job.created_at > failed.created_at)

@@ -82,9 +82,15 @@ def quality_json(summary: dict[str, Any] | None) -> dict[str, Any] | None:
     if summary is None:
         return None
     diagnostics = summary.get("diagnostics") or {}
-    single = diagnostics.get("quality") or {"verdict": "ok", "reason": "not tested (reconstructed without the test)"}
-    return {**single, "degraded": single.get("verdict") == "degraded",
-            "alignment": diagnostics.get("alignment_quality")}
+    single = diagnostics.get("quality") or {
+        "verdict": "ok",
+        "reason": "not tested (reconstructed without the test)",
+    }
+    return {
+        **single,
+        "degraded": single.get("verdict") == "degraded",
+        "alignment": diagnostics.get("alignment_quality"),
+    }
 
 
 def _check_headers(request: Request, max_body_bytes: int) -> bool:
@@ -157,8 +163,18 @@ def get_poses(trip_pk: str, caller: Reader, session: ReadSessionDep) -> dict[str
     poses = session.get(TripPoses, trip.id) if trip.status == "aligned" else None
     if poses is None:  # contract section 3: 409 before it is aligned
         detail = f": {trip.error}" if trip.status == "failed" and trip.error else ""
-        raise ApiError(409, "not_aligned", f"trip {trip.id} is {trip.status}: it has no aligned poses{detail}")
+        raise ApiError(
+            409, "not_aligned", f"trip {trip.id} is {trip.status}: it has no aligned poses{detail}"
+        )
     arrays = decode_arrays(poses.arrays)
-    rows = zip(arrays["t"].tolist(), arrays["lat"].tolist(), arrays["lon"].tolist(), arrays["heading_deg"].tolist(),
-               strict=True)
-    return {"id": trip.id, "frames": [{"t": t, "lat": lat, "lon": lon, "heading_deg": h} for t, lat, lon, h in rows]}
+    rows = zip(
+        arrays["t"].tolist(),
+        arrays["lat"].tolist(),
+        arrays["lon"].tolist(),
+        arrays["heading_deg"].tolist(),
+        strict=True,
+    )
+    return {
+        "id": trip.id,
+        "frames": [{"t": t, "lat": lat, "lon": lon, "heading_deg": h} for t, lat, lon, h in rows],
+    }

@@ -40,23 +40,38 @@ def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, loca
 
 
 @router.get("/tiles/{z}/{x}/{y}/versions")
-def tile_history(_: Reader, request: Request, session: ReadSessionDep, z: int, x: int, y: int,
-                 limit: Limit = DEFAULT_LIMIT, cursor: Cursor = None) -> Response:
+def tile_history(
+    _: Reader,
+    request: Request,
+    session: ReadSessionDep,
+    z: int,
+    x: int,
+    y: int,
+    limit: Limit = DEFAULT_LIMIT,
+    cursor: Cursor = None,
+) -> Response:
     """A page of a pipeline tile's versions, oldest first: status, reason, job, trips, corrections,
     quality, change counts; ``next`` is the following page's URL (services.api.pagination). The
     versions' topology states (the large column) are not read."""
     check_tile(z, x, y)
     after = decode_cursor(cursor, (int,)) if cursor is not None else None
-    stmt = (select(TileVersion, TileVersion.version).options(defer(TileVersion.state))
-            .where(TileVersion.z == z, TileVersion.x == x, TileVersion.y == y))
+    stmt = (
+        select(TileVersion, TileVersion.version)
+        .options(defer(TileVersion.state))
+        .where(TileVersion.z == z, TileVersion.x == x, TileVersion.y == y)
+    )
     with session.begin():
         head = vs.tile_head(session, z=z, x=x, y=y)
         if head is None:
             raise ApiError(404, "not_found", f"tile {z}/{x}/{y} has no versions", location="path")
         page = keyset_page(session, stmt, (TileVersion.version,), limit=limit, after=after)
         versions = [vs.version_summary(row[0]) for row in page.rows]
-    body = {"tile": f"{z}/{x}/{y}", "latest_version": head.latest_version, "live_version": head.live_version,
-            "versions": versions}
+    body = {
+        "tile": f"{z}/{x}/{y}",
+        "latest_version": head.latest_version,
+        "live_version": head.live_version,
+        "versions": versions,
+    }
     return page_response(request, body, page)
 
 
@@ -93,7 +108,10 @@ def tile_version_geojson(
     return Response(
         body,
         media_type="application/geo+json",
-        headers={**CORS_HEADERS, "Cache-Control": cache_control(pinned=True, public_map=ctx.settings.public_map)},
+        headers={
+            **CORS_HEADERS,
+            "Cache-Control": cache_control(pinned=True, public_map=ctx.settings.public_map),
+        },
     )
 
 
@@ -142,11 +160,15 @@ def changes(
 
 class RollbackBody(BaseModel):
     version: DbInt = Field(ge=1, description="the tile version to publish again")
-    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    expected_latest: DbInt | None = Field(
+        None, description="the latest version the caller saw (409 if stale)"
+    )
 
 
 class ApproveBody(BaseModel):
-    expected_latest: DbInt | None = Field(None, description="the latest version the caller saw (409 if stale)")
+    expected_latest: DbInt | None = Field(
+        None, description="the latest version the caller saw (409 if stale)"
+    )
 
 
 def _write(action, session: Session, **kwargs) -> JSONResponse:
