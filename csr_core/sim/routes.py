@@ -146,6 +146,9 @@ def _walk(world: World, rng: np.random.Generator, length_m: float, params: Traff
     return Route(path_rs, limit_rs, stops_arr[:, 0], stops_arr[:, 1], tuple(lanes))
 
 
+_LOOPS: dict[str, dict[int, tuple[float, list[int]]]] = {}  # by world name (worlds are fixed)
+
+
 def _shortest_loops(world: World) -> dict[int, tuple[float, list[int]]]:
     """For each visible lane on a cycle of successor edges: the shortest such cycle through it
     (its length in metres of centreline, its lanes starting with that one)."""
@@ -176,11 +179,15 @@ def looping_route(world: World, rng: np.random.Generator, length_m: float, param
     approach of ``loop_approach_m`` along the lanes leading into it: a standstill of
     ``start_standstill_s`` at the start and ``loop_stops_per_km`` stops anywhere (queues, red
     lights). Its GNSS/odometry chords longer than a loop are all in the approach, the case a
-    trip-level odometry calibration must not be fooled by."""
+    trip-level odometry calibration must not be fooled by. A world without a loop (a one-way
+    road) gives a :func:`random_route`."""
     g = world.lane_graph
-    loops = _shortest_loops(world)
-    if not loops:
-        raise SimulationError(f"world {world.name!r}: no loop in the lane graph")
+    loops = _LOOPS.get(world.name)
+    if loops is None:
+        loops = _LOOPS[world.name] = _shortest_loops(world)
+    if not loops:  # a one-way road (a motorway section): no loop to lap, an ordinary route
+        log.info("world %r has no loop in its lane graph: a random route instead", world.name)
+        return random_route(world, rng, length_m, params)
     shortest = min(length for length, _ in loops.values())
     # the loops within twice the shortest: the small blocks, rings and turnarounds of the map
     small = sorted(k for k, (length, _) in loops.items() if length <= 2.0 * shortest)

@@ -34,3 +34,9 @@ def test_a_looping_route_laps_a_short_loop_after_a_short_approach(world_name):
 def test_profiles_other_than_loops_draw_no_looping_route():
     for name in ("standard", "hard", "noiseless"):
         assert profiles.get_profile(name).traffic.loop_route_share == 0.0
+
+
+def test_a_world_without_a_loop_gives_an_ordinary_route():
+    world = load_world("a9")  # one carriageway, one direction
+    route = looping_route(world, np.random.default_rng(5), 800.0, profiles.loops().traffic)
+    assert float(np.linalg.norm(np.diff(route.path_xy, axis=0), axis=1).sum()) > 700.0
