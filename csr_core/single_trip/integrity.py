@@ -258,6 +258,16 @@ def _why(check: GnssConsistency) -> str:
     return "; ".join(parts)
 
 
+def test_sigmas_m(status: np.ndarray, std_m: np.ndarray, params: SingleTripParams) -> np.ndarray:
+    """Per-fix sigma of the integrity test (N,): the reported ``std_m`` (the status table without
+    it), never below the status table's typical figure: a receiver that reports ten times too
+    small a sigma must not make every trip fail the test (the smoother's own robust scale
+    absorbs such a receiver; the test has no such scale)."""
+    sigma = gnss_sigmas_m(status, std_m, params)
+    table = np.asarray(params.GNSS_SIGMA_BY_STATUS_M, float)
+    return np.maximum(sigma, table[np.clip(np.asarray(status, int), 0, len(table) - 1)])
+
+
 def _badness(check: GnssConsistency) -> float:
     """How far ``check`` is past its worst limit (below 1: passed)."""
     return max(
@@ -280,7 +290,7 @@ def smooth_poses_checked(
     fallback of the module docstring. Returns the poses kept and their verdict; of three
     solves that all fail, the one least past its limits is kept."""
     args = (timestamps_s, gnss_xy_world, gnss_status, gnss_std_m, gnss_heading_deg, odom_xyyaw)
-    sigma = gnss_sigmas_m(gnss_status, gnss_std_m, params)
+    sigma = test_sigmas_m(gnss_status, gnss_std_m, params)
     has_fix = np.isfinite(sigma) & np.all(np.isfinite(gnss_xy_world), axis=1)
 
     def check(smoothed: SmoothedPoses) -> GnssConsistency:
@@ -370,7 +380,7 @@ def check_aligned_poses(
     are not judged again here."""
     if not params.INTEGRITY_CHECK:
         return aligned_poses_xyyaw, None
-    sigma = gnss_sigmas_m(trip.fix_status, trip.gnss_std_m, params)
+    sigma = test_sigmas_m(trip.fix_status, trip.gnss_std_m, params)
     has_fix = np.isfinite(sigma) & np.asarray(trip.has_fix, bool)
     gnss_xy = frame.to_local(trip.gnss_lonlat_deg)
     # aligned poses sit near the truth, so their offsets are the fixes' whole error, bias

@@ -180,6 +180,7 @@ def test_retry_a_running_job_whose_lease_ran_out(make_isolated) -> None:
     embedded default, where no relay re-queues expired leases, the stuck job stays for the call
     (the distributed relay queues such a job again by itself: tests/integration/test_broker_loss.py)."""
     deployment = make_isolated("embedded")
+    deployment.start_server()
     trip_pk = deployment.upload(moving_trip()).json()["id"]
     deployment.wait_idle()
     stuck_id = _ingest_job(deployment, trip_pk)["id"]
