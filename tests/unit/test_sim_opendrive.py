@@ -29,13 +29,8 @@ from csr_core.upload import validate_upload_json
 
 pytestmark = pytest.mark.unit
 
-_SHARED_SCHEMA = (
-    pathlib.Path(__file__).resolve().parents[3] / "shared" / "contract" / "trip-upload.schema.json"
-)
-_REPO_SCHEMA = (
-    pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
-)
-SCHEMA = _SHARED_SCHEMA if _SHARED_SCHEMA.exists() else _REPO_SCHEMA
+# the vendored contract schema (test_contract_schema checks it equals the contract's)
+SCHEMA = pathlib.Path(__file__).resolve().parents[2] / "csr_core" / "schemas" / "trip-upload.schema.json"
 
 
 def _road(geometry: str, length: float, lanes: str = "", road_id: str = "1", extra: str = "") -> str:
