@@ -13,6 +13,7 @@ from fastapi import Depends, FastAPI
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
 from services.api.metrics import Metrics
+from services.api.openapi import install_openapi
 from services.api.params import check_request_params
 from services.api.routes import (
     corrections,
@@ -88,9 +89,16 @@ def create_app(settings: Settings) -> FastAPI:
 
     # every route's path and query parameters pass one check first (services.api.params)
     app = FastAPI(
-        title="CSR", version="0.1.0", lifespan=lifespan, dependencies=[Depends(check_request_params)]
+        title="CSR",
+        version="0.1.0",
+        description="Crowdsourced road structure: trip uploads in, a versioned tiled vector map out.",
+        lifespan=lifespan,
+        dependencies=[Depends(check_request_params)],
+        servers=[{"url": "/", "description": "this service"}],
+        license_info={"name": "Apache-2.0", "identifier": "Apache-2.0"},
     )
     install_error_handlers(app)
+    install_openapi(app)
     for module in (
         ops,
         trips,

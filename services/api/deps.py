@@ -50,9 +50,16 @@ ReadSessionDep = Annotated[Session, Depends(get_read_session)]
 
 
 def require(*roles: str) -> Callable[..., Caller]:
-    def dependency(ctx: Ctx, authorization: Annotated[str | None, Header()] = None) -> Caller:
+    """The caller, authenticated by its bearer key, if its role is one of ``roles`` (else 401/403).
+    The dependency carries ``roles`` for the OpenAPI document (services.api.openapi); the header is
+    described there by the bearer security scheme, not as a parameter."""
+
+    def dependency(
+        ctx: Ctx, authorization: Annotated[str | None, Header(include_in_schema=False)] = None
+    ) -> Caller:
         return authorize(authenticate(ctx.read_session_factory, authorization), roles)
 
+    dependency.roles = roles  # type: ignore[attr-defined]
     return dependency
 
 

@@ -88,6 +88,8 @@ REQUESTS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "GET /v1/corrections": ("GET", "/v1/corrections", {}),
     "POST /v1/corrections/{id}/undo": ("POST", "/v1/corrections/none/undo", {}),
     "GET /v1/export/lanelet2": ("GET", "/v1/export/lanelet2", {"params": {"bbox": BBOX}}),
+    "GET /viewer/": ("GET", "/viewer/", {}),
+    "GET /ops/": ("GET", "/ops/", {}),
 }
 
 
@@ -143,6 +145,8 @@ MATRIX = {
     "GET /v1/corrections":               (401, 401, 401, 403, 403, 200, 200),
     "POST /v1/corrections/{id}/undo":    (401, 401, 401, 403, 403, 403, 404),
     "GET /v1/export/lanelet2":           (401, 401, 401, 403, 403, 200, 200),
+    "GET /viewer/":                      (200, 200, 200, 200, 200, 200, 200),
+    "GET /ops/":                         (200, 200, 200, 200, 200, 200, 200),
 }
 # fmt: on
 CASES = [
@@ -158,17 +162,36 @@ def _generic(path: str) -> str:
     return path
 
 
-def test_the_matrix_names_every_route(deployment: Deployment):
+@pytest.fixture(scope="module")
+def documented(deployment: Deployment) -> dict[str, dict[str, Any]]:
+    """Each endpoint's operation in the served OpenAPI document."""
     with deployment.admin() as http:
         spec = http.get("/openapi.json").json()
-    routes = {f"{method.upper()} {_generic(path)}" for path, item in spec["paths"].items() for method in item}
-    assert routes == set(MATRIX)
+    return {
+        f"{method.upper()} {_generic(path)}": operation
+        for path, item in spec["paths"].items()
+        for method, operation in item.items()
+    }
+
+
+def test_the_matrix_names_every_route(documented: dict[str, dict[str, Any]]):
+    assert set(documented) == set(MATRIX)
 
 
 @pytest.mark.parametrize("endpoint,caller,status", CASES, ids=[f"{e}-{c}" for e, c, _ in CASES])
-def test_role_matrix(deployment: Deployment, world: World, endpoint: str, caller: str, status: int):
+def test_role_matrix(
+    deployment: Deployment,
+    world: World,
+    documented: dict[str, dict[str, Any]],
+    endpoint: str,
+    caller: str,
+    status: int,
+):
     response = _call(deployment, world, endpoint, caller)
     assert response.status_code == status, response.text
+    # the OpenAPI document names the answer and whether a key is needed
+    assert str(status) in documented[endpoint]["responses"]
+    assert (documented[endpoint]["security"] == []) == (MATRIX[endpoint][0] != 401)
     if status in (401, 403):
         body = response.json()
         assert body["error"] == {401: "unauthorized", 403: "forbidden"}[status] and body["message"]

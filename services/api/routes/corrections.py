@@ -24,8 +24,10 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sqlalchemy import Text, cast, select
 
+from services.api import answers
 from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
 from services.api.params import IdText, NoteText
 from services.db import repo
@@ -139,7 +141,14 @@ def correction_json(c: Correction) -> dict[str, Any]:
     }
 
 
-@router.get("/tiles/{z}/{x}/{y}/match-pairs")
+@router.get(
+    "/tiles/{z}/{x}/{y}/match-pairs",
+    response_class=Response,
+    responses={
+        200: answers.answer(answers.MatchPairs, "A page of the tile's match pairs"),
+        **errors({422: {"invalid_request": "`cursor` is not a cursor of this listing."}}),
+    },
+)
 def list_match_pairs(
     _: Reader,
     request: Request,
@@ -177,7 +186,20 @@ def _trip_in_tile(session, trip_pk: str, frames: list[int], z: int, x: int, y: i
         raise ApiError(422, "invalid", f"trip {trip_pk} does not cross tile {z}/{x}/{y}", location=field)
 
 
-@router.post("/tiles/{z}/{x}/{y}/corrections", status_code=202)
+@router.post(
+    "/tiles/{z}/{x}/{y}/corrections",
+    status_code=202,
+    responses={
+        202: answers.answer(answers.Correction, "The correction, its job queued (`status`: queued)"),
+        **errors(
+            {
+                404: {"not_found": "the tile has no such match pair."},
+                409: {"conflict": "the match pair is not active: nothing to reject."},
+                422: {"invalid": "a trip that does not exist or cross the tile, or frames outside it."},
+            }
+        ),
+    },
+)
 def submit_correction(
     caller: Admin, ctx: Ctx, session: SessionDep, z: int, x: int, y: int, body: CorrectionRequest
 ) -> dict[str, Any]:
@@ -239,7 +261,10 @@ def submit_correction(
     return answer
 
 
-@router.get("/corrections")
+@router.get(
+    "/corrections",
+    responses={200: answers.answer(answers.Corrections, "The audit trail, oldest first")},
+)
 def list_corrections(
     _: Reader, session: ReadSessionDep, z: int | None = None, x: int | None = None, y: int | None = None
 ) -> dict[str, Any]:
@@ -252,7 +277,19 @@ def list_corrections(
     }
 
 
-@router.post("/corrections/{correction_id}/undo", status_code=202)
+@router.post(
+    "/corrections/{correction_id}/undo",
+    status_code=202,
+    responses={
+        202: answers.answer(answers.Correction, "The correction, undone; its job queued"),
+        **errors(
+            {
+                404: {"not_found": "no correction with this id."},
+                409: {"conflict": "the correction was already undone."},
+            }
+        ),
+    },
+)
 def undo_correction(caller: Admin, ctx: Ctx, session: SessionDep, correction_id: str) -> dict[str, Any]:
     with session.begin():
         c = session.get(Correction, correction_id, with_for_update=True)

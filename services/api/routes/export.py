@@ -17,6 +17,7 @@ from csr_core.geo import LocalFrame
 from csr_core.types import DividerStyle, ElementType
 from services.api.deps import Reader, ReadSessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.db import versions as vs
 from services.tiles.http import check_map_version, parse_bbox
 
@@ -47,7 +48,33 @@ def _lonlat_features(features: list[vs.VersionFeature]) -> tuple[list[LonLatFeat
     return out, unknown
 
 
-@router.get("/lanelet2", response_class=Response, responses={200: {"content": {OSM_XML: {}}}})
+@router.get(
+    "/lanelet2",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "A Lanelet2 OSM XML file (an attachment); what was written and skipped is "
+            "in `X-Lanelet2-Report` (JSON)",
+            "content": {OSM_XML: {"schema": {"type": "string"}}},
+            "headers": {
+                "X-Lanelet2-Report": {
+                    "description": "JSON: the export's report",
+                    "schema": {"type": "string"},
+                },
+                "X-Map-Version": {"description": "the map version exported", "schema": {"type": "integer"}},
+            },
+        },
+        **errors(
+            {
+                404: {"not_found": "the map version does not exist (yet)."},
+                422: {
+                    "invalid_request": "`bbox` malformed, inverted or over the area limit.",
+                    "export": "the map in the bbox cannot be exported.",
+                },
+            }
+        ),
+    },
+)
 def export_lanelet2_osm(
     _: Reader,
     session: ReadSessionDep,

@@ -21,8 +21,10 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
+from services.api import answers
 from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.api.routes.versions import version_or_404
 from services.db import versions as vs
 from services.tiles.http import CORS_HEADERS, cache_control, check_tile
@@ -36,7 +38,15 @@ HELD_BACK_STATUS = "held_back"  # each feature's ``status``: not in the publishe
 @router.get(
     "/tiles/{z}/{x}/{y}/held-back",
     response_class=Response,
-    responses={200: {"content": {"application/geo+json": {}}}},
+    responses={
+        200: answers.geojson("The held-back lines, with `tile`, `version` and `map_version`"),
+        **errors(
+            {
+                404: {"not_found": "the tile has no versions, or not this one."},
+                409: {"state_unavailable": "the version has no readable topology state."},
+            }
+        ),
+    },
 )
 def held_back_lines(
     _: Reader,

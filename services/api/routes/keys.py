@@ -7,8 +7,10 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Response
 from pydantic import BaseModel, ConfigDict, StringConstraints, model_validator
 
+from services.api import answers
 from services.api.deps import Admin, SessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.db import repo
 
 router = APIRouter(prefix="/v1/keys", tags=["keys"])
@@ -27,14 +29,23 @@ class KeyRequest(BaseModel):
         return self
 
 
-@router.post("", status_code=201)
+@router.post(
+    "",
+    status_code=201,
+    responses={201: answers.answer(answers.KeyCreated, "The new key; its secret is shown only here")},
+)
 def create_key(request: KeyRequest, _: Admin, session: SessionDep) -> dict:
     with session.begin():
         row, secret = repo.create_key(session, role=request.role, vehicle_id=request.vehicle_id)
     return {"id": row.id, "key": secret, "role": row.role, "vehicle_id": row.vehicle_id}
 
 
-@router.delete("/{key_id}", status_code=204)
+@router.delete(
+    "/{key_id}",
+    status_code=204,
+    response_class=Response,
+    responses=errors({404: {"not_found": "no active key with this id (unknown or already revoked)."}}),
+)
 def revoke_key(key_id: str, _: Admin, session: SessionDep) -> Response:
     with session.begin():
         revoked = repo.revoke_key(session, key_id=key_id)

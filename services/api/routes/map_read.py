@@ -8,7 +8,9 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
+from services.api import answers
 from services.api.deps import Ctx, Reader, ReadSessionDep
+from services.api.openapi import errors
 from services.db import versions as vs
 from services.tiles.http import (
     CORS_HEADERS,
@@ -21,7 +23,19 @@ from services.tiles.render import feature_collection, feature_json
 router = APIRouter(prefix="/v1", tags=["map"])
 
 
-@router.get("/map", response_class=Response, responses={200: {"content": {"application/geo+json": {}}}})
+@router.get(
+    "/map",
+    response_class=Response,
+    responses={
+        200: answers.geojson("The road structure in the bbox, with `map_version` and `bbox`"),
+        **errors(
+            {
+                404: {"not_found": "the map version does not exist (yet)."},
+                422: {"invalid_request": "`bbox` malformed, inverted or over the area limit."},
+            }
+        ),
+    },
+)
 def get_map(
     _: Reader,
     ctx: Ctx,

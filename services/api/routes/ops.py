@@ -7,12 +7,22 @@ from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
+from services.api import answers
 from services.api.deps import Ctx, Reader
 
 router = APIRouter(tags=["ops"])
 
 
-@router.get("/healthz")
+@router.get(
+    "/healthz",
+    response_class=JSONResponse,
+    responses={
+        200: answers.answer(
+            answers.Health, "The service answers (`status`: ok, or degraded without the broker)"
+        ),
+        503: answers.answer(answers.Health, "The database is unreachable (`status`: error)"),
+    },
+)
 def healthz(ctx: Ctx) -> JSONResponse:
     """200 ``{"status", "database", "jobs"}``; 503 when the database is unreachable. The distributed
     deployment adds ``"broker": "ok" | "unreachable"``: without it the status is ``degraded``, still
@@ -35,6 +45,15 @@ def healthz(ctx: Ctx) -> JSONResponse:
     )
 
 
-@router.get("/metrics")
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "The service's metrics in the Prometheus text format",
+            "content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}},
+        }
+    },
+)
 def metrics(_: Reader, ctx: Ctx) -> Response:
     return Response(generate_latest(ctx.metrics.registry), media_type=CONTENT_TYPE_LATEST)

@@ -22,8 +22,10 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
+from services.api import answers
 from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.db import repo
 from services.db.models import DirtyTile, Job, Trip, TripTile, utcnow
 
@@ -79,7 +81,13 @@ def _retried_by(session: Session, jobs: list[Job]) -> dict[str, str]:
     return out
 
 
-@router.get("/jobs")
+@router.get(
+    "/jobs",
+    responses={
+        200: answers.answer(answers.Jobs, "Jobs, newest first, and the counts per queue and state"),
+        **errors({422: {"query": "`state` or `kind` is not one of the known ones."}}),
+    },
+)
 def list_jobs(
     _: Reader,
     session: ReadSessionDep,
@@ -115,13 +123,22 @@ def _load_job(session: Session, job_id: str) -> Job:
     return job
 
 
-@router.get("/jobs/{job_id}")
+@router.get(
+    "/jobs/{job_id}",
+    responses={
+        200: answers.answer(answers.Job, "The job"),
+        **errors({404: {"not_found": "no job with this id."}}),
+    },
+)
 def get_job(job_id: str, _: Reader, session: ReadSessionDep) -> dict[str, Any]:
     job = _load_job(session, job_id)
     return job_json(job, retried_by=_retried_by(session, [job]).get(job.id))
 
 
-@router.get("/tiles/dirty")
+@router.get(
+    "/tiles/dirty",
+    responses={200: answers.answer(answers.DirtyTiles, "Tiles with trips not yet processed")},
+)
 def dirty_tiles(
     _: Reader, session: ReadSessionDep, limit: Annotated[int, Query(ge=1, le=10 * MAX_LIMIT)] = 1000
 ) -> dict[str, Any]:
@@ -161,7 +178,25 @@ def dirty_tiles(
     }
 
 
-@router.post("/jobs/{job_id}/retry", status_code=202)
+@router.post(
+    "/jobs/{job_id}/retry",
+    status_code=202,
+    response_class=JSONResponse,
+    responses={
+        202: answers.answer(
+            answers.Job, "The new job (`retry_of`: the failed one)", headers=answers.LOCATION_HEADER
+        ),
+        **errors(
+            {
+                404: {"not_found": "no job with this id."},
+                409: {
+                    "not_failed": "the job did not fail (nor did its lease run out).",
+                    "superseded": "a newer job for the same subject exists.",
+                },
+            }
+        ),
+    },
+)
 def retry_job(job_id: str, _: Admin, ctx: Ctx, session: SessionDep) -> JSONResponse:
     """Queue a failed job again, as a new job of the same kind and subject (see the module doc). A
     running job whose lease ran out (no worker renews it) is recorded as failed and retried alike.

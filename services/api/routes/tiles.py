@@ -14,7 +14,9 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import JSONResponse, Response
 
+from services.api import answers
 from services.api.deps import Ctx, Reader, ReadSessionDep
+from services.api.openapi import errors
 from services.tiles import render
 from services.tiles.http import (
     CORS_HEADERS,
@@ -33,6 +35,12 @@ PinnedVersion = Annotated[
     Query(alias="v", description="map version: the tile as it was then (immutable, cached forever)"),
 ]
 IfNoneMatch = Annotated[str | None, Header()]
+# The answers a tile shares besides its 200 (OpenAPI)
+TILE_ANSWERS: dict[int | str, dict] = {
+    204: {"description": "An empty tile"},
+    304: {"description": "`If-None-Match` names the tile's current ETag"},
+    **errors({404: {"not_found": "the map version `v` does not exist (yet)."}}),
+}
 
 
 def _tile(
@@ -75,7 +83,13 @@ def _tile(
 @router.get(
     "/tiles/{z}/{x}/{y}.mvt",
     response_class=Response,
-    responses={200: {"content": {"application/vnd.mapbox-vector-tile": {}}}, 204: {}, 304: {}},
+    responses={
+        200: {
+            "description": "The tile (layer `road`)",
+            "content": {"application/vnd.mapbox-vector-tile": {"schema": {"type": "string"}}},
+        },
+        **TILE_ANSWERS,
+    },
 )
 def tile_mvt(
     _: Reader,
@@ -96,7 +110,10 @@ def tile_mvt(
 @router.get(
     "/tiles/{z}/{x}/{y}.geojson",
     response_class=Response,
-    responses={200: {"content": {"application/geo+json": {}}}, 204: {}, 304: {}},
+    responses={
+        200: answers.geojson("The tile's features, unclipped, in lon/lat"),
+        **TILE_ANSWERS,
+    },
 )
 def tile_geojson(
     _: Reader,
@@ -113,7 +130,10 @@ def tile_geojson(
     return _tile("geojson", request, ctx, session, z, x, y, v, if_none_match)
 
 
-@router.get("/tiles.json")
+@router.get(
+    "/tiles.json",
+    responses={200: {"description": "TileJSON 3.0.0 of the map (https://github.com/mapbox/tilejson-spec)"}},
+)
 def tile_json(_: Reader, request: Request, ctx: Ctx, session: ReadSessionDep) -> JSONResponse:
     """TileJSON 3.0.0: the tile URL pinned to the current map version, zooms, data bounds, vector_layers."""
     base = str(request.base_url).rstrip("/")

@@ -19,8 +19,10 @@ import shapely
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import select
 
+from services.api import answers
 from services.api.deps import AnyRole, Ctx, ReadSessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.api.routes.trips import _iso_utc
 from services.auth import may_read_trip
 from services.db import repo
@@ -79,7 +81,13 @@ def trip_summary(trip: Trip) -> dict[str, Any]:
     }
 
 
-@router.get("")
+@router.get(
+    "",
+    responses={
+        200: answers.answer(answers.TripsInBbox, "Trips whose GNSS track touches the bbox"),
+        **errors({422: {"query": "`bbox` is not minlon,minlat,maxlon,maxlat (degrees)."}}),
+    },
+)
 def trips_in_bbox(
     caller: AnyRole,
     ctx: Ctx,
@@ -122,7 +130,19 @@ def _poses_line(arrays: bytes) -> tuple[list[list[float]], dict[str, Any]]:
     return coords, props
 
 
-@router.get("/{trip_pk}/track.geojson")
+@router.get(
+    "/{trip_pk}/track.geojson",
+    response_class=Response,
+    responses={
+        200: answers.geojson("The raw GNSS track and the aligned trajectory"),
+        **errors(
+            {
+                403: {"forbidden": "a vehicle key reading another vehicle's trip."},
+                404: {"not_found": "no trip with this id."},
+            }
+        ),
+    },
+)
 def trip_track(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> Response:
     """FeatureCollection: ``kind: raw`` (GNSS fixes, once ingested) and ``kind: aligned`` (final
     poses, once aligned); each feature is left out until it exists."""

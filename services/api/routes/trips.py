@@ -12,9 +12,11 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from csr_core.errors import UploadError
+from services.api import answers
 from services.api.body import read_limited, too_large
 from services.api.deps import AnyRole, Ctx, Reader, ReadSessionDep, Uploader
 from services.api.errors import ApiError, as_api_error
+from services.api.openapi import errors, upload_request_body
 from services.auth import may_read_trip
 from services.db import repo
 from services.db.models import Trip, TripPoses
@@ -110,7 +112,35 @@ def _check_headers(request: Request, max_body_bytes: int) -> bool:
     return _ENCODINGS[encoding]
 
 
-@router.post("", status_code=202)
+@router.post(
+    "",
+    status_code=202,
+    openapi_extra=upload_request_body(),
+    responses={
+        202: answers.answer(answers.Trip, "A new trip", headers=answers.LOCATION_HEADER),
+        200: answers.answer(
+            answers.Trip, "The same body again: the trip it made", headers=answers.LOCATION_HEADER
+        ),
+        **errors(
+            {
+                400: {"json": "malformed JSON.", "gzip": "malformed or truncated gzip."},
+                403: {"forbidden": "a vehicle key uploading for another `vehicle_id`."},
+                409: {"conflict": "other content under an existing `(vehicle_id, trip_id)`."},
+                413: {"too_large": "the body over the limit as sent, or after decompression."},
+                415: {
+                    "content_type": "not `application/json`.",
+                    "content_encoding": "an encoding other than gzip.",
+                },
+                422: {
+                    "schema": "a violation of the upload schema (`location`: its JSON path).",
+                    "non_finite": "NaN or an infinite number.",
+                    "time_order": "`t` not strictly increasing.",
+                    "version": "a `schema_version` other than `1.0`.",
+                },
+            }
+        ),
+    },
+)
 async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONResponse:
     settings, metrics = ctx.settings, ctx.metrics
     try:
@@ -149,7 +179,18 @@ def _load_trip(session: Session, trip_pk: str) -> Trip:
     return trip
 
 
-@router.get("/{trip_pk}")
+@router.get(
+    "/{trip_pk}",
+    responses={
+        200: answers.answer(answers.Trip, "The trip, its tiles, reconstruction and quality"),
+        **errors(
+            {
+                403: {"forbidden": "a vehicle key reading another vehicle's trip."},
+                404: {"not_found": "no trip with this id."},
+            }
+        ),
+    },
+)
 def get_trip(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
     may_read_trip(caller, trip.vehicle_id)
@@ -157,7 +198,18 @@ def get_trip(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> dict[str
     return trip_json(trip, tiles=repo.tiles_of_trip(session, trip_pk=trip.id), reconstruction=summary)
 
 
-@router.get("/{trip_pk}/poses")
+@router.get(
+    "/{trip_pk}/poses",
+    responses={
+        200: answers.answer(answers.Poses, "Every uploaded frame's final pose, in upload order"),
+        **errors(
+            {
+                404: {"not_found": "no trip with this id."},
+                409: {"not_aligned": "the trip is not aligned (yet), or failed (the reason)."},
+            }
+        ),
+    },
+)
 def get_poses(trip_pk: str, caller: Reader, session: ReadSessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
     poses = session.get(TripPoses, trip.id) if trip.status == "aligned" else None

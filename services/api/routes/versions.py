@@ -11,8 +11,10 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session, defer
 
+from services.api import answers
 from services.api.deps import Admin, Ctx, Reader, ReadSessionDep, SessionDep
 from services.api.errors import ApiError
+from services.api.openapi import errors
 from services.api.pagination import DEFAULT_LIMIT, Cursor, Limit, decode_cursor, keyset_page, page_response
 from services.api.params import DbInt
 from services.db import versions as vs
@@ -21,6 +23,17 @@ from services.tiles.http import CORS_HEADERS, cache_control, check_tile
 from services.tiles.render import feature_collection, feature_json
 
 router = APIRouter(prefix="/v1", tags=["versions"])
+
+NO_VERSION = {404: {"not_found": "the tile has no versions, or not this one."}}
+WRITE_ERRORS = errors(
+    {
+        404: {"not_found": "the tile has no such version."},
+        409: {
+            "conflict": "another write got there first, or `expected_latest` is stale.",
+            "invalid_state": "the version cannot be published so (e.g. not a candidate).",
+        },
+    }
+)
 
 FEED_LIMIT_MAX = 1000
 
@@ -39,7 +52,14 @@ def version_or_404(session: Session, z: int, x: int, y: int, v: int | None, loca
     return row
 
 
-@router.get("/tiles/{z}/{x}/{y}/versions")
+@router.get(
+    "/tiles/{z}/{x}/{y}/versions",
+    response_class=Response,
+    responses={
+        200: answers.answer(answers.TileHistory, "A page of the tile's versions, oldest first"),
+        **errors({**NO_VERSION, 422: {"invalid_request": "`cursor` is not a cursor of this listing."}}),
+    },
+)
 def tile_history(
     _: Reader,
     request: Request,
@@ -78,7 +98,10 @@ def tile_history(
 @router.get(
     "/tiles/{z}/{x}/{y}/versions/{v}",
     response_class=Response,
-    responses={200: {"content": {"application/geo+json": {}}}},
+    responses={
+        200: answers.geojson("The version's features, each with its `change`"),
+        **errors(NO_VERSION),
+    },
 )
 def tile_version_geojson(
     _: Reader,
@@ -115,7 +138,7 @@ def tile_version_geojson(
     )
 
 
-@router.get("/tiles/{z}/{x}/{y}/diff")
+@router.get("/tiles/{z}/{x}/{y}/diff", responses=errors(NO_VERSION))
 def tile_diff(
     _: Reader,
     session: ReadSessionDep,
@@ -133,7 +156,11 @@ def tile_diff(
         return vs.diff(session, z=z, x=x, y=y, from_version=from_, to_version=to)
 
 
-@router.get("/changes")
+@router.get(
+    "/changes",
+    response_class=JSONResponse,
+    responses={200: answers.answer(answers.Changes, "Tile versions made after map version `since`")},
+)
 def changes(
     _: Reader,
     session: ReadSessionDep,
@@ -188,7 +215,15 @@ def _write(action, session: Session, **kwargs) -> JSONResponse:
     )
 
 
-@router.post("/tiles/{z}/{x}/{y}/rollback", status_code=201)
+@router.post(
+    "/tiles/{z}/{x}/{y}/rollback",
+    status_code=201,
+    response_class=JSONResponse,
+    responses={
+        201: {"description": "The new version's summary", "headers": answers.LOCATION_HEADER},
+        **WRITE_ERRORS,
+    },
+)
 def rollback(caller: Admin, session: SessionDep, z: int, x: int, y: int, body: RollbackBody) -> JSONResponse:
     """Publish an old version again, as a new version (reason ``rollback to vN``); 409 if another
     write got there first (or ``expected_latest`` is stale)."""
@@ -205,7 +240,15 @@ def rollback(caller: Admin, session: SessionDep, z: int, x: int, y: int, body: R
     )
 
 
-@router.post("/tiles/{z}/{x}/{y}/versions/{v}/approve", status_code=201)
+@router.post(
+    "/tiles/{z}/{x}/{y}/versions/{v}/approve",
+    status_code=201,
+    response_class=JSONResponse,
+    responses={
+        201: {"description": "The new version's summary", "headers": answers.LOCATION_HEADER},
+        **WRITE_ERRORS,
+    },
+)
 def approve(
     caller: Admin, session: SessionDep, z: int, x: int, y: int, v: int, body: ApproveBody | None = None
 ) -> JSONResponse:
@@ -223,7 +266,14 @@ def approve(
     )
 
 
-@router.get("/features/{feature_id}")
+@router.get(
+    "/features/{feature_id}",
+    response_class=JSONResponse,
+    responses={
+        200: answers.answer(answers.Feature, "The feature, with `change`, `live` and `history`"),
+        **errors({404: {"not_found": "no feature with this id."}}),
+    },
+)
 def feature(_: Reader, session: ReadSessionDep, feature_id: str) -> JSONResponse:
     """One feature: its geometry and properties in the live map (else its newest version) and its
     history across versions."""

@@ -18,8 +18,16 @@ from fastapi import APIRouter, Request, Response
 from fastapi.responses import RedirectResponse
 
 from services.api.errors import ApiError
+from services.api.openapi import errors
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(tags=["web"])
+
+# The two pages in the OpenAPI document (the redirects and the bundle's assets are not in it)
+PAGE_ANSWERS: dict[int | str, dict] = {
+    200: {"description": "The page", "content": {"text/html": {"schema": {"type": "string"}}}},
+    304: {"description": "`If-None-Match` names the page's current ETag"},
+    **errors({503: {"web_not_built": "the web bundle is missing (`npm ci && npm run build`)."}}),
+}
 
 DIST = Path(__file__).resolve().parents[2] / "web" / "dist"
 PAGES = {"viewer": "index.html", "ops": "ops.html"}
@@ -70,23 +78,23 @@ def _serve(request: Request, name: str) -> Response:
     return Response(body, media_type=CONTENT_TYPES[Path(name).suffix], headers=headers)
 
 
-@router.get("/viewer")
-@router.get("/ops")
+@router.get("/viewer", include_in_schema=False)
+@router.get("/ops", include_in_schema=False)
 def page_without_slash(request: Request) -> RedirectResponse:
     return RedirectResponse(request.url.path + "/", status_code=308)
 
 
-@router.get("/viewer/")
+@router.get("/viewer/", response_class=Response, responses=PAGE_ANSWERS)
 def viewer_page(request: Request) -> Response:
     return _serve(request, PAGES["viewer"])
 
 
-@router.get("/ops/")
+@router.get("/ops/", response_class=Response, responses=PAGE_ANSWERS)
 def ops_page(request: Request) -> Response:
     return _serve(request, PAGES["ops"])
 
 
-@router.get("/viewer/{name}")
-@router.get("/ops/{name}")
+@router.get("/viewer/{name}", include_in_schema=False)
+@router.get("/ops/{name}", include_in_schema=False)
 def asset(request: Request, name: str) -> Response:
     return _serve(request, name)
