@@ -39,11 +39,8 @@ def test_the_document_is_valid_openapi_3_1(doc: dict[str, Any]):
 
 
 def test_every_operation_states_its_security(doc: dict[str, Any]):
-    assert doc["components"]["securitySchemes"]["bearerAuth"] == {
-        **doc["components"]["securitySchemes"]["bearerAuth"],
-        "type": "http",
-        "scheme": "bearer",
-    }
+    scheme = doc["components"]["securitySchemes"]["bearerAuth"]
+    assert (scheme["type"], scheme["scheme"]) == ("http", "bearer")
     public = {f"{m} {p}" for m, p, op in operations(doc) if op["security"] == []}
     assert public == {"GET /healthz", "GET /viewer/", "GET /ops/"}
     for method, path, op in operations(doc):
