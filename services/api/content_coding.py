@@ -30,10 +30,10 @@ class Coding(str, Enum):
     IDENTITY = "identity"
 
 
-# Server preference on equal weights: the smallest output first (measured on tiles and GeoJSON).
+# Server preference on equal weights: the smallest output first (`csr bench-http`: br < zstd < gzip).
 OFFERED = (Coding.BR, Coding.ZSTD, Coding.GZIP)
-# Levels for bodies compressed per request (encoded tiles are cached by ETag and coding):
-# brotli 5 and zstd 6 compress a 388 KB GeoJSON in ~10 ms on this machine, gzip 6 in ~15 ms.
+# Levels for bodies compressed per request (encoded tiles are cached by ETag and coding); sizes and
+# times per body in BENCHMARKS.md (`csr bench-http`): a 370 KB GeoJSON takes 20-60 ms at these.
 BROTLI_QUALITY = 5
 ZSTD_LEVEL = 6
 GZIP_LEVEL = 6

@@ -133,7 +133,8 @@ class _Responder:
         elif message["type"] == "http.response.body" and self._start is not None:
             self._chunks.append(message.get("body", b""))
             if not message.get("more_body", False):
-                await self._send_held(b"".join(self._chunks))
+                chunks = self._chunks
+                await self._send_held(chunks[0] if len(chunks) == 1 else b"".join(chunks))
         else:
             await self._send(message)
 

@@ -7,6 +7,7 @@ Lanelet2 export; each is compressed with the service's codings and levels
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections import Counter
 from typing import Any
@@ -104,7 +105,8 @@ def section(rows: list[dict[str, Any]], world: str, repeat: int) -> str:
         f"The service's answers for the `{world}` world's true map, compressed as the service does "
         f"(brotli quality {BROTLI_QUALITY}, zstd level {ZSTD_LEVEL}, gzip level {GZIP_LEVEL}; README, HTTP). "
         f"Ratio: identity / compressed; ms: best of {repeat} compressions on one core of a shared 2-core "
-        "machine. An encoded tile is compressed once per coding and then served from the LRU. "
+        f"machine (load average {os.getloadavg()[0]:.1f} at the end). An encoded tile is compressed once "
+        "per coding and then served from the LRU; bodies from 64 KB on are compressed off the event loop. "
         f"Regenerate: `csr bench-http --write BENCHMARKS.md`.",
         "",
         head,
