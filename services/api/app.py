@@ -12,6 +12,7 @@ from fastapi import Depends, FastAPI
 
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
+from services.api.http_middleware import ContentEncoding, HeadAsGet
 from services.api.metrics import Metrics
 from services.api.openapi import install_openapi
 from services.api.params import check_request_params
@@ -117,4 +118,7 @@ def create_app(settings: Settings) -> FastAPI:
         app.include_router(module.router)
     # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)
     app.add_middleware(TileFastPath, fastapi_app=app)
+    # around it: negotiated compression with ETags per coding, and HEAD on every GET route
+    app.add_middleware(ContentEncoding)
+    app.add_middleware(HeadAsGet)
     return app

@@ -1,4 +1,5 @@
-"""One error shape for every 4xx/5xx: ``{"error": code, "location": where, "message": what}``."""
+"""One error shape for every 4xx/5xx: ``{"error": code, "location": where, "message": what}``,
+sent with the CORS headers so that a browser on another origin can read it."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from csr_core.errors import UploadError
+from services.api.cors import CORS_HEADERS
 
 # The status of each upload rejection reason (README "Errors").
 UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_order": 422, "version": 422}
@@ -61,7 +63,9 @@ def database_error(exc: Exception) -> ApiError:
 
 
 def error_response(error: ApiError) -> JSONResponse:
-    return JSONResponse(error.as_dict(), status_code=error.status, headers=error.headers)
+    return JSONResponse(
+        error.as_dict(), status_code=error.status, headers={**CORS_HEADERS, **(error.headers or {})}
+    )
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -84,6 +88,13 @@ def install_error_handlers(app: FastAPI) -> None:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         return error_response(
             ApiError(exc.status_code, code, str(exc.detail), headers=getattr(exc, "headers", None))
+        )
+
+    @app.exception_handler(Exception)
+    async def _internal_error(_: Request, exc: Exception) -> JSONResponse:
+        # Starlette's outermost middleware calls this for any unhandled exception (and logs it)
+        return error_response(
+            ApiError(500, "internal", f"internal server error ({type(exc).__name__})", location="server")
         )
 
     @app.exception_handler(RequestValidationError)

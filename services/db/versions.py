@@ -40,6 +40,8 @@ CHANGE_TYPES = ("added", "modified", "unchanged", "removed")
 # geometries are compared as they will be stored, so write and diff agree).
 GEOMETRY_TOLERANCE_M = 1.5e-3
 STORED_DECIMALS = 8
+# Coordinates in GeoJSON answers: 1e-7 degrees (1.1 cm of latitude), well under the map's accuracy.
+GEOJSON_DECIMALS = 7
 _M_PER_DEG_LAT = 111_320.0
 # Global advisory lock that orders id allocation with commits (PostgreSQL): any constant
 # distinct from the migration lock (0x435352) and from the tile lock hashes (which are 62-bit).
@@ -542,7 +544,9 @@ def features_in_bbox(
 
 
 def geometry_json(geometry: BaseGeometry) -> dict[str, Any]:
-    return mapping(geometry)  # type: ignore[return-value]
+    """GeoJSON geometry with coordinates rounded to :data:`GEOJSON_DECIMALS`."""
+    rounded = shapely.transform(geometry, lambda c: np.round(c, GEOJSON_DECIMALS))
+    return mapping(rounded)  # type: ignore[return-value]
 
 
 def diff(session: Session, *, z: int, x: int, y: int, from_version: int, to_version: int) -> dict:

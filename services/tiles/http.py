@@ -9,6 +9,8 @@ from typing import Any, Protocol
 from fastapi.responses import Response
 from sqlalchemy.orm import Session
 
+from services.api.cors import CORS_HEADERS as CORS_HEADERS  # re-exported for the map routes
+from services.api.cors import PREFLIGHT_HEADERS as PREFLIGHT_HEADERS
 from services.api.errors import ApiError
 from services.db import versions as vs
 from services.tiles.mercator import MAX_ZOOM
@@ -17,16 +19,6 @@ from services.tiles.render import TileCache
 # How long a cache may keep a live answer, and a pinned one (a map version never changes).
 LIVE_MAX_AGE = "max-age=30"
 PINNED_MAX_AGE = "max-age=31536000, immutable"
-CORS_HEADERS = {
-    "Access-Control-Allow-Origin": "*",
-    "Access-Control-Expose-Headers": "ETag, X-Map-Version",
-}
-PREFLIGHT_HEADERS = {
-    **CORS_HEADERS,
-    "Access-Control-Allow-Methods": "GET, HEAD, OPTIONS",
-    "Access-Control-Allow-Headers": "Authorization, If-None-Match",
-    "Access-Control-Max-Age": "86400",
-}
 # /v1/map answers at most this bbox (square degrees; ~0.25: 50 km x 28 km at 49 deg N).
 MAX_BBOX_AREA_DEG2 = 0.25
 

@@ -33,7 +33,7 @@ BUFFER = 256
 BUFFER_FRAC = BUFFER / EXTENT
 RESERVED = ("id", "type", "style")
 # Bump when the encoding changes: it is part of every ETag.
-ENCODING_VERSION = "mvt-1"
+ENCODING_VERSION = "mvt-2"
 
 
 def mvt_feature_id(feature_id: str) -> int:

@@ -20,7 +20,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import orjson
+import shapely
+from shapely.geometry import shape
 from sqlalchemy import func, select
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -139,8 +142,23 @@ def feature_json(
     }
 
 
+def geojson_bbox(features: Sequence[dict]) -> list[float] | None:
+    """RFC 7946 ``bbox`` ``[west, south, east, north]`` of the features' coordinates as written
+    (``None`` without any coordinate)."""
+    geometries = [shape(f["geometry"]) for f in features if f.get("geometry")]
+    if not geometries:
+        return None
+    bounds = shapely.total_bounds(geometries)
+    return [float(v) for v in bounds] if np.isfinite(bounds).all() else None
+
+
 def feature_collection(features: Sequence[dict], **members: Any) -> bytes:
-    return orjson.dumps({"type": "FeatureCollection", **members, "features": list(features)})
+    """A FeatureCollection; its ``bbox`` is that of the features (left out when there is none)."""
+    bbox = geojson_bbox(features)
+    head: dict[str, Any] = {"type": "FeatureCollection"}
+    if bbox is not None:
+        head["bbox"] = bbox
+    return orjson.dumps({**head, **members, "features": list(features)})
 
 
 def render(

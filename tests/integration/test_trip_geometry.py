@@ -116,7 +116,11 @@ def test_track_geojson_raw_then_aligned(deployment: Deployment, trip: dict) -> N
     assert set(kinds) == {"raw", "aligned"}
     aligned = kinds["aligned"]
     assert aligned["properties"]["n_points"] == n - 1 and aligned["properties"]["job_id"] == "test-job"
-    np.testing.assert_allclose(aligned["geometry"]["coordinates"][0], [lon[1], lat[1]], atol=1e-8)
+    # GeoJSON coordinates are sent to 7 decimals
+    np.testing.assert_allclose(aligned["geometry"]["coordinates"][0], [lon[1], lat[1]], atol=0.5e-7 + 1e-12)
+    assert doc["bbox"] == [
+        min(c[i] for f in doc["features"] for c in f["geometry"]["coordinates"]) for i in (0, 1)
+    ] + [max(c[i] for f in doc["features"] for c in f["geometry"]["coordinates"]) for i in (0, 1)]
     assert aligned["properties"]["t_start"] == pytest.approx(t[1])
     with deployment.client(keys["other"]) as other:
         assert other.get(f"/v1/trips/{trip['pk']}/track.geojson").status_code == 403

@@ -44,14 +44,15 @@ def get_map(
     version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
 ) -> Response:
     """LineString for line types, Polygon for ``crosswalk`` and ``road_marking``; ``properties.type``
-    is the element type, ``id`` the stable feature id; ``map_version`` names what was read."""
+    is the element type, ``id`` the stable feature id; ``map_version`` names what was read; ``bbox``
+    bounds the features returned (whole features: they may reach past the requested box)."""
     box = parse_bbox(bbox)
     with session.begin():
         pinned = check_map_version(session, version, location="version")
         map_version = pinned if pinned is not None else vs.current_map_version(session)
         versions = vs.contributing_versions(session, bbox_lonlat=box, map_version=pinned)
         features = vs.map_features(session, bbox_lonlat=box, versions=versions)
-    body = feature_collection([feature_json(f) for f in features], map_version=map_version, bbox=list(box))
+    body = feature_collection([feature_json(f) for f in features], map_version=map_version)
     headers = {
         **CORS_HEADERS,
         "Cache-Control": cache_control(pinned=pinned is not None, public_map=ctx.settings.public_map),

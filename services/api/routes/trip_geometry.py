@@ -14,7 +14,6 @@ import math
 from typing import Annotated, Any
 
 import numpy as np
-import orjson
 import shapely
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import select
@@ -26,7 +25,9 @@ from services.api.openapi import errors
 from services.api.routes.trips import _iso_utc
 from services.auth import may_read_trip
 from services.db import repo
+from services.db import versions as vs
 from services.db.models import Trip, TripPoses, TripTile
+from services.tiles.render import feature_collection
 
 router = APIRouter(prefix="/v1/trips", tags=["trips"])
 
@@ -123,7 +124,7 @@ def _poses_line(arrays: bytes) -> tuple[list[list[float]], dict[str, Any]]:
         lat, lon = np.asarray(npz["lat"], float), np.asarray(npz["lon"], float)
         t = np.asarray(npz["t"], float) if "t" in npz.files else None
     keep = np.isfinite(lat) & np.isfinite(lon)
-    coords = np.column_stack([lon[keep], lat[keep]]).round(8).tolist()
+    coords = np.column_stack([lon[keep], lat[keep]]).round(vs.GEOJSON_DECIMALS).tolist()
     props: dict[str, Any] = {"n_points": len(coords)}
     if t is not None and keep.any():
         props["t_start"], props["t_end"] = float(t[keep][0]), float(t[keep][-1])
@@ -153,7 +154,7 @@ def trip_track(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> Respon
     features: list[dict[str, Any]] = []
     line = track_shape(trip.track)
     if line is not None:
-        coords = [[round(x, 8), round(y, 8)] for x, y in line.coords]
+        coords = vs.geometry_json(line)["coordinates"]
         features.append(_feature(trip, "raw", coords, {"n_points": len(coords)}))
     poses = session.get(TripPoses, trip.id)
     if poses is not None:
@@ -167,8 +168,7 @@ def trip_track(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> Respon
                     {**props, "job_id": poses.job_id, "created_at": _iso_utc(poses.created_at)},
                 )
             )
-    body = {"type": "FeatureCollection", "trip": trip_summary(trip), "features": features}
-    return Response(orjson.dumps(body), media_type=GEOJSON)
+    return Response(feature_collection(features, trip=trip_summary(trip)), media_type=GEOJSON)
 
 
 def _feature(trip: Trip, kind: str, coords: list, props: dict[str, Any]) -> dict[str, Any]:
