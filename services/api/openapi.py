@@ -77,6 +77,12 @@ INVALID_PARAMETER = (
     "integer outside -2^31..2^31-1, a tile `z/x/y` outside `0..22` / `0..2^z-1` (`location`: "
     "`path.<name>` or `query.<name>`).",
 )
+NOT_ACCEPTABLE = (
+    406,
+    ("not_acceptable",),
+    "`Accept-Encoding` refuses identity and accepts none of br, zstd, gzip "
+    "(`location: header.accept-encoding`).",
+)
 BODY_INVALID = " A request body that is not the documented one (`location`: `body.<field>`)."
 DATABASE = (
     503,
@@ -214,7 +220,9 @@ def _only_the_model(responses: dict[str, Any]) -> None:
                 media["schema"] = {"$ref": schema["$ref"]}
 
 
-def _complete_operation(operation: dict[str, Any], dependant: Dependant, *, has_body: bool) -> None:
+def _complete_operation(
+    operation: dict[str, Any], dependant: Dependant, *, method: str, has_body: bool
+) -> None:
     roles = roles_of(dependant)
     responses = operation.setdefault("responses", {})
     _only_the_model(responses)
@@ -237,6 +245,8 @@ def _complete_operation(operation: dict[str, Any], dependant: Dependant, *, has_
     _add_error(operation, status, codes, description + (BODY_INVALID if has_body else ""))
     if reads_database(dependant):
         _add_error(operation, *DATABASE)
+    if method == "get":
+        _add_error(operation, *NOT_ACCEPTABLE)  # the content-coding middleware, before every GET
 
 
 def build_document(app: FastAPI) -> dict[str, Any]:
@@ -259,7 +269,9 @@ def build_document(app: FastAPI) -> dict[str, Any]:
         for method in route.methods or ():
             operation = doc["paths"].get(route.path_format, {}).get(method.lower())
             if operation is not None:
-                _complete_operation(operation, route.dependant, has_body=route.body_field is not None)
+                _complete_operation(
+                    operation, route.dependant, method=method.lower(), has_body=route.body_field is not None
+                )
     components = doc.setdefault("components", {})
     schemas = components.setdefault("schemas", {})
     for unused in ("HTTPValidationError", "ValidationError"):

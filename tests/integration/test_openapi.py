@@ -81,6 +81,13 @@ def test_error_answers_are_the_documented_ones(
         ("GET", "/healthz", None, lambda h: h.get("/healthz", params={"probe": "a\x00b"}), 422),
         ("DELETE", "/v1/keys/{key_id}", "admin", lambda h: h.delete("/v1/keys/key_none"), 404),
         ("POST", "/v1/keys", "admin", lambda h: h.post("/v1/keys", json={"role": "root"}), 422),
+        (
+            "GET",
+            "/v1/map",
+            "reader",
+            lambda h: h.get("/v1/map", headers={"Accept-Encoding": "identity;q=0, compress"}),
+            406,
+        ),
     ]
     for method, path, who, call, status in cases:
         with deployment.client(keys[who] if who else None) as http:
