@@ -4,6 +4,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
+# the embedded deployment's data dir for `make serve` (empty: ./data); DATA=data/demo/service serves the demo's map
+DATA ?=
 
 .PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data
 
@@ -16,9 +18,10 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m csr_core.single_trip.compiled
 	touch $@
 
-# The embedded default: SQLite under ./data, jobs in-process; admin key from CSR_ADMIN_KEY or ./data/admin.key
+# The embedded default: SQLite under ./data (or DATA), jobs in-process; admin key from CSR_ADMIN_KEY or
+# DATA/admin.key. After `make demo ARGS=--exit`: `make serve DATA=data/demo/service` serves its map again.
 serve: setup
-	$(BIN)/csr serve --host $(HOST) --port $(PORT)
+	$(BIN)/csr serve --host $(HOST) --port $(PORT) $(if $(DATA),--data-dir $(DATA))
 
 # The README's first command: the service (embedded) on a simulated Karlsruhe fleet, uploaded over HTTP,
 # processed and scored against the ground truth; serves until Ctrl-C. Data in ./data/demo.

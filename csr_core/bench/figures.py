@@ -3,7 +3,8 @@
 For one scenario and each method (aligned outputs, contract section 6):
 
 - ``map``: truth (wide grey) against the reconstruction coloured by element type, zoomed;
-- ``trajectories``: true trajectories, the estimate raw and after the global alignment, zoomed;
+- ``trajectories``: the estimate raw and after the global alignment over the true trajectories (thin,
+  dashed, underneath), zoomed;
 - ``heatmap``: every kept truth sample coloured by its capped distance to the reconstruction.
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -110,6 +112,33 @@ def plot_map(records: Sequence[Record], path: Path, half_w: float = 30.0, half_h
     return path
 
 
+#: the trajectory figure's styles: the truth thin, dashed and underneath, the estimates drawn over it
+#: (the aligned one on top), so that an estimate on the truth stays visible
+TRUTH_STYLE: dict[str, Any] = {"color": "k", "lw": 0.8, "ls": (0, (4, 3)), "zorder": 1}
+RAW_STYLE: dict[str, Any] = {"color": "tab:red", "lw": 0.9, "ls": "-", "zorder": 2}
+ALIGNED_STYLE: dict[str, Any] = {"color": "tab:blue", "lw": 1.3, "ls": "-", "zorder": 3}
+
+
+def draw_trajectories(
+    ax,
+    true_xy_by_key: dict[str, np.ndarray],
+    est_xy_by_key: dict[str, np.ndarray],
+    truth_T_est: np.ndarray,
+) -> dict[str, list]:
+    """Each trip's true trajectory ``(N, 2)`` and its estimate ``(M, 2)``, raw and moved by
+    ``truth_T_est`` ``(3,)``, on ``ax``; returns the lines drawn by role (``truth``, ``raw``,
+    ``aligned``)."""
+    lines: dict[str, list] = {"truth": [], "raw": [], "aligned": []}
+    for k, true_xy in true_xy_by_key.items():
+        lines["truth"] += ax.plot(true_xy[:, 0], true_xy[:, 1], **TRUTH_STYLE)
+        if k in est_xy_by_key:
+            est = est_xy_by_key[k]
+            lines["raw"] += ax.plot(est[:, 0], est[:, 1], **RAW_STYLE)
+            aligned = apply_se2(truth_T_est, est)
+            lines["aligned"] += ax.plot(aligned[:, 0], aligned[:, 1], **ALIGNED_STYLE)
+    return lines
+
+
 def plot_trajectories(
     records: Sequence[Record], path: Path, half_w: float = 15.0, half_h: float = 9.0
 ) -> Path:
@@ -118,14 +147,7 @@ def plot_trajectories(
     centre = zoom_centre(ok[0])
     for ax, r in zip(axes, ok, strict=False):
         ev = r.ev
-        T = ev.evaluation.truth_T_est
-        for k, true_xy in ev.true_xy_by_key.items():
-            ax.plot(true_xy[:, 0], true_xy[:, 1], color="k", lw=1.6, zorder=3)
-            if k in ev.est_xy_by_key:
-                est = ev.est_xy_by_key[k]
-                ax.plot(est[:, 0], est[:, 1], color="tab:red", lw=0.7, ls="--", zorder=2)
-                al = apply_se2(T, est)
-                ax.plot(al[:, 0], al[:, 1], color="tab:blue", lw=0.8, zorder=2)
+        draw_trajectories(ax, ev.true_xy_by_key, ev.est_xy_by_key, ev.evaluation.truth_T_est)
         _window(ax, centre, half_w, half_h)
         e = ev.evaluation
         ax.set_title(
@@ -133,10 +155,14 @@ def plot_trajectories(
             f"{e.aligned.ate.rmse:.2f} m; RPE {e.aligned.rpe.rmse:.3f} m",
             fontsize=8,
         )
+    legend_style = {
+        "truth": TRUTH_STYLE,
+        "estimate, raw": RAW_STYLE,
+        "estimate, globally aligned": ALIGNED_STYLE,
+    }
     handles = [
-        plt.Line2D([], [], color="k", lw=1.6, label="truth"),
-        plt.Line2D([], [], color="tab:red", lw=1, ls="--", label="estimate, raw"),
-        plt.Line2D([], [], color="tab:blue", lw=1, label="estimate, globally aligned"),
+        plt.Line2D([], [], color=st["color"], lw=max(st["lw"], 1.0), ls=st["ls"], label=label)
+        for label, st in legend_style.items()
     ]
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
     fig.suptitle(

@@ -554,6 +554,11 @@ def _run(args: argparse.Namespace) -> int:
                 algorithm_path.write_text(algorithm_fingerprint() + "\n")
             shown = True
             if args.exit:
+                print(
+                    f"csr demo: to serve this map again: csr serve --data-dir {data_dir / 'service'}"
+                    f" (make serve DATA={data_dir / 'service'})",
+                    flush=True,
+                )
                 return 0
             print("csr demo: serving until Ctrl-C", flush=True)
             while True:

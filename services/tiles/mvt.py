@@ -1,6 +1,7 @@
 """Mapbox Vector Tiles of the road structure: one layer ``road``, one feature per map element with
 the properties ``id`` (the stable feature id), ``type`` (the contract element type), ``style``
-(when set) and the element's scalar properties (nested values are left out). Extent 4096, buffer
+(when set), the element's scalar properties and its validator ``flags`` as JSON text (other nested
+values are left out). Extent 4096, buffer
 256 (1/16 of the tile); the MVT feature id is a 48-bit hash of the feature id (stable across
 versions, exact in JavaScript numbers).
 
@@ -14,6 +15,7 @@ snap to the integer grid (y down), drop what collapsed.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 from collections.abc import Sequence
 
@@ -32,6 +34,7 @@ EXTENT = 4096
 BUFFER = 256
 BUFFER_FRAC = BUFFER / EXTENT
 RESERVED = ("id", "type", "style")
+FLAGS = "flags"  # a list of flag kinds: carried as its JSON text
 # Bump when the encoding changes: it is part of every ETag.
 ENCODING_VERSION = "mvt-2"
 
@@ -42,13 +45,17 @@ def mvt_feature_id(feature_id: str) -> int:
 
 
 def scalar_properties(properties: dict) -> dict:
-    """What of a feature's properties an MVT can carry: strings, booleans and finite numbers."""
+    """What of a feature's properties an MVT can carry: strings, booleans and finite numbers; and
+    the validator's ``flags`` (a list) as its JSON text, ``'["gap", "low_support"]'``, when not
+    empty (PostgreSQL's text of a jsonb array, which the SQL encoder gives)."""
     out = {}
     for key, value in properties.items():
         if key in RESERVED or value is None:
             continue
         if isinstance(value, bool | str) or (isinstance(value, int | float) and math.isfinite(value)):
             out[key] = value
+        elif key == FLAGS and isinstance(value, list) and value:
+            out[key] = json.dumps(value)
     return out
 
 
@@ -136,9 +143,13 @@ _SQL = text(
              mf.type AS type,
              mf.style AS style,
              (SELECT coalesce(jsonb_object_agg(p.key, p.value), '{}'::jsonb)
-                FROM jsonb_each(mf.properties::jsonb) AS p
-               WHERE jsonb_typeof(p.value) IN ('string', 'number', 'boolean')
-                 AND p.key NOT IN ('id', 'type', 'style')) AS props,
+                FROM (SELECT e.key, e.value FROM jsonb_each(mf.properties::jsonb) AS e
+                       WHERE jsonb_typeof(e.value) IN ('string', 'number', 'boolean')
+                         AND e.key NOT IN ('id', 'type', 'style')
+                      UNION ALL
+                      SELECT 'flags', to_jsonb((mf.properties::jsonb -> 'flags')::text)
+                       WHERE jsonb_typeof(mf.properties::jsonb -> 'flags') = 'array'
+                         AND jsonb_array_length(mf.properties::jsonb -> 'flags') > 0) AS p) AS props,
              ST_AsMVTGeom(ST_Transform(mf.geom, 3857), ST_TileEnvelope(:z, :x, :y), :extent, :buffer, true)
                AS geom
         FROM map_features mf

@@ -32,6 +32,7 @@ from services.db import versions as vs
 from services.db.engine import read_only, without_waiting
 from services.db.models import MapFeatureRow, TileHead
 from services.tiles import mvt, store
+from services.tiles.flag_levels import flag_levels
 from services.tiles.mercator import MAX_ZOOM, buffered_bounds_lonlat
 
 log = logging.getLogger(__name__)
@@ -279,6 +280,7 @@ def property_fields(session: Session, *, sample: int = 500) -> dict[str, str]:
         "id": "String: stable feature id (across versions)",
         "type": "String: lane_divider | road_boundary | centerline | stop_line | crosswalk | road_marking",
         "style": "String: e.g. solid | dashed (when known)",
+        mvt.FLAGS: "String: the validator's flag kinds, the JSON text of a list (when flagged)",
     }
     live_ids = select(TileHead.live_version_id).where(TileHead.live_version_id.is_not(None))
     rows = session.execute(
@@ -329,6 +331,7 @@ def tilejson(session: Session, *, base_url: str, tile_zoom: int) -> dict:
         "live_tiles": [live_template],
         "geojson_tiles": [f"{base_url}/v1/tiles/{{z}}/{{x}}/{{y}}.geojson"],
         "pipeline_zoom": tile_zoom,
+        "flag_levels": {kind: str(level) for kind, level in flag_levels().items()},
         "feature_count": int(
             session.execute(
                 select(func.count())

@@ -2,7 +2,7 @@
 // the viewer or the ops page of a running CSR service, and prints one JSON line of what it saw.
 // pytest (tests/browser/test_*.py) starts the service, seeds data, runs this and asserts.
 //
-//   node tests/browser/driver.mjs viewer|held-back|ops '{"base": "http://127.0.0.1:PORT", "key": "...", "out": "test-artifacts/browser", ...}'
+//   node tests/browser/driver.mjs viewer|open|held-back|ops '{"base": "http://127.0.0.1:PORT", "key": "...", "out": "test-artifacts/browser", ...}'
 import { createRequire } from 'node:module';
 import { mkdirSync } from 'node:fs';
 import { join } from 'node:path';
@@ -149,6 +149,8 @@ async function viewer(page) {
   // at the newest version: the flagged road boundary; then click an element for its details
   await setSlider(page, n - 1);
   check('flagged', (await rendered(page, 'version-')).filter((id) => id.startsWith('flags:')));
+  check('flag_styles', await flagStyles(page, 'version-flags'));
+  check('legend', await page.locator('#legend').innerText());
   const target = await project(page, config.click_lnglat || (await someElement(page)));
   await page.mouse.click(target.x, target.y);
   await page.waitForSelector('#element-panel:not([hidden]) dl');
@@ -170,6 +172,52 @@ async function viewer(page) {
 
   // corrections (admin): list the tile's match pairs, reject one, see a new version (and undo it)
   await correction(page, Boolean(config.correct));
+}
+
+/** The flag layer's paint as MapLibre evaluated it for each drawn feature: id -> its flags and style. */
+const flagStyles = (page, layer) =>
+  page.evaluate((id) => {
+    const { map } = window.csrViewer;
+    const out = {};
+    for (const f of map.queryRenderedFeatures({ layers: [id] })) {
+      const p = f.layer.paint;
+      const c = p['line-color'];
+      out[f.properties.id] = {
+        flags: String(f.properties.flags), width: p['line-width'], opacity: p['line-opacity'], blur: p['line-blur'],
+        color: typeof c === 'string' ? c : [c.r, c.g, c.b, c.a].map((v) => Math.round(v * 255)).join(','),
+      };
+    }
+    return out;
+  }, layer);
+
+// --- opening: where the viewer opens, by the URL's hash ------------------------------------------
+
+/** Open ``/viewer/`` with each of ``config.hashes`` (a fresh page load each): where the map opened
+ * (on the linked view or fitted to the data), its view, and the live features rendered in it. */
+async function open(page) {
+  const seen = [];
+  for (const [i, hash] of config.hashes.entries()) {
+    await page.goto('about:blank');
+    await page.goto(`${config.base}/viewer/${hash}`);
+    if (i === 0) await enterKey(page, config.key);
+    await page.waitForSelector('body[data-ready=true]');
+    await page.waitForFunction(() => window.csrViewer.map.getSource('live') !== undefined);
+    await page.waitForTimeout(300);
+    await idle(page);
+    seen.push(await page.evaluate((h) => {
+      const { map, state } = window.csrViewer;
+      const layers = state.liveLayers.filter((id) => map.getLayer(id));
+      const b = map.getBounds();
+      return {
+        hash: h, opened_on: state.openedOn, zoom: map.getZoom(), hash_after: location.hash,
+        view: [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()],
+        rendered: new Set(map.queryRenderedFeatures({ layers }).map((f) => f.properties.id)).size,
+      };
+    }, hash));
+    seen[seen.length - 1].drawn_share = await drawnShare(page);
+    await shot(page, `open-${i}`);
+  }
+  check('opened', seen);
 }
 
 async function correction(page, act) {
@@ -342,6 +390,13 @@ async function ops(page) {
   check('failed_row', await row.innerText());
   check('dirty_rows', await page.locator('#dirty tbody tr').count());
   check('queue_ingest', await page.locator('#queues tr[data-queue=ingest]').innerText());
+  // the charts: the queue depth sampled at each refresh (at least two samples), the jobs' durations
+  await page.waitForFunction(() => Number(document.querySelector('#depth-chart g[data-series=queued]')?.dataset.samples) >= 2, null, { timeout: 30000 });
+  check('charts', await page.evaluate(() => Object.fromEntries(['depth-chart', 'duration-chart'].map((id) => [id,
+    Object.fromEntries([...document.querySelectorAll(`#${id} g[data-series]`)].map((g) => [g.dataset.series, {
+      samples: Number(g.dataset.samples), circles: g.querySelectorAll('circle').length,
+      polyline: g.querySelector('polyline')?.getAttribute('points').split(' ').length ?? 0,
+    }]))]))));
   await shot(page, 'ops-failed');
   await row.locator('button', { hasText: 'retry' }).click();
   await page.waitForFunction(() => /retrying/.test(document.getElementById('ops-message').textContent));
@@ -368,7 +423,7 @@ try {
   const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
   page.on('console', (m) => m.type() !== 'debug' && result.console.push(`${m.type()}: ${m.text()}`));
   page.on('pageerror', (e) => result.errors.push(String(e)));
-  await { viewer, 'held-back': heldBack, ops }[scenario](page);
+  await { viewer, open, 'held-back': heldBack, ops }[scenario](page);
 } catch (err) {
   result.errors.push(String(err.stack || err));
   try {

@@ -49,7 +49,7 @@ def version_features(
     centre: tuple[float, float], step: int, half_m: float = 150.0
 ) -> list[vs.VersionFeature]:
     """Version ``step`` (1, 2, 3) of a road around ``centre`` (lon, lat): 2 moves the centre divider
-    and adds a stop line and a validator flag, 3 removes the road marking."""
+    and adds a stop line and validator flags of each level, 3 removes the road marking."""
     pt, line = _road(*centre, half_m)
     props = {
         "support_trips": 4,
@@ -89,7 +89,12 @@ def version_features(
         )
     if step >= 2:
         features.append(f("sl-1", "stop_line", LineString([pt(-22, -7), pt(-22, 0)])))
+        # validator flags of each level (services.tiles.flag_levels): severe, severe among an
+        # informative one, a warning, informative
         features[0] = f("rb-north", "road_boundary", line(7.0), flags=["trips_disagree"], support_trips=2)
+        features[1] = f("rb-south", "road_boundary", line(-7.0), flags=["gap", "implausible_lane_width"])
+        features[6] = f("ld-north", "lane_divider", line(3.5), "dashed", flags=["low_support"])
+        features[3] = f("cl-west", "centerline", line(1.75), flags=["gap"])
     return features
 
 

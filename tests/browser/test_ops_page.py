@@ -1,5 +1,5 @@
-"""The ops page in headless Chromium: counts, a failed job with its error, dirty tiles, and the
-retry of a failed job through the page (a new job that runs)."""
+"""The ops page in headless Chromium: counts, the queue-depth and job-duration charts, a failed job
+with its error, dirty tiles, and the retry of a failed job through the page (a new job that runs)."""
 
 from __future__ import annotations
 
@@ -29,6 +29,12 @@ def test_ops_page_lists_and_retries_a_failed_job(browser_ready, make_isolated) -
         assert trip is not None
         trip.status, trip.error = "failed", "simulated"
 
+    with dep.admin() as http:
+        listed = http.get("/v1/jobs", params={"limit": 200}).json()["jobs"]
+    finished = [j for j in listed if j["finished_at"] and j["duration_s"] is not None]
+    failed_now = [j for j in finished if j["state"] == "failed"]
+    done_now = [j for j in finished if j["state"] == "done"]
+
     result = run_driver("ops", base=dep.base_url, key=dep.admin_key, retry_job=job_id)
     checks = result["checks"]
     assert not result["errors"], result
@@ -36,6 +42,16 @@ def test_ops_page_lists_and_retries_a_failed_job(browser_ready, make_isolated) -
     assert "simulated database outage" in checks["failed_row"] and "retry" in checks["failed_row"]
     assert checks["dirty_rows"] >= 1
     assert checks["queue_ingest"].split() == ["ingest", "0", "0", "2", "0"]  # queued running failed done
+    # the queue depth over time: one sample per refresh, drawn as a line per count
+    depth = checks["charts"]["depth-chart"]
+    assert set(depth) == {"queued", "running", "dirty_tiles"}
+    for series in depth.values():
+        assert series["samples"] >= 2 and series["circles"] == series["polyline"] == series["samples"]
+    # the job durations: a dot per finished job listed, by state
+    durations = checks["charts"]["duration-chart"]
+    for state, jobs in (("failed", failed_now), ("done", done_now)):
+        assert durations[state]["circles"] == len(jobs), (state, durations, jobs)
+    assert durations["failed"]["circles"] >= 1
     assert "retrying ingest_trip" in checks["message"]
     rows = {r["id"]: r for r in checks["rows_for_subject"]}
     assert len(rows) == 2 and rows[job_id]["state"] == "failed" and "retried" in rows[job_id]["text"]

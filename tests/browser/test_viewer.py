@@ -83,8 +83,19 @@ def test_viewer(browser_ready, make_isolated) -> None:
     assert sorted(by_version[2]["diff"]) == ["added:sl-1", "modified:ld-centre"]
     assert by_version[3]["diff"] == ["removed:rm-arrow"]
     assert by_version[2]["label"].startswith("v2 of 3") and "+1 ~1 −0" in by_version[2]["label"]
-    # validator flags are highlighted; an element's details come from /v1/features/{id}
-    assert checks["flagged"] == ["flags:rb-north"]
+    # validator flags are drawn by level (the TileJSON's flag_levels): a feature shows its most
+    # severe flag, only severe ones glow strongly; the legend names the three levels
+    assert checks["flagged"] == ["flags:cl-west", "flags:ld-north", "flags:rb-north", "flags:rb-south"]
+    styles = checks["flag_styles"]
+    severe, warning, info = styles["rb-north"], styles["ld-north"], styles["cl-west"]
+    assert styles["rb-south"] == {**severe, "flags": styles["rb-south"]["flags"]}  # gap among them: severe
+    assert len({s["color"] for s in (severe, warning, info)}) == 3
+    assert severe["width"] > warning["width"] > info["width"]
+    assert severe["opacity"] > warning["opacity"] > info["opacity"]
+    assert severe["blur"] > warning["blur"] >= info["blur"]
+    for level in ("severe", "warning", "informative"):
+        assert f"validator flag: {level}" in checks["legend"]
+    # an element's details come from /v1/features/{id}
     text = checks["element_text"]
     assert "sl-1" in text and "stop_line" in text and "4 trips, 120 observations" in text
     assert "0.050 m" in text and "v2 added" in text and "v3 unchanged" in text
@@ -94,6 +105,23 @@ def test_viewer(browser_ready, make_isolated) -> None:
     assert tracks == {"raw", "aligned"}, checks["tracks_rendered"]
     # corrections: the panel shows when the tile's match pairs can be listed (see docs/viewer.md)
     assert "corrections_visible" in checks
+
+    # where the viewer opens: on the data without a hash or with one elsewhere (Berlin); on a shared
+    # link that shows the data, on that view
+    link = f"#18/{CENTRE[1]}/{CENTRE[0]}"
+    opened = run_driver("open", base=dep.base_url, key=dep.admin_key, hashes=["", "#16/52.52/13.405", link])
+    assert not opened["errors"], opened
+    no_hash, elsewhere, shared = opened["checks"]["opened"]
+    with dep.admin() as http:
+        west, south, east, north = http.get("/v1/tiles.json").json()["bounds"]
+    for seen in (no_hash, elsewhere):
+        assert seen["opened_on"] == "data", seen
+        w, s, e, n = seen["view"]  # the whole of the data in view
+        assert w <= west and s <= south and e >= east and n >= north, (seen, (west, south, east, north))
+        assert seen["rendered"] >= 8 and seen["drawn_share"] > 0.003, seen
+        assert seen["hash_after"] != seen["hash"]
+    assert shared["opened_on"] == "link" and shared["hash_after"].startswith("#18/"), shared
+    assert shared["zoom"] == 18 and shared["rendered"] >= 8, shared
 
 
 def test_viewer_held_back_lines(browser_ready, make_isolated) -> None:

@@ -10,7 +10,16 @@ import httpx
 import pytest
 import sqlalchemy as sa
 
-from tests.integration.conftest import BIN, REPO, Deployment, PgDatabases, base_env
+from tests.integration.conftest import (
+    BIN,
+    REPO,
+    Deployment,
+    PgDatabases,
+    Proc,
+    base_env,
+    free_port,
+    wait_until,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -48,6 +57,45 @@ def test_serve_on_a_fresh_data_dir_generates_a_private_admin_key(tmp_path: Path)
         assert httpx.get(dep.base_url + "/v1/jobs/summary").status_code == 401
     finally:
         dep.stop()
+
+
+def test_serve_data_dir_serves_an_earlier_data_dir_again(tmp_path: Path):
+    """``csr serve --data-dir DIR`` (``make serve DATA=DIR``) serves DIR whatever CSR_DATA_DIR says:
+    how the demo's map (``data/demo/service``) is served again after ``csr demo --exit``."""
+    earlier = tmp_path / "demo" / "service"
+    first = Deployment(
+        "earlier", base_env(tmp_path, CSR_DATA_DIR=str(earlier)), f"sqlite:///{earlier / 'csr.sqlite3'}", ""
+    )
+    try:
+        first.start_server()
+        first.admin_key = (earlier / "admin.key").read_text().strip()
+        with first.admin() as http:
+            reader = http.post("/v1/keys", json={"role": "reader"}).raise_for_status().json()["key"]
+    finally:
+        first.stop()
+    port = free_port()
+    again = Proc(
+        ["serve", "--port", str(port), "--no-access-log", "--data-dir", str(earlier)],
+        base_env(tmp_path),  # CSR_DATA_DIR: tmp_path / "data"
+        "serve-data-dir",
+    )
+    try:
+        base_url = f"http://127.0.0.1:{port}"
+
+        def healthy() -> bool:
+            assert again.alive(), f"csr serve exited:\n{again.log_tail()}"
+            try:
+                return httpx.get(base_url + "/healthz", timeout=1).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_until(healthy, timeout_s=90, what="csr serve --data-dir /healthz")
+        # the key made on the earlier run is in the database it serves
+        answer = httpx.get(base_url + "/v1/tiles.json", headers={"Authorization": f"Bearer {reader}"})
+        assert answer.status_code == 200, answer.text
+        assert not (tmp_path / "data").exists()  # CSR_DATA_DIR untouched
+    finally:
+        again.stop()
 
 
 def test_worker_refuses_to_start_without_the_distributed_settings(tmp_path: Path):

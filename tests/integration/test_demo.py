@@ -108,6 +108,8 @@ def test_demo_runs_end_to_end_and_a_rerun_is_safe(tmp_path):
     key = (data / "service" / "admin.key").read_text().strip()
     assert re.search(rf"^\s+admin key\s+{re.escape(key)}\s", out, re.M)
     assert not _port_open(port), "--exit left the service running"
+    # how to serve the map again after --exit (tests/integration/test_cli.py runs it)
+    assert f"csr serve --data-dir {data / 'service'}" in out
 
     # processed on the embedded default: SQLite file, every job done here, a published map
     assert _rows(data, "SELECT count(*) FROM trips") == [(3,)]

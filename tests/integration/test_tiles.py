@@ -119,7 +119,7 @@ def road(tile: mercantile.Tile, *, shift: float = 0.0) -> list[vs.VersionFeature
             f"t{tile.x}-b1",
             "road_boundary",
             None,
-            {"support": 4, "sigma_m": 0.2},
+            {"support": 4, "sigma_m": 0.2, "flags": ["low_support", "gap"]},
             line((0.1, 0.40), (0.5, 0.41), (0.9, 0.40)),
         ),
         vs.VersionFeature(
@@ -189,7 +189,10 @@ def test_mvt_decodes_to_the_written_features(tiled: Tiled):
         assert got["properties"]["type"] == f.type
         assert got["properties"].get("style") == f.style
         assert got["properties"]["support"] == f.properties["support"]
-        assert "flags" not in got["properties"]  # nested values stay out of the tile
+        if isinstance(f.properties.get("flags"), list):  # the validator's flags: their JSON text
+            assert got["properties"]["flags"] == '["low_support", "gap"]'
+        else:
+            assert "flags" not in got["properties"]  # other nested values stay out of the tile
         assert got["id"] == int(__import__("hashlib").md5(f.feature_id.encode()).hexdigest()[:12], 16)
         coords = got["geometry"]["coordinates"]
         ring = coords[0] if expected_type == "Polygon" else coords
@@ -414,6 +417,11 @@ def test_tilejson(tiled: Tiled):
         assert west <= w and south <= s and east >= e and north >= n and east - west < 1.0
         (layer,) = doc["vector_layers"]
         assert layer["id"] == "road" and {"id", "type", "style", "support"} <= set(layer["fields"])
+        # how the viewer shows each validator flag kind
+        levels = doc["flag_levels"]
+        assert levels["trips_disagree"] == levels["implausible_lane_width"] == "severe"
+        assert levels["low_support"] == levels["degraded_support"] == "warning"
+        assert levels["gap"] == levels["outlier_trip"] == "info"
         # the template works
         url = doc["tiles"][0].format(z=tile.z, x=tile.x, y=tile.y).removeprefix(tiled.dep.base_url)
         assert http.get(url).status_code == 200

@@ -1,8 +1,14 @@
-// The ops page: job counts, jobs with their errors (retry a failed one, admin), the dirty tiles.
+// The ops page: job counts, charts of the queue depth (sampled while the page is open) and of job
+// durations, jobs with their errors (retry a failed one, admin), the dirty tiles.
 import './style.css';
 import { api, el, fmt, setupKeyForm } from './api.js';
+import { drawChart } from './chart.js';
 
 const REFRESH_MS = 5000;
+const MAX_SAMPLES = 360; // the queue chart's last 30 min at REFRESH_MS
+const DEPTH_SERIES = [['queued', '#4dabf7'], ['running', '#fab005'], ['dirty_tiles', '#adb5bd']];
+const DURATION_SERIES = [['done', '#40c057'], ['failed', '#fa5252']];
+const samples = []; // [{t_ms, queued, running, dirty_tiles}], one per refresh
 const message = (text, isError = false) => {
   const span = document.getElementById('ops-message');
   span.textContent = text;
@@ -12,6 +18,10 @@ const time = (iso) => (iso ? iso.slice(0, 19).replace('T', ' ') : '');
 
 async function loadSummary() {
   const s = await api('/v1/jobs/summary');
+  samples.push({ t_ms: Date.now(), ...Object.fromEntries(DEPTH_SERIES.map(([k]) => [k, Number(s[k]) || 0])) });
+  samples.splice(0, samples.length - MAX_SAMPLES);
+  drawChart(document.getElementById('depth-chart'),
+    DEPTH_SERIES.map(([name, color]) => ({ name, color, points: samples.map((p) => [p.t_ms, p[name]]) })));
   document.getElementById('summary').replaceChildren(
     ...['queued', 'running', 'failed', 'dirty_tiles'].map((k) =>
       el('div', { class: `card ${k}`, 'data-count': k }, el('div', { class: 'n' }, s[k]), el('div', { class: 'muted' }, k.replace('_', ' ')))),
@@ -27,6 +37,12 @@ async function loadJobs() {
     ...Object.entries(queues || {}).map(([queue, counts]) =>
       el('tr', { 'data-queue': queue }, el('td', {}, queue), ...states.map((s) => el('td', { class: counts[s] && s !== 'done' ? `state-${s}` : '' }, counts[s] ?? 0)))),
   );
+  // each finished job listed: its duration at the time it finished
+  drawChart(document.getElementById('duration-chart'), DURATION_SERIES.map(([name, color]) => ({
+    name, color, dots: true,
+    points: jobs.filter((j) => j.state === name && j.finished_at && j.duration_s !== null)
+      .map((j) => [Date.parse(j.finished_at), j.duration_s]), // ISO 8601 with its offset
+  })), { unit: ' s' });
   document.querySelector('#jobs tbody').replaceChildren(
     ...jobs.map((job) => el('tr', { 'data-job': job.id, 'data-state': job.state },
       el('td', {}, time(job.created_at)), el('td', {}, job.kind), el('td', { class: 'mono' }, job.subject),

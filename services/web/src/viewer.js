@@ -18,7 +18,15 @@ const STYLE = {
   crosswalk: { color: '#e9ecef', fill: 0.35, label: 'crosswalk' },
   road_marking: { color: '#ffd43b', fill: 0.6, label: 'road marking' },
 };
-const FLAG_COLOR = '#f06595';
+// validator flags by level (the TileJSON's ``flag_levels``: kind -> severe | warning | info, see
+// docs/viewer.md): a feature shows its most severe flag; only severe ones glow strongly, a warning
+// gets a thin halo, an informative flag (or a kind the table does not name) a faint line
+const FLAG_LEVELS = [
+  { level: 'info', rank: 0, color: '#748ffc', width: 4, opacity: 0.3, blur: 0, label: 'validator flag: informative' },
+  { level: 'warning', rank: 1, color: '#fcc419', width: 6, opacity: 0.45, blur: 1, label: 'validator flag: warning' },
+  { level: 'severe', rank: 2, color: '#f06595', width: 14, opacity: 0.75, blur: 3, label: 'validator flag: severe' },
+];
+const LEVEL_RANK = Object.fromEntries(FLAG_LEVELS.map((l) => [l.level, l.rank]));
 const TRACK_COLORS = { raw: '#da77f2', aligned: '#69db7c' };
 const DIFF_COLORS = { added: '#40c057', modified: '#fab005', removed: '#fa5252' };
 const HELD_BACK_COLOR = '#adb5bd';
@@ -28,11 +36,30 @@ const all = (...filters) => {
   const parts = filters.filter(Boolean);
   return parts.length ? ['all', ...parts] : undefined;
 };
-// validator flags: a list in GeoJSON; a vector tile carries scalars only (a string, a count or a boolean)
-const FLAGGED = ['any',
-  ['all', ['has', 'flags'], ['!', ['in', ['to-string', ['get', 'flags']], ['literal', ['', '[]']]]]],
-  ['>', ['to-number', ['get', 'n_flags'], 0], 0],
-  ['==', ['get', 'flagged'], true]];
+// validator flags: a list in GeoJSON, its JSON text in a vector tile (which carries scalars only);
+// either way ``to-string`` gives '["kind", ...]', in which a kind is found with its quotes
+const FLAG_TEXT = ['to-string', ['get', 'flags']];
+const FLAGGED = ['all', ['has', 'flags'], ['!', ['in', FLAG_TEXT, ['literal', ['', '[]']]]]];
+
+/** The rank of a feature's most severe flag (``levels``: kind -> level); 0 (info) for kinds it does not name. */
+function flagRank(levels) {
+  const known = Object.entries(levels).map(([kind, level]) => ['case', ['in', JSON.stringify(kind), FLAG_TEXT], LEVEL_RANK[level] ?? 0, 0]);
+  return ['max', 0, ...known];
+}
+
+/** A flag paint property (FLAG_LEVELS' ``key``) stepped by the rank. */
+const byLevel = (rank, key) => ['step', rank, FLAG_LEVELS[0][key], ...FLAG_LEVELS.slice(1).flatMap((l) => [l.rank, l[key]])];
+
+/** The flag layers' paint: colour, width, opacity and blur by the feature's most severe flag. */
+function flagPaint(levels) {
+  const rank = flagRank(levels);
+  return {
+    'line-color': byLevel(rank, 'color'),
+    'line-width': byLevel(rank, 'width'),
+    'line-opacity': byLevel(rank, 'opacity'),
+    'line-blur': byLevel(rank, 'blur'),
+  };
+}
 
 /** The style layers of the road structure in one source (a vector layer, or GeoJSON). */
 function elementLayers(prefix, source, sourceLayer) {
@@ -51,7 +78,7 @@ function elementLayers(prefix, source, sourceLayer) {
   const dashed = ['==', ['get', 'style'], 'dashed'];
   const DERIVED = ['has', 'derived']; // centrelines derived from dividers and boundaries or trip paths
   return [
-    base('flags', 'line', FLAGGED, { 'line-color': FLAG_COLOR, 'line-width': 12, 'line-opacity': 0.7, 'line-blur': 3 }),
+    base('flags', 'line', FLAGGED, flagPaint(state.flagLevels)),
     ...['crosswalk', 'road_marking'].flatMap((type) => [
       base(`${type}-fill`, 'fill', byType(type, sourceLayer), { 'fill-color': STYLE[type].color, 'fill-opacity': STYLE[type].fill }),
       base(`${type}-outline`, 'line', byType(type, sourceLayer), { 'line-color': STYLE[type].color, 'line-width': 1 }),
@@ -69,6 +96,8 @@ function elementLayers(prefix, source, sourceLayer) {
 
 const state = {
   tileZoom: 16,
+  flagLevels: {}, // flag kind -> severe | warning | info, from the TileJSON
+  openedOn: null, // 'link' (the URL's #zoom/lat/lon showed the data) or 'data' (fitted to the TileJSON bounds)
   liveLayers: [], // ids of the live (vector tile) element layers
   tile: null, // {z, x, y}
   versions: [], // of the selected tile, oldest first
@@ -79,11 +108,13 @@ const state = {
 };
 
 const empty = { type: 'FeatureCollection', features: [] };
+// MapLibre writes the view into the hash as soon as the map moves: what the URL brought is read first
+const linkedView = parseHash(location.hash);
 const map = new maplibregl.Map({
   container: 'map',
   hash: true,
-  center: [11.579, 48.1366],
-  zoom: 16,
+  center: linkedView ? [linkedView.lng, linkedView.lat] : [0, 0],
+  zoom: linkedView ? linkedView.zoom : 1,
   attributionControl: false,
   style: {
     version: 8,
@@ -125,18 +156,40 @@ function addStaticLayers() {
   map.addLayer({ id: 'selection', type: 'line', source: 'selection', paint: { 'line-color': '#ffffff', 'line-width': 1, 'line-dasharray': [4, 4] } });
 }
 
+/** ``#zoom/lat/lng[/bearing/pitch]`` (MapLibre's hash) as numbers, or null. */
+function parseHash(hash) {
+  const [zoom, lat, lng] = hash.replace(/^#/, '').split('/').map(Number);
+  const ok = [zoom, lat, lng].every(Number.isFinite) && Math.abs(lat) <= 90 && Math.abs(lng) <= 180;
+  return ok ? { zoom, lat, lng } : null;
+}
+
+// a shared link is kept when it shows the data: its view overlaps the data's bounds and is zoomed in
+// no more than this many levels short of the view that fits all of it
+const LINK_ZOOM_SLACK = 2;
+
+/** Open on the data: keep the linked view when it shows the data, otherwise fit the TileJSON bounds. */
+function openOnData(tilejson) {
+  if (!tilejson.feature_count || !tilejson.bounds) return;
+  const [west, south, east, north] = tilejson.bounds;
+  const fit = map.cameraForBounds([[west, south], [east, north]], { padding: 40, maxZoom: 18 });
+  if (linkedView && fit) {
+    const view = map.getBounds();
+    const overlaps = view.getWest() <= east && view.getEast() >= west && view.getSouth() <= north && view.getNorth() >= south;
+    if (overlaps && map.getZoom() >= fit.zoom - LINK_ZOOM_SLACK) {
+      state.openedOn = 'link';
+      return;
+    }
+  }
+  if (fit) map.jumpTo(fit);
+  state.openedOn = 'data';
+}
+
 // a tile URL template as the TileJSON gives it (new URL() would escape its {z}/{x}/{y})
 const absolute = (t) => (t.startsWith('/') ? location.origin + t : t);
 
 /** The live map: the TileJSON's vector tiles, one set of element layers per vector layer. */
-async function addLiveTiles() {
-  let tilejson;
-  try {
-    tilejson = await api('/v1/tiles.json');
-  } catch (err) {
-    setMessage(`no TileJSON (${err.message}): live tiles off`, true);
-    return;
-  }
+async function addLiveTiles(tilejson) {
+  if (!tilejson) return;
   state.tileZoom = tilejson.pipeline_zoom ?? state.tileZoom;
   document.getElementById('map-version').textContent =
     tilejson.map_version !== undefined ? `map version ${tilejson.map_version}` : '';
@@ -154,7 +207,7 @@ async function addLiveTiles() {
       state.liveLayers.push(layer.id);
     }
   }
-  if (!location.hash && tilejson.center) map.jumpTo({ center: tilejson.center.slice(0, 2), zoom: tilejson.center[2] ?? 16 });
+  openOnData(tilejson);
 }
 
 /** After a new version: the TileJSON names the new map version, the live source follows it. */
@@ -169,7 +222,10 @@ async function refreshLive() {
 function setLiveOpacity(opacity) {
   for (const id of state.liveLayers) {
     const type = map.getLayer(id)?.type;
-    if (type) map.setPaintProperty(id, `${type}-opacity`, id.endsWith('-flags') ? 0.7 * opacity : opacity);
+    if (!type) continue;
+    const flagOpacity = byLevel(flagRank(state.flagLevels), 'opacity');
+    if (!id.endsWith('-flags')) map.setPaintProperty(id, `${type}-opacity`, opacity);
+    else map.setPaintProperty(id, 'line-opacity', opacity === 1 ? flagOpacity : ['*', opacity, flagOpacity]);
   }
 }
 
@@ -179,7 +235,7 @@ function legend() {
     el('li', {}, el('span', { class: `swatch${fill ? ' fill' : ''}`, style: `border-color:${color};${fill ? `background:${color}` : ''}${dash ? ';border-top-style:dashed' : ''}` }), label);
   for (const s of Object.values(STYLE)) ul.append(item(s.color, s.label, { fill: Boolean(s.fill) }));
   ul.append(item(STYLE.centerline.color, 'centerline, derived (no perceived one)', { dash: true }),
-    item(FLAG_COLOR, 'validator flag'), item(HELD_BACK_COLOR, 'held-back line (tile panel)', { dash: true }),
+    ...FLAG_LEVELS.slice().reverse().map((l) => item(l.color, l.label)), item(HELD_BACK_COLOR, 'held-back line (tile panel)', { dash: true }),
     item(TRACK_COLORS.raw, 'trip: raw GNSS', { dash: true }), item(TRACK_COLORS.aligned, 'trip: aligned'));
 }
 
@@ -602,8 +658,11 @@ legend();
 const ready = new Promise((resolve) => map.on('load', resolve));
 async function start() {
   await ready;
+  if (map.getSource('live')) return;
+  const tilejson = await api('/v1/tiles.json').catch((err) => setMessage(`no TileJSON (${err.message}): live tiles off`, true));
+  state.flagLevels = tilejson?.flag_levels ?? {};
   if (!map.getLayer('selection')) addStaticLayers();
-  if (!map.getSource('live')) await addLiveTiles();
+  await addLiveTiles(tilejson);
   document.body.dataset.ready = 'true';
 }
 if (setupKeyForm(start)) start();
