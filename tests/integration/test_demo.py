@@ -124,6 +124,8 @@ def test_demo_runs_end_to_end_and_a_rerun_is_safe(tmp_path):
     # rerun on the same data dir while the first port is taken: same trips under the same ids,
     # nothing reprocessed, the same map; the service moves to a free port; the key stays
     with socket.socket() as squatter:
+        # the closed service's connections may hold the port in TIME_WAIT; a listener still takes it
+        squatter.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         squatter.bind(("127.0.0.1", port))
         squatter.listen(1)
         second = _demo(data, port, "--exit")
