@@ -12,7 +12,7 @@ from fastapi import Depends, FastAPI
 
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
-from services.api.metrics import Metrics
+from services.api.metrics import HttpMetrics, Metrics
 from services.api.params import check_request_params
 from services.api.routes import (
     corrections,
@@ -69,7 +69,8 @@ def start_context(settings: Settings) -> AppContext:
         "in-process" if settings.embedded_jobs else "Celery on Redis",
     )
     reads = read_only(session_factory)
-    return AppContext(settings, engine, session_factory, reads, Metrics(reads), runner, celery)
+    metrics = Metrics(reads, scrape_key=settings.metrics_secret())
+    return AppContext(settings, engine, session_factory, reads, metrics, runner, celery)
 
 
 def stop_context(ctx: AppContext) -> None:
@@ -109,4 +110,6 @@ def create_app(settings: Settings) -> FastAPI:
         app.include_router(module.router)
     # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)
     app.add_middleware(TileFastPath, fastapi_app=app)
+    # outermost: every request counted and timed by route template, the fast path's included
+    app.add_middleware(HttpMetrics, fastapi_app=app)
     return app
