@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data
+.PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data lock
 
 setup: $(VENV)/.installed
 
@@ -66,3 +66,10 @@ web: services/web/node_modules/.package-lock.json
 # playwright-core for the browser tests (and esbuild, MapLibre for `make web`)
 services/web/node_modules/.package-lock.json: services/web/package-lock.json
 	cd services/web && npm ci --no-audit --no-fund
+
+# requirements.lock: the image's pinned, hashed dependencies (Dockerfile), from pyproject.toml
+lock: setup
+	$(BIN)/python -m pip install --quiet uv
+	$(BIN)/uv pip compile pyproject.toml --extra ops --generate-hashes --python-version 3.11 \
+	  --python-platform x86_64-manylinux_2_36 --no-header --annotation-style line -o requirements.lock.new
+	{ sed -n '1,4p' requirements.lock; cat requirements.lock.new; } > requirements.lock && rm requirements.lock.new
