@@ -37,6 +37,7 @@ test: setup services/web/node_modules/.package-lock.json
 	$(BIN)/python -m pytest
 
 test-unit: setup
+	bash scripts/system-deps  # promtool and docker-compose for tests/unit/test_deploy.py
 	$(BIN)/python -m pytest -m unit
 
 test-integration: setup
