@@ -1,23 +1,35 @@
 # The CSR service image: `csr serve` (API, migrates at start) and `csr worker` (Celery).
-FROM python:3.11-slim
+# Build stage: a virtualenv from the hashed lock (its own layer: rebuilt only when requirements.lock
+# changes), then the project as a wheel (non-editable). Runtime stage: that virtualenv, Alembic's
+# scripts and a non-root user; no compiler, no pip cache, no source tree.
+ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
-ENV PYTHONDONTWRITEBYTECODE=1 \
-    PYTHONUNBUFFERED=1 \
-    PIP_NO_CACHE_DIR=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    CSR_DATA_DIR=/data
-
-WORKDIR /app
-COPY pyproject.toml README.md alembic.ini ./
+FROM ${PYTHON_IMAGE} AS build
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+RUN python -m venv /opt/csr
+COPY requirements.lock /tmp/requirements.lock
+RUN /opt/csr/bin/pip install --require-hashes --no-deps -r /tmp/requirements.lock
+WORKDIR /src
+COPY pyproject.toml README.md ./
 COPY csr_core ./csr_core
 COPY services ./services
 COPY workers ./workers
-COPY migrations ./migrations
-# editable: the migrations are found next to the `services` package
-RUN pip install -e '.[ops]' \
-    && useradd --create-home --uid 1000 csr \
-    && mkdir -p /data && chown csr /data
+RUN /opt/csr/bin/pip install --no-deps . \
+    && /opt/csr/bin/pip check
 
+FROM ${PYTHON_IMAGE}
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PATH=/opt/csr/bin:$PATH \
+    CSR_DATA_DIR=/data \
+    CSR_MIGRATIONS_DIR=/app/migrations
+RUN useradd --create-home --uid 1000 --user-group csr \
+    && mkdir -p /data && chown csr:csr /data
+COPY --from=build /opt/csr /opt/csr
+WORKDIR /app
+COPY alembic.ini ./
+COPY migrations ./migrations
 USER csr
 # the splicing stage's numba kernels, compiled into the user's numba cache at build time (30-40 s)
 RUN python -m csr_core.single_trip.compiled

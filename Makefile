@@ -7,7 +7,7 @@ PORT ?= 8000
 # the embedded deployment's data dir for `make serve` (empty: ./data); DATA=data/demo/service serves the demo's map
 DATA ?=
 
-.PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data
+.PHONY: web setup serve worker test test-unit test-integration lint bench-ingest clean-data lock
 
 setup: $(VENV)/.installed
 
@@ -40,6 +40,7 @@ test: setup services/web/node_modules/.package-lock.json
 	$(BIN)/python -m pytest
 
 test-unit: setup
+	bash scripts/system-deps  # promtool and docker-compose for tests/unit/test_deploy.py
 	$(BIN)/python -m pytest -m unit
 
 test-integration: setup
@@ -69,3 +70,10 @@ web: services/web/node_modules/.package-lock.json
 # playwright-core for the browser tests (and esbuild, MapLibre for `make web`)
 services/web/node_modules/.package-lock.json: services/web/package-lock.json
 	cd services/web && npm ci --no-audit --no-fund
+
+# requirements.lock: the image's pinned, hashed dependencies (Dockerfile), from pyproject.toml
+lock: setup
+	$(BIN)/python -m pip install --quiet uv
+	$(BIN)/uv pip compile pyproject.toml --extra ops --generate-hashes --python-version 3.11 \
+	  --python-platform x86_64-manylinux_2_36 --no-header --annotation-style line -o requirements.lock.new
+	{ sed -n '1,4p' requirements.lock; cat requirements.lock.new; } > requirements.lock && rm requirements.lock.new

@@ -81,6 +81,11 @@ class Settings(BaseSettings):
         gt=0,
         description="embedded default: how long a write waits for SQLite's write lock before the API answers 503",
     )
+    metrics_key_file: Path | None = Field(
+        None,
+        description="a file holding a key that GET /metrics accepts besides reader and admin keys "
+        "(the one Prometheus reads with credentials_file)",
+    )
     public_map: bool = Field(
         False,
         description="tiles, map and versions are sent Cache-Control: public (shared caches may keep them); "
@@ -135,6 +140,18 @@ class Settings(BaseSettings):
                 f.write("csr_" + secrets.token_urlsafe(32) + "\n")
             log.warning("CSR_ADMIN_KEY is not set: generated an admin key into %s", path.resolve())
         return path.read_text().strip()
+
+    def metrics_secret(self) -> str | None:
+        """The key of ``CSR_METRICS_KEY_FILE`` (surrounding whitespace removed), or ``None``."""
+        if self.metrics_key_file is None:
+            return None
+        try:
+            secret = self.metrics_key_file.read_text().strip()
+        except OSError as exc:
+            raise ValueError(f"CSR_METRICS_KEY_FILE: cannot read {self.metrics_key_file}: {exc}") from exc
+        if len(secret) < 16:
+            raise ValueError(f"CSR_METRICS_KEY_FILE: {self.metrics_key_file} holds fewer than 16 characters")
+        return secret
 
 
 @cache

@@ -13,7 +13,7 @@ from fastapi import Depends, FastAPI
 from services.api.deps import AppContext
 from services.api.errors import install_error_handlers
 from services.api.http_middleware import ContentEncoding, HeadAsGet
-from services.api.metrics import Metrics
+from services.api.metrics import HttpMetrics, Metrics
 from services.api.openapi import install_openapi
 from services.api.params import check_request_params
 from services.api.routes import (
@@ -71,7 +71,8 @@ def start_context(settings: Settings) -> AppContext:
         "in-process" if settings.embedded_jobs else "Celery on Redis",
     )
     reads = read_only(session_factory)
-    return AppContext(settings, engine, session_factory, reads, Metrics(reads), runner, celery)
+    metrics = Metrics(reads, scrape_key=settings.metrics_secret())
+    return AppContext(settings, engine, session_factory, reads, metrics, runner, celery)
 
 
 def stop_context(ctx: AppContext) -> None:
@@ -121,4 +122,6 @@ def create_app(settings: Settings) -> FastAPI:
     # around it: negotiated compression with ETags per coding, and HEAD on every GET route
     app.add_middleware(ContentEncoding)
     app.add_middleware(HeadAsGet)
+    # outermost: every request counted and timed by route template, the fast path's included
+    app.add_middleware(HttpMetrics, fastapi_app=app)
     return app

@@ -11,6 +11,7 @@ best-effort session (:func:`without_waiting`) writes only when the lock is free 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from functools import cache
 from pathlib import Path
@@ -23,7 +24,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 log = logging.getLogger(__name__)
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+# Alembic's scripts in the source tree; an installed package (the image) names them with
+# CSR_MIGRATIONS_DIR (:func:`migrations_dir`)
+SOURCE_MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 # Any constant: serialises concurrent `alembic upgrade` of several processes on one PostgreSQL.
 _MIGRATION_LOCK_ID = 0x435352
 # Execution options of the read-only and best-effort sessions' engines (module docstring).
@@ -103,10 +106,15 @@ def without_waiting(session_factory: sessionmaker[Session]) -> sessionmaker[Sess
     return sessionmaker(engine.execution_options(**{NO_WAIT: True}), expire_on_commit=False)
 
 
+def migrations_dir() -> Path:
+    """``CSR_MIGRATIONS_DIR`` if set (a non-editable install has no source tree), else the source tree's."""
+    return Path(os.environ.get("CSR_MIGRATIONS_DIR") or SOURCE_MIGRATIONS_DIR)
+
+
 def migrate(engine: Engine) -> None:
     """``alembic upgrade head`` on ``engine`` (run at every start; a no-op when up to date)."""
     config = Config()
-    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    config.set_main_option("script_location", str(migrations_dir()))
     with engine.begin() as conn:
         if conn.dialect.name == "postgresql":
             conn.execute(text("SELECT pg_advisory_xact_lock(:id)"), {"id": _MIGRATION_LOCK_ID})

@@ -38,6 +38,7 @@ import anyio.to_thread
 from sqlalchemy.orm import configure_mappers
 
 from services.api.errors import DATABASE_ERRORS, database_error, error_response
+from services.api.metrics import ROUTE_TEMPLATE_SCOPE_KEY
 from services.db import repo
 from services.tiles import render, signals, store
 from services.tiles.http import CORS_HEADERS, cache_control, caches
@@ -60,6 +61,8 @@ LIVE_TTL_S = 1.0
 MAX_KEYS, MAX_LIVE_ENTRIES = 10_000, 100_000
 READ_ROLES = ("reader", "admin")
 MEDIA = {"mvt": b"application/vnd.mapbox-vector-tile", "geojson": b"application/geo+json"}
+# the routes whose answers this gives (the label of its requests in csr_http_requests_total)
+ROUTE_TEMPLATES = {kind: f"/v1/tiles/{{z}}/{{x}}/{{y}}.{kind}" for kind in MEDIA}
 
 _PATH = re.compile(r"/v1/tiles/(\d{1,2})/(\d{1,7})/(\d{1,7})\.(mvt|geojson)")
 _PINNED = re.compile(rb"v=(\d{1,15})")
@@ -158,6 +161,7 @@ class TileFastPath:
         etag = self._cached_etag(kind, z, x, y, pinned, pinned_etags)
         body: bytes | None = None
         not_modified = False
+        source = render.TileSource.FAST_PATH
         if etag is not None and if_none_match and render.etag_matches(if_none_match, etag):
             not_modified = True
         else:
@@ -169,12 +173,14 @@ class TileFastPath:
                 tile, not_modified = await anyio.to_thread.run_sync(
                     _render, ctx, cache, pinned_etags, kind, z, x, y, pinned, if_none_match
                 )
-                etag, body = tile.etag, tile.body
+                etag, body, source = tile.etag, tile.body, tile.source
                 if pinned is None:
                     if len(self._live) > MAX_LIVE_ENTRIES:
                         self._live.clear()
                     self._live[(kind, z, x, y)] = (etag, time.monotonic() + LIVE_TTL_S, generation)
         assert etag is not None
+        ctx.metrics.count_tile(source)
+        scope[ROUTE_TEMPLATE_SCOPE_KEY] = ROUTE_TEMPLATES[kind]
         await _respond(
             send,
             kind,

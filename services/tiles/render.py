@@ -18,6 +18,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -76,12 +77,23 @@ class TileCache:
             self._bytes = 0
 
 
+class TileSource(str, Enum):
+    """Where a tile answer came from (the metric ``csr_tile_requests_total{source}``)."""
+
+    FAST_PATH = "fast_path"  # the fast path's caches: no database query, no thread hop
+    NOT_MODIFIED = "not_modified"  # 304: the ETag was looked up, no body needed
+    MEMORY = "memory"  # the ETag was looked up, the body was in the in-process LRU
+    STORED = "stored"  # the body was in tile_renders
+    ENCODED = "encoded"  # the body was encoded for this request (the only miss)
+
+
 @dataclass(frozen=True, slots=True)
 class Tile:
     body: bytes | None  # None: an empty tile (204)
     etag: str  # strong, quoted
     media_type: str
     encoded: bool = False  # encoded by this call (not found in a cache or in tile_renders)
+    source: TileSource = TileSource.MEMORY
 
 
 def make_etag(kind: str, z: int, x: int, y: int, versions: Sequence[tuple], backend: str) -> str:
@@ -190,10 +202,12 @@ def render(
         if map_version is not None and pinned_etags is not None:
             pinned_etags.put(pin_key, etag.encode())
     if if_none_match and etag_matches(if_none_match, etag):
-        return Tile(None, etag, media), True
+        return Tile(None, etag, media, source=TileSource.NOT_MODIFIED), True
     hit, body = cache.get(etag)
+    source = TileSource.MEMORY
     if not hit:
         hit, body = store.lookup(session, etag)
+        source = TileSource.STORED
     if not hit:
         if versions is None:
             versions = tile_versions_for(session, z=z, x=x, y=y, map_version=map_version)
@@ -210,9 +224,9 @@ def render(
         if store_renders:
             store.store(session, etag=etag, kind=kind, z=z, x=x, y=y, body=body)
         cache.put(etag, body)
-        return Tile(body, etag, media, encoded=True), False
+        return Tile(body, etag, media, encoded=True, source=TileSource.ENCODED), False
     cache.put(etag, body)
-    return Tile(body, etag, media), False
+    return Tile(body, etag, media, source=source), False
 
 
 def render_then_keep(

@@ -124,11 +124,10 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(
         assert mvt.status_code == 200, mvt.text
         layers = mapbox_vector_tile.decode(mvt.content)
         assert sum(len(layer["features"]) for layer in layers.values()) >= busiest.n_features * 0.9
-        metrics = http.get("/metrics").text  # ops: per-tile version and last update
-        assert f'csr_tile_version{{tile="{busiest.z}/{busiest.x}/{busiest.y}"}} 1.0' in metrics
-        assert (
-            f'csr_tile_last_update_timestamp_seconds{{tile="{busiest.z}/{busiest.x}/{busiest.y}"}}' in metrics
-        )
+        metrics = http.get("/metrics").text  # ops: the map's size and version, no series per tile
+        assert f"csr_published_tiles {float(len(tiles))}" in metrics
+        assert f"csr_map_version {float(max(dep.rows('SELECT id FROM tile_versions'))[0])}" in metrics
+        assert "csr_tile_last_update_timestamp_seconds " in metrics and 'tile="' not in metrics
         history = (
             http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}/versions").raise_for_status().json()
         )

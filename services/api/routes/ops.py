@@ -1,14 +1,19 @@
-"""``/healthz`` (no key) and ``/metrics`` (Prometheus text format; reader or admin key)."""
+"""``/healthz`` (no key) and ``/metrics`` (Prometheus text format; a reader or admin key, or the
+metrics key of ``CSR_METRICS_KEY_FILE``)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+import hmac
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Header, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
 from services.api import answers
-from services.api.deps import Ctx, Reader
+from services.api.deps import Ctx
+from services.auth import authenticate, authorize
 
 router = APIRouter(tags=["ops"])
 
@@ -45,8 +50,22 @@ def healthz(ctx: Ctx) -> JSONResponse:
     )
 
 
+def _scraper(ctx: Ctx, authorization: Annotated[str | None, Header(include_in_schema=False)] = None) -> None:
+    """The metrics key (compared in constant time), else a reader or admin key as everywhere."""
+    key = ctx.metrics.scrape_key
+    if key is not None and authorization is not None:
+        scheme, _, secret = authorization.partition(" ")
+        if scheme.lower() == "bearer" and hmac.compare_digest(secret.strip().encode(), key.encode()):
+            return
+    authorize(authenticate(ctx.read_session_factory, authorization), ("reader", "admin"))
+
+
+_scraper.roles = ("reader", "admin")  # type: ignore[attr-defined]  # the OpenAPI document (the metrics key: operations.md)
+
+
 @router.get(
     "/metrics",
+    dependencies=[Depends(_scraper)],
     response_class=Response,
     responses={
         200: {
@@ -55,5 +74,5 @@ def healthz(ctx: Ctx) -> JSONResponse:
         }
     },
 )
-def metrics(_: Reader, ctx: Ctx) -> Response:
+def metrics(ctx: Ctx) -> Response:
     return Response(generate_latest(ctx.metrics.registry), media_type=CONTENT_TYPE_LATEST)

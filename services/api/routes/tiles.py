@@ -69,6 +69,7 @@ def _tile(
         if_none_match=if_none_match,
         pinned_etags=pinned_etags,
     )
+    ctx.metrics.count_tile(tile.source)
     return tile_response(
         tile.body,
         etag=tile.etag,
