@@ -297,8 +297,10 @@ def _header(doc: Any) -> tuple[Decimals, dict[str, Any], dict[str, Any]]:
 
 
 def _frame_dicts(frames: dict[str, Any], d: Decimals) -> tuple[list[dict[str, Any]], list[int]]:
-    if not isinstance(frames.get("t"), list):
+    if "t" not in frames:
         raise _bad("missing column", "frames.t")
+    if not isinstance(frames["t"], list):
+        raise _bad(f"must be an array, not {type(frames['t']).__name__}", "frames.t")
     n = len(frames["t"])
     column = {
         name: _int_column(frames, "frames", name, n)

@@ -211,6 +211,8 @@ def _tampered(change) -> bytes:
         ("newer version", _tampered(lambda d: d.update(format_version=2)), "binary", "format_version"),
         ("bad decimals", _tampered(lambda d: d["decimals"].update(point_m=99)), "binary", "decimals.point_m"),
         ("missing column", _tampered(lambda d: d["frames"].pop("lat")), "binary", "frames.lat"),
+        ("missing t", _tampered(lambda d: d["frames"].pop("t")), "binary", "frames.t"),
+        ("t not an array", _tampered(lambda d: d["frames"].update(t=3)), "binary", "frames.t"),
         ("short column", _tampered(lambda d: d["frames"]["lon"].pop()), "binary", "frames.lon"),
         (
             "text in a column",
