@@ -6,8 +6,9 @@ The body is the contract's JSON or the compact binary (``services.upload_formats
 same way. Idempotency: ``(vehicle_id, trip_id)`` is unique in the database; the content hash is
 the sha256 of the decompressed body, JSON or binary. The same bytes again answer the stored trip
 (200); other bytes under the same key answer 409, the same trip sent once as JSON and once as
-binary included (the binary is quantised: it is not the same content). Concurrent identical uploads race on the unique constraint;
-the losers re-read the winner's row. Nothing is written before the upload is fully valid.
+binary included (the binary is quantised: it is not the same content). Concurrent identical
+uploads race on the unique constraint; the losers re-read the winner's row. Nothing is written
+before the upload is fully valid.
 """
 
 from __future__ import annotations
