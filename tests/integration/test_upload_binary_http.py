@@ -18,7 +18,7 @@ from csr_core import upload_binary
 from csr_core.sim import simulate_scenario
 from csr_core.upload_binary import Decimals, EncodeOptions
 from services.reconstructions import decode_arrays
-from tests.integration.conftest import Deployment, unique_trip, wait_until
+from tests.integration.conftest import Deployment, moving_trip, unique_trip, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -235,3 +235,25 @@ def test_csr_encode_trip_and_decode_trip_round_trip_the_example(tmp_path):
     assert upload_binary.decode(keyframes.read_bytes())["frames"][1]["elements"] == []
     source.write_bytes(b'{"frames": []}')
     assert main(["encode-trip", str(source), str(tmp_path / "bad.cbor")]) == 2
+
+
+def test_a_binary_trip_goes_through_the_tile_jobs_to_its_poses(make_isolated):
+    """The tile jobs read the stored binary too: the trip is aligned and has a pose per frame."""
+    dep = make_isolated("embedded")
+    dep.start_server()
+    doc = moving_trip()
+    answer = _post(dep, upload_binary.encode(doc), gzipped=True)
+    assert answer.status_code == 202, answer.text
+    trip_pk = answer.json()["id"]
+    _ingested(dep, trip_pk)
+    dep.wait_idle(timeout_s=300)
+    with dep.admin() as http:
+        http.post("/v1/process").raise_for_status()
+    wait_until(
+        lambda: dep.scalar("SELECT status FROM trips WHERE id = :p", p=trip_pk) == "aligned",
+        timeout_s=300,
+        what="the binary trip aligned",
+    )
+    with dep.admin() as http:
+        poses = http.get(f"/v1/trips/{trip_pk}/poses").raise_for_status().json()["frames"]
+    assert [p["t"] for p in poses] == [f["t"] for f in doc["frames"]]
