@@ -5,6 +5,7 @@ same evaluator scores the service and ``csr reconstruct``."""
 
 from __future__ import annotations
 
+import gzip
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,7 +15,9 @@ import numpy as np
 import orjson
 from tqdm import tqdm
 
+from csr_core import upload_binary
 from csr_core.scenario import POSES_CSV_HEADER, list_trip_files
+from csr_core.upload_binary import EncodeOptions
 
 ProgressFn = Callable[[str], None]
 
@@ -73,9 +76,15 @@ def client_for(base_url: str, key: str, timeout_s: float = 120.0) -> httpx.Clien
 
 
 def upload_scenario(
-    client: httpx.Client, scenario_dir: str | Path, *, progress: bool = True
+    client: httpx.Client,
+    scenario_dir: str | Path,
+    *,
+    progress: bool = True,
+    binary: EncodeOptions | None = None,
 ) -> dict[str, str]:
-    """POST every trip of the scenario (file-name order, gzip as stored); ``{trip key: server id}``."""
+    """POST every trip of the scenario (file-name order, gzip as stored); ``{trip key: server id}``.
+    With ``binary``, each trip is sent as the compact binary upload (``docs/upload-binary.md``)
+    encoded with these options, gzip-compressed."""
     ids: dict[str, str] = {}
     files = list_trip_files(scenario_dir)
     for tf in tqdm(files, desc="upload", unit="trip", disable=not progress):
@@ -83,6 +92,10 @@ def upload_scenario(
         headers = {"Content-Type": "application/json"}
         if str(tf.path).endswith(".gz"):
             headers["Content-Encoding"] = "gzip"
+        if binary is not None:
+            doc = orjson.loads(gzip.decompress(body) if body[:2] == b"\x1f\x8b" else body)
+            body = gzip.compress(upload_binary.encode(doc, binary))
+            headers = {"Content-Type": upload_binary.MEDIA_TYPE, "Content-Encoding": "gzip"}
         answer = _check(client.post("/v1/trips", content=body, headers=headers), 200, 202).json()
         ids[tf.key] = answer["id"]
     return ids

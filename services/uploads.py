@@ -1,10 +1,14 @@
 """Accepting a trip upload (contract section 1): decompress within limits, validate (csr_core),
 then store the trip, its raw upload (gzip) and its ingest job in one transaction.
 
-Idempotency: ``(vehicle_id, trip_id)`` is unique in the database; the content hash is the
-sha256 of the decompressed JSON body. The same bytes again answer the stored trip (200); other
-bytes under the same key answer 409. Concurrent identical uploads race on the unique constraint;
-the losers re-read the winner's row. Nothing is written before the upload is fully valid.
+The body is the contract's JSON or the compact binary (``services.upload_formats``,
+``docs/upload-binary.md``): the binary is decoded into the same document, then validated the
+same way. Idempotency: ``(vehicle_id, trip_id)`` is unique in the database; the content hash is
+the sha256 of the decompressed body, JSON or binary. The same bytes again answer the stored trip
+(200); other bytes under the same key answer 409, the same trip sent once as JSON and once as
+binary included (the binary is quantised: it is not the same content). Concurrent identical
+uploads race on the unique constraint; the losers re-read the winner's row. Nothing is written
+before the upload is fully valid.
 """
 
 from __future__ import annotations
@@ -20,13 +24,15 @@ from dataclasses import dataclass
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from csr_core.upload import validate_upload_json
+from csr_core import upload_binary
+from csr_core.upload import validate_upload, validate_upload_json
 from services.api.body import GZIP_MAGIC, gunzip_limited, too_large
 from services.api.errors import ApiError
 from services.auth import Caller
 from services.db import repo
 from services.db.models import Trip
 from services.settings import Settings
+from services.upload_formats import UploadType
 
 RAW_GZIP_LEVEL = (
     1  # plain-JSON uploads are kept gzip-compressed; level 1 is ~4x faster than 6 for ~10% more bytes
@@ -94,6 +100,7 @@ def accept_upload(
     caller: Caller,
     body: bytes | bytearray,
     gzipped: bool,
+    kind: UploadType = UploadType.JSON,
 ) -> Accepted:
     """Validate and store one upload; raises :class:`ApiError` or ``UploadError`` (nothing stored)."""
     is_gzip = gzipped or body[:2] == GZIP_MAGIC
@@ -105,7 +112,10 @@ def accept_upload(
     else:
         json_body = body
     with cyclic_gc_paused():
-        doc = validate_upload_json(json_body)
+        if kind is UploadType.CBOR:
+            doc = validate_upload(upload_binary.decode(json_body))
+        else:
+            doc = validate_upload_json(json_body)
     vehicle_id, trip_id = doc["vehicle_id"], doc["trip_id"]
     if caller.role == "vehicle" and vehicle_id != caller.vehicle_id:
         raise ApiError(
@@ -135,6 +145,7 @@ def accept_upload(
                 body_bytes=len(body),
                 json_bytes=len(json_body),
                 raw_gzip=raw_gzip,
+                encoding=kind.stored_encoding,
             )
     except IntegrityError:  # a concurrent upload of the same key committed first
         with session_factory() as session:

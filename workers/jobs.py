@@ -17,7 +17,6 @@ that the runner retries the job.
 
 from __future__ import annotations
 
-import gzip
 import logging
 import time
 from dataclasses import dataclass
@@ -25,7 +24,6 @@ from datetime import UTC
 from typing import Any
 
 import numpy as np
-import orjson
 from sqlalchemy import select, update
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -41,6 +39,7 @@ from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
 from services.reconstructions import row_values
 from services.settings import Settings
 from services.tile_frames import parse_tile
+from services.upload_formats import stored_document
 from workers import tile_jobs
 from workers.lease import LeaseHeartbeat, lease_until
 
@@ -191,8 +190,8 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
         upload = repo.raw_upload(session, trip_pk=trip_pk)
         if upload is None:
             raise JobFailed(f"trip {trip_pk} has no stored upload")
-        body = upload.body
-    trip = decode_trip(orjson.loads(gzip.decompress(body)))
+        encoding, body = upload.encoding, upload.body
+    trip = decode_trip(stored_document(encoding, body))
     lonlat_deg = trip.gnss_lonlat_deg[trip.has_fix]
     if len(lonlat_deg) < 2:
         raise JobFailed("the trip has fewer than two frames with a GNSS fix")

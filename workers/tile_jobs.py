@@ -24,7 +24,6 @@ and ``merge_tile`` (topology generation and validation, then a new tile version,
 
 from __future__ import annotations
 
-import gzip
 import io
 import logging
 import pickle
@@ -36,7 +35,6 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import orjson
 import shapely
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -104,6 +102,7 @@ from services.reconstructions import (
 )
 from services.settings import Settings
 from services.tile_frames import Side, tile_frame
+from services.upload_formats import stored_document
 from workers.dispatch import neighbours_to_wait_for
 
 log = logging.getLogger(__name__)
@@ -331,7 +330,7 @@ def _load_reconstruction(session: Session, trip_pk: str, frame: LocalFrame) -> T
     upload = repo.raw_upload(session, trip_pk=trip_pk)
     if row is None or upload is None:
         return None
-    trip = decode_trip(orjson.loads(gzip.decompress(upload.body)))
+    trip = decode_trip(stored_document(upload.encoding, upload.body))
     recon = reconstruction_from_row(row, trip)
     return reframe_reconstruction(recon, LocalFrame(row.origin_lat, row.origin_lon), frame)
 
@@ -580,7 +579,11 @@ def finish_trip_if_complete(session: Session, trip_pk: str, job_id: str) -> bool
     if aligned.any():  # a tile that could not align it is bridged by the others' correction
         reasons = []
     upload = repo.raw_upload(session, trip_pk=trip_pk)
-    t = decode_trip(orjson.loads(gzip.decompress(upload.body))).timestamps_s if upload is not None else None
+    t = (
+        decode_trip(stored_document(upload.encoding, upload.body)).timestamps_s
+        if upload is not None
+        else None
+    )
     if t is None or len(t) != len(poses):
         return False
     lonlat = own.to_lonlat(poses[:, :2])

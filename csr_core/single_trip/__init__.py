@@ -402,7 +402,10 @@ def reconstruct_trip(
     )
     # 4. element tracking on frames spaced by travel/time
     box = bev_range_m(trip)
-    frames = select_tracking_frames(poses, trip.timestamps_s, params.TRACK_STEP_M, params.TRACK_STEP_S)
+    perceived = np.fromiter((len(e) > 0 for e in trip.elements), bool, trip.n_frames)
+    frames = select_tracking_frames(
+        poses, trip.timestamps_s, params.TRACK_STEP_M, params.TRACK_STEP_S, perceived=perceived
+    )
     pieces, tracks = track_elements(frames, poses, travel, trip.elements, params)
     if params.DASH_CHAINING:
         tracks = chain_dash_tracks(pieces, tracks, trip.elements, frames, params)

@@ -42,10 +42,25 @@ def every_travel_or_time(
 
 
 def select_tracking_frames(
-    poses_xyyaw: np.ndarray, timestamps_s: np.ndarray, step_m: float, step_s: float
+    poses_xyyaw: np.ndarray,
+    timestamps_s: np.ndarray,
+    step_m: float,
+    step_s: float,
+    perceived: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Frames fed to element tracking: one every ``step_m`` of travel or ``step_s`` of time."""
+    """Frames fed to element tracking: one every ``step_m`` of travel or ``step_s`` of time,
+    chosen among the frames that report elements (``perceived (N,)`` bool; all if ``None``), so
+    that an upload with the elements of keyframes only (docs/upload-binary.md) is tracked on
+    its keyframes. Travel is summed along every pose."""
     step = np.r_[0.0, np.linalg.norm(np.diff(poses_xyyaw[:, :2], axis=0), axis=1)]
-    return every_travel_or_time(
-        np.cumsum(step), np.asarray(timestamps_s, float), step_m, step_s, keep_last=False
+    candidates = np.arange(len(step)) if perceived is None else np.flatnonzero(perceived)
+    if len(candidates) == 0:
+        return candidates.astype(np.int64)
+    chosen = every_travel_or_time(
+        np.cumsum(step)[candidates],
+        np.asarray(timestamps_s, float)[candidates],
+        step_m,
+        step_s,
+        keep_last=False,
     )
+    return candidates[chosen].astype(np.int64)

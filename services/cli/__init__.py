@@ -28,6 +28,8 @@ _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: the validator t
 _COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
 _COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where the mCD comes from
 _COMMAND_MODULES += ("bench_http",)  # csr bench-http: response compression per coding
+_COMMAND_MODULES += ("encode_trip",)  # csr encode-trip / decode-trip: the compact binary upload
+_COMMAND_MODULES += ("bench_upload_size",)  # csr bench-upload-size: JSON vs binary bytes per km
 
 
 def build_parser() -> argparse.ArgumentParser:

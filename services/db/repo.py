@@ -117,6 +117,7 @@ def add_trip(
     body_bytes: int,
     json_bytes: int,
     raw_gzip: bytes,
+    encoding: str = "gzip",
 ) -> tuple[Trip, Job]:
     """A received trip, its raw upload and its ingest job (the outbox row), to be committed together."""
     trip = Trip(
@@ -133,7 +134,7 @@ def add_trip(
     )
     session.add(trip)
     session.flush()  # the trip row first: the upload references it
-    session.add(TripUpload(trip_pk=trip.id, encoding="gzip", body=raw_gzip))
+    session.add(TripUpload(trip_pk=trip.id, encoding=encoding, body=raw_gzip))
     job = add_job(session, kind="ingest_trip", subject=trip.id)
     return trip, job
 

@@ -21,11 +21,11 @@ from services.auth import may_read_trip
 from services.db import repo
 from services.db.models import Trip, TripPoses
 from services.reconstructions import ALGORITHM_VERSION, decode_arrays
+from services.upload_formats import UploadType, upload_type
 from services.uploads import accept_upload
 
 router = APIRouter(prefix="/v1/trips", tags=["trips"])
 
-_JSON_TYPES = ("application/json",)
 _ENCODINGS = {"": False, "identity": False, "gzip": True, "x-gzip": True}
 
 
@@ -95,13 +95,17 @@ def quality_json(summary: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
-def _check_headers(request: Request, max_body_bytes: int) -> bool:
+def _check_headers(request: Request, max_body_bytes: int) -> tuple[bool, UploadType]:
     """415 for a wrong content type or encoding, 413 for a declared length over the limit;
-    returns whether the body is gzip."""
-    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in _JSON_TYPES:
+    returns whether the body is gzip and the upload's type."""
+    content_type = request.headers.get("content-type", "")
+    kind = upload_type(content_type)
+    if kind is None:
+        accepted = " or ".join(t.value for t in UploadType)
         raise ApiError(
-            415, "content_type", f"Content-Type must be application/json, not {content_type or 'missing'!r}"
+            415,
+            "content_type",
+            f"Content-Type must be {accepted}, not {content_type.split(';')[0].strip() or 'missing'!r}",
         )
     encoding = request.headers.get("content-encoding", "").strip().lower()
     if encoding not in _ENCODINGS:
@@ -109,7 +113,7 @@ def _check_headers(request: Request, max_body_bytes: int) -> bool:
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > max_body_bytes:
         raise too_large("as sent", max_body_bytes)
-    return _ENCODINGS[encoding]
+    return _ENCODINGS[encoding], kind
 
 
 @router.post(
@@ -144,7 +148,7 @@ def _check_headers(request: Request, max_body_bytes: int) -> bool:
 async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONResponse:
     settings, metrics = ctx.settings, ctx.metrics
     try:
-        gzipped = _check_headers(request, settings.max_body_bytes)
+        gzipped, kind = _check_headers(request, settings.max_body_bytes)
         body = await read_limited(request.stream(), max_bytes=settings.max_body_bytes)
         started = time.perf_counter()
         accepted = await run_in_threadpool(
@@ -154,6 +158,7 @@ async def upload_trip(request: Request, caller: Uploader, ctx: Ctx) -> JSONRespo
             caller=caller,
             body=body,
             gzipped=gzipped,
+            kind=kind,
         )
     except (ApiError, UploadError) as exc:
         metrics.rejects.labels(as_api_error(exc).error).inc()
