@@ -183,16 +183,23 @@ def _upload_schemas() -> dict[str, dict[str, Any]]:
 
 
 def upload_request_body() -> dict[str, Any]:
-    """``openapi_extra`` of ``POST /v1/trips``: the contract's JSON document, sent as JSON and
-    optionally gzip-compressed (``Content-Encoding: gzip``)."""
+    """``openapi_extra`` of ``POST /v1/trips``: the contract's JSON document, sent as JSON or in the
+    compact binary encoding, optionally gzip-compressed (``Content-Encoding: gzip``)."""
     return {
         "requestBody": {
             "required": True,
             "description": "The trip, as `trip-upload.schema.json` (contract) describes it. It may be "
             "sent gzip-compressed with `Content-Encoding: gzip` (a gzip body is also recognised by its "
             "magic bytes without it). The bytes after decompression are the idempotency key's content: "
-            "the same bytes again answer 200 with the same trip.",
-            "content": {"application/json": {"schema": {"$ref": REF.format(model=UPLOAD_SCHEMA)}}},
+            "the same bytes again answer 200 with the same trip. As `application/vnd.csr.trip+cbor`, the "
+            "same trip in the compact binary encoding (docs/upload-binary.md), decoded and then "
+            "validated as the JSON document is.",
+            "content": {
+                "application/json": {"schema": {"$ref": REF.format(model=UPLOAD_SCHEMA)}},
+                "application/vnd.csr.trip+cbor": {
+                    "schema": {"type": "string", "contentMediaType": "application/cbor"}
+                },
+            },
         },
         "parameters": [
             {

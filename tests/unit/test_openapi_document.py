@@ -101,7 +101,7 @@ def test_the_upload_body_is_the_contract_schema(doc: dict[str, Any]):
     upload = doc["paths"]["/v1/trips"]["post"]
     body = upload["requestBody"]
     assert body["required"] is True
-    assert list(body["content"]) == ["application/json"]
+    assert list(body["content"]) == ["application/json", "application/vnd.csr.trip+cbor"]
     assert [p["name"] for p in upload["parameters"] if p["in"] == "header"] == ["Content-Encoding"]
     for status in (400, 409, 413, 415):
         assert str(status) in upload["responses"]

@@ -127,12 +127,16 @@ def _check_headers(request: Request, max_body_bytes: int) -> tuple[bool, UploadT
         ),
         **errors(
             {
-                400: {"json": "malformed JSON.", "gzip": "malformed or truncated gzip."},
+                400: {
+                    "json": "malformed JSON.",
+                    "gzip": "malformed or truncated gzip.",
+                    "cbor": "a binary body that is not one whole CBOR document.",
+                },
                 403: {"forbidden": "a vehicle key uploading for another `vehicle_id`."},
                 409: {"conflict": "other content under an existing `(vehicle_id, trip_id)`."},
                 413: {"too_large": "the body over the limit as sent, or after decompression."},
                 415: {
-                    "content_type": "not `application/json`.",
+                    "content_type": "neither `application/json` nor `application/vnd.csr.trip+cbor`.",
                     "content_encoding": "an encoding other than gzip.",
                 },
                 422: {
@@ -140,6 +144,7 @@ def _check_headers(request: Request, max_body_bytes: int) -> tuple[bool, UploadT
                     "non_finite": "NaN or an infinite number.",
                     "time_order": "`t` not strictly increasing.",
                     "version": "a `schema_version` other than `1.0`.",
+                    "binary": "a binary body whose layout is not the encoding's (`location`: its column).",
                 },
             }
         ),
