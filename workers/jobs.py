@@ -25,7 +25,6 @@ from datetime import UTC
 from typing import Any
 
 import numpy as np
-import orjson
 from sqlalchemy import select, update
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -34,7 +33,7 @@ from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for
 from csr_core.single_trip import reconstruct_trip
 from csr_core.tiling import owned_frame_counts
-from csr_core.upload import decode_trip
+from csr_core.upload_frames import decode_upload_json
 from services.db import repo
 from services.db.engine import read_only
 from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
@@ -192,7 +191,7 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
         if upload is None:
             raise JobFailed(f"trip {trip_pk} has no stored upload")
         body = upload.body
-    trip = decode_trip(orjson.loads(gzip.decompress(body)))
+    trip = decode_upload_json(gzip.decompress(body))  # frame batch by frame batch: no whole parsed tree
     lonlat_deg = trip.gnss_lonlat_deg[trip.has_fix]
     if len(lonlat_deg) < 2:
         raise JobFailed("the trip has fewer than two frames with a GNSS fix")

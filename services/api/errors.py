@@ -12,7 +12,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from csr_core.errors import UploadError
 
 # The status of each upload rejection reason (README "Errors").
-UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_order": 422, "version": 422}
+UPLOAD_ERROR_STATUS = {
+    "json": 400,
+    "schema": 422,
+    "non_finite": 422,
+    "time_order": 422,
+    "version": 422,
+    "too_many_frames": 413,
+}
 # Retry-After of a 503: a database busy or unreachable beyond the service's own waiting
 DATABASE_RETRY_AFTER_S = 5
 # SQLite's messages for a lock still taken when its busy timeout ran out
