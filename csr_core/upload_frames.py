@@ -8,7 +8,8 @@ beside the Python one). Here msgspec splits the body into the raw JSON text of e
 :data:`BATCH_JSON_BYTES` of JSON at a time; a batch's tree is freed before the next is parsed. The checks and
 their order are those of :func:`~csr_core.upload.validate_upload_json`, and so are the errors:
 a body msgspec cannot split (malformed JSON, ``NaN``, ``frames`` missing, not a list or shorter
-than two) is handed to it whole, to be refused with its usual error.
+than two) is handed to it whole, to be refused with its usual error (that refusal parses the
+body whole, up to its first error).
 """
 
 from __future__ import annotations
@@ -108,9 +109,12 @@ def _batch_error(exc: ValidationError, first: int) -> UploadError | None:
     if err["type"] == "json_invalid" or not err["loc"] or not isinstance(err["loc"][0], int):
         return None
     loc = ("frames", first + err["loc"][0], *err["loc"][1:])
-    shifted = ValidationError.from_exception_data(
-        exc.title, [{"type": err["type"], "loc": loc, "input": err["input"], "ctx": err.get("ctx", {})}]
-    )
+    try:
+        shifted = ValidationError.from_exception_data(
+            exc.title, [{"type": err["type"], "loc": loc, "input": err["input"], "ctx": err.get("ctx", {})}]
+        )
+    except (KeyError, TypeError, ValueError):  # an error kind pydantic cannot rebuild: the whole body's
+        return None
     return _error_from_pydantic(shifted)
 
 

@@ -168,7 +168,7 @@ def format_section(rows: list[Row], limit: int, ingest: tuple[float, float], tin
         "memory just before each upload (`VmHWM` after resetting it through `/proc/<pid>/clear_refs`), default "
         f"limits (`CSR_MAX_DECOMPRESSED_BYTES` {limit // MIB} MiB, `CSR_MAX_UPLOAD_BYTES_IN_FLIGHT` the same). "
         "For a bomb, the decompressed size is the limit (it is refused there). "
-        "Reproduce: `csr bench-upload-memory --write BENCHMARKS.md` (~1 min).",
+        "Reproduce: `csr bench-upload-memory --write BENCHMARKS.md` (~3 min).",
         "",
         "| upload | sent MB | decompressed MB | answers | peak rise MB | peak / decompressed size |",
         "| --- | ---: | ---: | --- | ---: | ---: |",
