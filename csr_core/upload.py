@@ -160,7 +160,12 @@ def first_non_finite(value: Any, path: str) -> str | None:
     return None
 
 
-def _check_semantics(doc: dict[str, Any]) -> None:
+def _frame_times_s(doc: dict[str, Any]) -> np.ndarray:
+    return np.fromiter((f["t"] for f in doc["frames"]), float, len(doc["frames"]))
+
+
+def _check_semantics(doc: dict[str, Any], times_s: np.ndarray) -> None:
+    """The checks beyond the schema: ``started_at``, finite ``sensor_setup``, ``t`` (``times_s``) increasing."""
     if not is_rfc3339_date_time(doc["started_at"]):
         raise UploadError(
             f"started_at: {doc['started_at']!r} is not an RFC 3339 date-time",
@@ -171,12 +176,11 @@ def _check_semantics(doc: dict[str, Any]) -> None:
     non_finite = first_non_finite(doc.get("sensor_setup", {}), "sensor_setup")
     if non_finite is not None:
         raise UploadError(f"{non_finite}: number must be finite", location=non_finite, reason="non_finite")
-    times = np.fromiter((f["t"] for f in doc["frames"]), float, len(doc["frames"]))
-    bad = np.flatnonzero(np.diff(times) <= 0)
+    bad = np.flatnonzero(np.diff(times_s) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
         raise UploadError(
-            f"frame {i}, field t: t={float(times[i])!r} is not after the previous frame's t={float(times[i - 1])!r}"
+            f"frame {i}, field t: t={float(times_s[i])!r} is not after the previous frame's t={float(times_s[i - 1])!r}"
             " (t must be strictly increasing)",
             location=f"frames[{i}].t",
             reason="time_order",
@@ -193,7 +197,7 @@ def validate_upload_json(body: bytes | bytearray | str) -> dict[str, Any]:
     except ValidationError as exc:
         raise _error_from_pydantic(exc) from None
     _check_version(doc)
-    _check_semantics(doc)
+    _check_semantics(doc, _frame_times_s(doc))
     return doc
 
 
@@ -204,7 +208,7 @@ def validate_upload(doc: Any) -> dict[str, Any]:
         valid = cast(dict[str, Any], _ADAPTER.validate_python(doc))
     except ValidationError as exc:
         raise _error_from_pydantic(exc) from None
-    _check_semantics(valid)
+    _check_semantics(valid, _frame_times_s(valid))
     return valid
 
 

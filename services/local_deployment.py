@@ -100,6 +100,11 @@ class LocalDeployment:
         return self
 
     @property
+    def server_pid(self) -> int:
+        """The process id of ``csr serve``."""
+        return self._procs[0].pid
+
+    @property
     def effective_database_url(self) -> str:
         if self.kind == "distributed":
             assert self.database_url is not None, "a distributed deployment needs a database URL"

@@ -37,6 +37,15 @@ class Settings(BaseSettings):
     max_decompressed_bytes: int = Field(
         256 * MIB, gt=0, description="limit on the body after gzip decompression"
     )
+    max_upload_bytes_in_flight: int = Field(
+        256 * MIB,
+        gt=0,
+        description="decompressed bytes of all uploads being checked at once; an upload that would pass it "
+        "answers 503 with Retry-After (at least max_decompressed_bytes)",
+    )
+    max_frames_per_trip: int = Field(
+        200_000, ge=2, description="frames of one trip upload (200000: 5.5 h at 10 Hz); more answer 413"
+    )
     tile_zoom: int = Field(16, ge=0, le=22, description="web-mercator zoom of the tiles a trip marks dirty")
     tile_halo_m: float = Field(
         150.0, gt=0, description="a tile job also aligns the trips' frames this close to the tile (seams)"
@@ -107,6 +116,11 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _limits_consistent(self) -> Settings:
+        if self.max_upload_bytes_in_flight < self.max_decompressed_bytes:
+            raise ValueError(
+                f"CSR_MAX_UPLOAD_BYTES_IN_FLIGHT ({self.max_upload_bytes_in_flight}) must be at least "
+                f"CSR_MAX_DECOMPRESSED_BYTES ({self.max_decompressed_bytes}), or the largest uploads never fit"
+            )
         if self.redis_url and self.visibility_timeout_s <= self.job_time_limit_s:
             raise ValueError(
                 f"CSR_VISIBILITY_TIMEOUT_S ({self.visibility_timeout_s}) must exceed CSR_JOB_TIME_LIMIT_S "

@@ -16,6 +16,9 @@ from typing import Any
 import orjson
 
 from csr_core import upload_binary
+from csr_core.types import Trip
+from csr_core.upload import decode_trip
+from csr_core.upload_frames import decode_upload_json
 
 
 class UploadType(str, Enum):
@@ -40,3 +43,12 @@ def stored_document(encoding: str, body: bytes) -> dict[str, Any]:
     if encoding == UploadType.CBOR.stored_encoding:
         return upload_binary.decode(raw)
     return orjson.loads(raw)
+
+
+def stored_trip(encoding: str, body: bytes) -> Trip:
+    """The trip of a stored raw upload; a JSON one is decoded frame batch by frame batch
+    (``csr_core.upload_frames``), never held whole as a parsed tree."""
+    raw = gzip.decompress(body)
+    if encoding == UploadType.CBOR.stored_encoding:
+        return decode_trip(upload_binary.decode(raw))
+    return decode_upload_json(raw)

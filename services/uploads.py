@@ -1,5 +1,6 @@
-"""Accepting a trip upload (contract section 1): decompress within limits, validate (csr_core),
-then store the trip, its raw upload (gzip) and its ingest job in one transaction.
+"""Accepting a trip upload (contract section 1): decompress within limits and within the process's
+budget of upload bytes in flight (``services.upload_budget``), validate frame batch by frame batch
+(``csr_core.upload_frames``: the parsed upload is never held whole), then store the trip, its raw upload (gzip) and its ingest job in one transaction.
 
 The body is the contract's JSON or the compact binary (``services.upload_formats``,
 ``docs/upload-binary.md``): the binary is decoded into the same document, then validated the
@@ -13,11 +14,12 @@ before the upload is fully valid.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import gzip
 import hashlib
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -25,13 +27,14 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from csr_core import upload_binary
-from csr_core.upload import validate_upload, validate_upload_json
+from csr_core.upload_frames import check_upload_document, check_upload_json
 from services.api.body import GZIP_MAGIC, gunzip_limited, too_large
 from services.api.errors import ApiError
 from services.auth import Caller
 from services.db import repo
 from services.db.models import Trip
 from services.settings import Settings
+from services.upload_budget import budget_for, reservation
 from services.upload_formats import UploadType
 
 RAW_GZIP_LEVEL = (
@@ -103,20 +106,61 @@ def accept_upload(
     kind: UploadType = UploadType.JSON,
 ) -> Accepted:
     """Validate and store one upload; raises :class:`ApiError` or ``UploadError`` (nothing stored)."""
+    with reservation(budget_for(settings.max_upload_bytes_in_flight)) as held:
+        return _accept_within_budget(
+            session_factory=session_factory,
+            settings=settings,
+            caller=caller,
+            body=body,
+            gzipped=gzipped,
+            kind=kind,
+            reserve=held.grow,
+        )
+
+
+def _accept_within_budget(
+    *,
+    session_factory: sessionmaker[Session],
+    settings: Settings,
+    caller: Caller,
+    body: bytes | bytearray,
+    gzipped: bool,
+    kind: UploadType,
+    reserve: Callable[[int], None],
+) -> Accepted:
     is_gzip = gzipped or body[:2] == GZIP_MAGIC
-    json_body: bytes | bytearray
     if is_gzip:
-        json_body = gunzip_limited(body, max_bytes=settings.max_decompressed_bytes)
-    elif len(body) > settings.max_decompressed_bytes:
+        inflated = gunzip_limited(body, max_bytes=settings.max_decompressed_bytes, reserve=reserve)
+        try:
+            return _accept_json(session_factory, settings, caller, body, inflated, is_gzip=True, kind=kind)
+        finally:
+            with contextlib.suppress(BufferError):  # a view still held: freed with it instead
+                inflated.clear()  # freed with the reservation, not when a traceback lets go of it
+    if len(body) > settings.max_decompressed_bytes:
         raise too_large("after decompression", settings.max_decompressed_bytes)
-    else:
-        json_body = body
+    reserve(len(body))
+    return _accept_json(session_factory, settings, caller, body, body, is_gzip=False, kind=kind)
+
+
+def _accept_json(
+    session_factory: sessionmaker[Session],
+    settings: Settings,
+    caller: Caller,
+    body: bytes | bytearray,
+    json_body: bytes | bytearray,
+    *,
+    is_gzip: bool,
+    kind: UploadType,
+) -> Accepted:
+    """Check the decompressed body ``json_body`` and store it (``body``: as sent)."""
     with cyclic_gc_paused():
         if kind is UploadType.CBOR:
-            doc = validate_upload(upload_binary.decode(json_body))
+            doc = upload_binary.decode(json_body)
+            head = check_upload_document(doc, max_frames=settings.max_frames_per_trip)
+            del doc
         else:
-            doc = validate_upload_json(json_body)
-    vehicle_id, trip_id = doc["vehicle_id"], doc["trip_id"]
+            head = check_upload_json(json_body, max_frames=settings.max_frames_per_trip)
+    vehicle_id, trip_id = head.vehicle_id, head.trip_id
     if caller.role == "vehicle" and vehicle_id != caller.vehicle_id:
         raise ApiError(
             403,
@@ -139,9 +183,9 @@ def accept_upload(
                 vehicle_id=vehicle_id,
                 trip_id=trip_id,
                 content_sha256=digest,
-                schema_version=doc["schema_version"],
-                started_at=doc["started_at"],
-                n_frames=len(doc["frames"]),
+                schema_version=head.schema_version,
+                started_at=head.started_at,
+                n_frames=head.n_frames,
                 body_bytes=len(body),
                 json_bytes=len(json_body),
                 raw_gzip=raw_gzip,

@@ -32,14 +32,13 @@ from csr_core.errors import ReconstructionError
 from csr_core.geo import LocalFrame, polyline_length_m, region_frame_for
 from csr_core.single_trip import reconstruct_trip
 from csr_core.tiling import owned_frame_counts
-from csr_core.upload import decode_trip
 from services.db import repo
 from services.db.engine import read_only
 from services.db.models import Trip, TripTileAlignment, ewkt_linestring, utcnow
 from services.reconstructions import row_values
 from services.settings import Settings
 from services.tile_frames import parse_tile
-from services.upload_formats import stored_document
+from services.upload_formats import stored_trip
 from workers import tile_jobs
 from workers.lease import LeaseHeartbeat, lease_until
 
@@ -191,7 +190,7 @@ def _compute_ingest(session_factory: sessionmaker[Session], *, trip_pk: str, zoo
         if upload is None:
             raise JobFailed(f"trip {trip_pk} has no stored upload")
         encoding, body = upload.encoding, upload.body
-    trip = decode_trip(stored_document(encoding, body))
+    trip = stored_trip(encoding, body)  # a JSON upload frame batch by frame batch: no whole parsed tree
     lonlat_deg = trip.gnss_lonlat_deg[trip.has_fix]
     if len(lonlat_deg) < 2:
         raise JobFailed("the trip has fewer than two frames with a GNSS fix")

@@ -14,7 +14,14 @@ from csr_core.errors import UploadError
 from services.api.cors import CORS_HEADERS
 
 # The status of each upload rejection reason (README "Errors").
-UPLOAD_ERROR_STATUS = {"json": 400, "schema": 422, "non_finite": 422, "time_order": 422, "version": 422}
+UPLOAD_ERROR_STATUS = {
+    "json": 400,
+    "schema": 422,
+    "non_finite": 422,
+    "time_order": 422,
+    "version": 422,
+    "too_many_frames": 413,
+}
 UPLOAD_ERROR_STATUS |= {"cbor": 400, "binary": 422}  # the compact binary upload (docs/upload-binary.md)
 # Retry-After of a 503: a database busy or unreachable beyond the service's own waiting
 DATABASE_RETRY_AFTER_S = 5

@@ -30,6 +30,7 @@ _COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where the mCD comes f
 _COMMAND_MODULES += ("bench_http",)  # csr bench-http: response compression per coding
 _COMMAND_MODULES += ("encode_trip",)  # csr encode-trip / decode-trip: the compact binary upload
 _COMMAND_MODULES += ("bench_upload_size",)  # csr bench-upload-size: JSON vs binary bytes per km
+_COMMAND_MODULES += ("bench_upload_memory",)  # csr bench-upload-memory: peak memory per upload
 
 
 def build_parser() -> argparse.ArgumentParser:

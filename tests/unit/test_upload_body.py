@@ -9,8 +9,9 @@ import zlib
 
 import pytest
 
-from services.api.body import gunzip_limited, read_limited
+from services.api.body import OUTPUT_STEP_BYTES, gunzip_limited, read_limited
 from services.api.errors import ApiError
+from services.upload_budget import UploadBudget, reservation
 
 pytestmark = pytest.mark.unit
 
@@ -80,3 +81,61 @@ def test_streaming_read_collects_a_body_within_the_limit():
             yield part
 
     assert asyncio.run(read_limited(chunks(), max_bytes=5)) == b"abcde"
+
+
+def test_a_zip_bomb_never_holds_more_than_the_limit_and_one_step():
+    limit = 16 * MIB
+    bomb = _bomb(64)
+    tracemalloc.start()
+    try:
+        with pytest.raises(ApiError) as caught:
+            gunzip_limited(bomb, max_bytes=limit)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert caught.value.status == 413
+    # the output (with its growth margin) and one step; inflating to the limit in one call holds it twice
+    assert peak < 1.3 * limit
+
+
+def test_inflation_reserves_each_step_before_keeping_it_and_stops_when_refused():
+    data = bytes(range(256)) * (3 * OUTPUT_STEP_BYTES // 256 + 7)
+    steps: list[int] = []
+    assert gunzip_limited(gzip.compress(data), max_bytes=len(data), reserve=steps.append) == data
+    assert sum(steps) == len(data) and max(steps) <= OUTPUT_STEP_BYTES
+
+    def refuse_past_two_mib(n_bytes: int) -> None:
+        steps.append(n_bytes)
+        if sum(steps) > 2 * MIB:
+            raise ApiError(503, "busy", "full")
+
+    steps.clear()
+    with pytest.raises(ApiError) as caught:
+        gunzip_limited(_bomb(64), max_bytes=256 * MIB, reserve=refuse_past_two_mib)
+    assert caught.value.status == 503 and sum(steps) <= 2 * MIB + OUTPUT_STEP_BYTES
+
+
+def test_the_budget_refuses_what_does_not_fit_with_503_and_retry_after():
+    budget = UploadBudget(10 * MIB)
+    with reservation(budget) as first:
+        first.grow(6 * MIB)
+        with reservation(budget) as second, pytest.raises(ApiError) as caught:
+            second.grow(2 * MIB)
+            second.grow(3 * MIB)
+        assert budget.used_bytes == 6 * MIB  # the refused one gave back what it held
+        error = caught.value
+        assert (error.status, error.error, error.location) == (503, "busy", "body")
+        assert int(error.headers["Retry-After"]) > 0 and str(10 * MIB) in error.message
+    assert budget.used_bytes == 0
+
+
+def test_a_budget_below_the_decompressed_limit_is_refused_at_start():
+    from pydantic import ValidationError
+
+    from services.settings import Settings
+
+    with pytest.raises(ValidationError, match="CSR_MAX_UPLOAD_BYTES_IN_FLIGHT"):
+        Settings(max_decompressed_bytes=8 * MIB, max_upload_bytes_in_flight=4 * MIB)
+    assert (
+        Settings(max_decompressed_bytes=8 * MIB, max_upload_bytes_in_flight=8 * MIB).max_frames_per_trip > 0
+    )

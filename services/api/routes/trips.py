@@ -134,7 +134,10 @@ def _check_headers(request: Request, max_body_bytes: int) -> tuple[bool, UploadT
                 },
                 403: {"forbidden": "a vehicle key uploading for another `vehicle_id`."},
                 409: {"conflict": "other content under an existing `(vehicle_id, trip_id)`."},
-                413: {"too_large": "the body over the limit as sent, or after decompression."},
+                413: {
+                    "too_large": "the body over the limit as sent, or after decompression.",
+                    "too_many_frames": "more frames than `CSR_MAX_FRAMES_PER_TRIP` (`location: frames`).",
+                },
                 415: {
                     "content_type": "neither `application/json` nor `application/vnd.csr.trip+cbor`.",
                     "content_encoding": "an encoding other than gzip.",
@@ -145,6 +148,9 @@ def _check_headers(request: Request, max_body_bytes: int) -> tuple[bool, UploadT
                     "time_order": "`t` not strictly increasing.",
                     "version": "a `schema_version` other than `1.0`.",
                     "binary": "a binary body whose layout is not the encoding's (`location`: its column).",
+                },
+                503: {
+                    "busy": "the uploads in flight hold `CSR_MAX_UPLOAD_BYTES_IN_FLIGHT` (`Retry-After`).",
                 },
             }
         ),
