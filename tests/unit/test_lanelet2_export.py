@@ -69,7 +69,10 @@ def _parse(xml: bytes) -> tuple[dict, dict, dict]:
     nodes = {n.get("id"): (float(n.attrib["lon"]), float(n.attrib["lat"])) for n in root.findall("node")}
     ways = {w.get("id"): ([nd.get("ref") for nd in w.findall("nd")], tags(w)) for w in root.findall("way")}
     rels = {
-        r.get("id"): ({m.get("role"): m.get("ref") for m in r.findall("member")}, tags(r))
+        r.get("id"): (
+            {m.get("role"): m.get("ref") for m in r.findall("member") if m.get("type") == "way"},
+            tags(r),
+        )
         for r in root.findall("relation")
     }
     return nodes, ways, rels
