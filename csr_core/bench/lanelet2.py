@@ -2,23 +2,57 @@
 loaded with the ``lanelet2`` package and judged by Lanelet2's validator checks
 (``csr_core.export.lanelet2_checks``) and its routing graph (German vehicle rules).
 
-``csr bench-lanelet2`` simulates a small fleet per world, runs ``csr reconstruct``'s pipeline
-on it (both cached in the work folder) and writes the table of :func:`lanelet2_table`.
+``csr bench-lanelet2`` simulates a small fleet per world (``OUT/<world>``), runs
+``csr reconstruct``'s pipeline on it (``OUT/<world>/rec``; both kept and reused when the fleet
+matches) and writes the table of :func:`lanelet2_table`.
 """
 
 from __future__ import annotations
 
+import json
+import subprocess
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from csr_core.bench.runner import csr_command
 from csr_core.bench.tables import markdown_table
 from csr_core.export import export_lanelet2_geojson
 from csr_core.export.lanelet2_checks import check_lanelet2_map, load_lanelet2, routing_figures
 
 #: the simulator's benchmark worlds: five real Lanelet2 / OpenDRIVE maps and the procedural grid
 WORLDS = ("karlsruhe", "kashiwanoha", "carcarana", "a9", "newmarket", "urban")
+
+
+def truth_map(world: str) -> dict:
+    """The world's truth map as GeoJSON (what ``csr simulate`` writes to ``truth/map.geojson``)."""
+    from csr_core.geo import LocalFrame
+    from csr_core.sim.scenario import truth_map_geojson
+    from csr_core.sim.worlds import load_world
+
+    w = load_world(world)
+    return truth_map_geojson(w, LocalFrame(w.origin_lat, w.origin_lon))
+
+
+def pipeline_map(world: str, out_dir: Path, trips: int, seed: int) -> dict:
+    """The pipeline's map of ``trips`` simulated trips on ``world`` (``csr simulate`` into
+    ``out_dir/<world>``, ``csr reconstruct`` into ``out_dir/<world>/rec``; reused when present for
+    the same fleet)."""
+    scen = out_dir / world
+    meta = scen / "scenario.json"
+    fleet_matches = meta.exists() and {
+        k: json.loads(meta.read_text()).get(k) for k in ("n_trips", "seed")
+    } == {"n_trips": trips, "seed": seed}
+    rec = scen / "rec" / "map.geojson"
+    if not fleet_matches:
+        run = ["simulate", "--world", world, "--trips", str(trips), "--seed", str(seed), "--out", str(scen)]
+        subprocess.run(csr_command() + run, check=True, capture_output=True)
+        rec.unlink(missing_ok=True)
+    if not rec.exists():
+        run = ["reconstruct", str(scen), "--out", str(rec.parent), "--no-progress"]
+        subprocess.run(csr_command() + run, check=True, capture_output=True)
+    return json.loads(rec.read_text())
 
 
 @dataclass(frozen=True, slots=True)

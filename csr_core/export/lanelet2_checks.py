@@ -336,7 +336,7 @@ def routing_figures(lmap: Any, n_sources: int = 40, seed: int = 0) -> RoutingFig
     sources = rng.choice(n, size=min(n_sources, n), replace=False)
     routable = 0
     for k in sources:
-        reach = {x.id for x in graph.reachableSet(roads[int(k)], math.inf, 0, False)}
+        reach = {x.id for x in graph.reachableSet(roads[int(k)], math.inf, 0, True)}  # lane changes allowed
         routable += len((reach & road_ids) - {roads[int(k)].id})
     pairs = len(sources) * (n - 1)
     return RoutingFigures(n, pairs, routable / pairs, largest, with_succ, with_change)

@@ -27,6 +27,7 @@ _COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: the single-
 _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: the validator target
 _COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
 _COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where the mCD comes from
+_COMMAND_MODULES += ("bench_lanelet2",)  # csr bench-lanelet2: the Lanelet2 export checked and routed
 
 
 def build_parser() -> argparse.ArgumentParser:

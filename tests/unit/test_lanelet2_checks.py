@@ -234,3 +234,20 @@ def test_export_skips_a_second_centreline_of_the_same_lane(tmp_path):
     _, checks, m = _export_and_load(feats, tmp_path)
     assert m.report.runs_skipped == {"duplicate of another lane": 1}
     assert checks.n_errors == 0, checks.issues
+
+
+def test_routing_figures_known_answers(tmp_path):
+    """Two lanelets side by side: across a dashed divider each reaches the other (every pair
+    routable, one component of two); across a solid one neither (no pair, components of one)."""
+    from csr_core.export.lanelet2_checks import routing_figures
+
+    for style, share, scc, change in ((DividerStyle.DASHED, 1.0, 2, 2), (DividerStyle.SOLID, 0.0, 1, 0)):
+        lmap, _, _ = _export_and_load(_two_lanes(style), tmp_path)
+        r = routing_figures(lmap)
+        assert (r.road_lanelets, r.pairs_sampled) == (2, 2)
+        assert (r.routable_share, r.largest_scc, r.with_lane_change, r.with_successor) == (
+            share,
+            scc,
+            change,
+            0,
+        )
