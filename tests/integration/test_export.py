@@ -119,6 +119,10 @@ def test_csr_export_command_on_a_simulated_scenario(tmp_path: Path):
     assert report["input"].endswith("truth/map.geojson")
     assert report["lanelets"] > 400 and report["runs_skipped"] == {}
     assert report["validation"]["problems"] == 0
+    checks = report["lanelet2"]  # Lanelet2's validator checks on the written file
+    assert (checks["errors"], checks["nodes_within_1mm"]) == (0, 0), checks["first"]
+    assert checks["regulatory_elements"] >= report["stop_lines"] > 0
+    assert checks["routing"]["routable_share"] > 0.5
     assert out.read_bytes().startswith(b"<?xml")
     bad = subprocess.run(
         [*csr, "export", str(tmp_path / "missing.geojson"), "--out", str(out)],
