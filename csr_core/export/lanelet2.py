@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from csr_core.errors import CsrError
@@ -51,6 +53,7 @@ LEFT, RIGHT = 0, 1
 NO_BOUND = -1
 PRIO_PAINT, PRIO_ESTIMATED, PRIO_DEFAULT = 0, 1, 2  # how a point's position is known, best first
 TWO_WAY = "two-way"  # a run written as the other direction of a one_way=no lanelet
+DUPLICATE = "duplicate of another lane"  # a run with the very bounds of a lanelet already written
 
 # lane_divider style -> Lanelet2 line_thin subtype (unknown: solid, the conservative reading)
 DIVIDER_SUBTYPE = {
@@ -82,6 +85,11 @@ class Lanelet2Params:
     MIN_WIDTH_M: float = 1.5  # plausible lanelet width at its ends
     MAX_WIDTH_M: float = 8.0
     VIRTUAL_STEP_M: float = 2.0  # vertex spacing of virtual bounds
+    STOP_LINE_REACH_M: float = 3.0  # a lanelet ending this close to a stop line (or crossing it) stops there
+    STOP_LINE_MIN_ANGLE_RAD: float = math.radians(
+        45.0
+    )  # ... if its lane meets the line at least this steeply
+    NODE_MERGE_M: float = 0.05  # nodes closer than this are one (Lanelet2's points_too_close limit)
     # lane graph: short centrelines are lanes here (junction pieces of a real map), not fragments
     topology: TopologyParams = field(default_factory=lambda: TopologyParams(LANE_MIN_LENGTH_M=1.5))
 
@@ -118,6 +126,9 @@ class ExportReport:
     centerlines_not_lanes: int  # centreline features too short to be lanes
     crosswalks: int
     stop_lines: int
+    stop_lines_governing: int  # stop lines whose regulatory element a lanelet references
+    regulatory_elements: int
+    nodes_merged: int  # nodes closer than NODE_MERGE_M to another, written as one
     road_markings: int
     lines_unused: int  # dividers/boundaries bounding no lanelet, written as plain ways
     nodes: int
@@ -136,6 +147,7 @@ class Lanelet2Map:
     node_ids: np.ndarray  # (N,) int
     lonlat_deg: np.ndarray  # (N, 2)
     xy_world: np.ndarray  # (N, 2)
+    sigma_m: np.ndarray  # (N,) 1-sigma position uncertainty of the element a node lies on (NaN: unknown)
     ways: tuple[OsmWay, ...]
     relations: tuple[OsmRelation, ...]
     report: ExportReport
@@ -153,10 +165,12 @@ class _Points:
         self.prio: list[int] = []
         self.parent: list[int] = []
         self.anchor: list[np.ndarray | None] = []  # per root: a painted member's position
+        self.sigma_m: list[float] = []  # 1-sigma position uncertainty of the source element (NaN: unknown)
 
-    def add(self, xy: np.ndarray, prio: int) -> int:
+    def add(self, xy: np.ndarray, prio: int, sigma_m: float = math.nan) -> int:
         self.xy.append(np.asarray(xy, float))
         self.prio.append(prio)
+        self.sigma_m.append(sigma_m)
         self.parent.append(len(self.parent))
         self.anchor.append(self.xy[-1] if prio == PRIO_PAINT else None)
         return len(self.parent) - 1
@@ -199,6 +213,12 @@ class _Points:
         np.add.at(pos, roots[keep], xy[keep])
         np.add.at(count, roots[keep], 1.0)
         pos[count > 0] /= count[count > 0, None]
+        sig = np.array(self.sigma_m, float)
+        known = keep & np.isfinite(sig)
+        sig_sum, sig_n = np.zeros(len(roots)), np.zeros(len(roots))
+        np.add.at(sig_sum, roots[known], sig[known])
+        np.add.at(sig_n, roots[known], 1.0)
+        self.root_sigma_m = np.where(sig_n > 0, sig_sum / np.maximum(sig_n, 1.0), np.nan)
         self.best_prio = best
         return roots, pos
 
@@ -228,7 +248,11 @@ class _Candidate:
                 tags.append(("csr:style", "unknown"))
         if f.feature_id:
             tags.append(("csr:feature_id", f.feature_id))
-        return tuple(tags)
+        return (*tags, *provenance_tags(f.properties))
+
+    @property
+    def sigma_m(self) -> float:
+        return feature_sigma_m(self.feature.properties)
 
     def station(self, points: _Points, xy: np.ndarray, snap_m: float) -> tuple[int, float]:
         """The node where ``xy`` projects onto this line (an existing one within ``snap_m``)."""
@@ -237,13 +261,13 @@ class _Candidate:
             if abs(s_known - s) <= snap_m:
                 return idx, s_known
         foot = self.line.interpolate(s)
-        idx = points.add(np.array([foot.x, foot.y]), PRIO_PAINT)
+        idx = points.add(np.array([foot.x, foot.y]), PRIO_PAINT, self.sigma_m)
         self.stations.append((s, idx))
         return idx, s
 
     def vertex_point(self, points: _Points, k: int) -> int:
         if k not in self.vertex_points:
-            self.vertex_points[k] = points.add(self.xy[k], PRIO_PAINT)
+            self.vertex_points[k] = points.add(self.xy[k], PRIO_PAINT, self.sigma_m)
         return self.vertex_points[k]
 
     def between(self, points: _Points, s_a: float, s_b: float, margin_m: float = 0.3) -> list[int]:
@@ -253,6 +277,28 @@ class _Candidate:
         if s_b < s_a:
             ks.reverse()
         return [self.vertex_point(points, k) for k in ks]
+
+
+def feature_sigma_m(properties: dict) -> float:
+    """The element's 1-sigma position uncertainty (metres; the fused map's ``uncertainty_m``),
+    NaN where the map gives none (a truth map)."""
+    try:
+        return float(properties.get("uncertainty_m", math.nan))
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def provenance_tags(properties: dict) -> tuple[tuple[str, str], ...]:
+    """``csr:trips`` (trips that saw the element: ``support_trips``) and ``csr:version`` (the map
+    version that made it: ``map_version``, else ``tile_version``), where the map gives them."""
+    tags = []
+    trips = properties.get("support_trips")
+    if isinstance(trips, int | float) and not isinstance(trips, bool):
+        tags.append(("csr:trips", str(int(trips))))
+    version = properties.get("map_version", properties.get("tile_version"))
+    if isinstance(version, int) and not isinstance(version, bool):
+        tags.append(("csr:version", str(version)))
+    return tuple(tags)
 
 
 def _candidates(features: Sequence[MapFeature]) -> list[_Candidate]:
@@ -394,6 +440,7 @@ def build_lanelet2_map(
     points = _Points()
     n_centerlines = sum(1 for f in features if f.type == ElementType.CENTERLINE)
     fids = {a["feature_id"] for _, a in g.nodes(data=True)}
+    centre_props = {f.feature_id: f.properties for f in features if f.type == ElementType.CENTERLINE}
 
     # 1-4. lane samples, sides, runs
     samples: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -419,6 +466,7 @@ def build_lanelet2_map(
             if b > a
         ]
         samples[lane] = (p, t, s)
+        lane_sigma_m = feature_sigma_m(centre_props.get(g.nodes[lane]["feature_id"], {}))
         # 5. end points: stations on painted sides, estimates elsewhere; runs of a lane joined
         n_xy = np.column_stack([-t[:, 1], t[:, 0]])
         for r in lane_runs:
@@ -430,7 +478,7 @@ def build_lanelet2_map(
                         r.s_ends[side][e] = s_c
                     else:
                         o, prio = _estimate_offset(side, i, s, offset, params)
-                        idx = points.add(p[i] + o * n_xy[i], prio)
+                        idx = points.add(p[i] + o * n_xy[i], prio, lane_sigma_m)
                     r.ends[side][e] = idx
         for prev, nxt in zip(lane_runs[:-1], lane_runs[1:], strict=False):
             for side in (LEFT, RIGHT):
@@ -488,9 +536,11 @@ def build_lanelet2_map(
     # 7. ways and lanelets
     builder = _OsmBuilder(points, roots, pos)
     n_virtual = n_two_way = 0
+    approaches: list[tuple[int, np.ndarray]] = []  # (lanelet relation, its lane samples (K, 2))
     for lane, lane_runs in runs.items():
         p, t, s = samples[lane]
         n_xy = np.column_stack([-t[:, 1], t[:, 0]])
+        lane_props = centre_props.get(g.nodes[lane]["feature_id"], {})
         for r in lane_runs:
             if r.skip:
                 continue
@@ -512,7 +562,11 @@ def build_lanelet2_map(
                     inner = list(range(r.i0 + step, r.i1 - step // 2, step))
                     w = (s[inner] - s[r.i0]) / max(s[r.i1] - s[r.i0], 1e-9)
                     mid = [
-                        points.add(p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i], PRIO_ESTIMATED)
+                        points.add(
+                            p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i],
+                            PRIO_ESTIMATED,
+                            feature_sigma_m(lane_props),
+                        )
                         for i, wi in zip(inner, w, strict=True)
                     ]
                     bound_ways.append(builder.way([a, *mid, b], (("type", "virtual"),)))
@@ -524,7 +578,7 @@ def build_lanelet2_map(
             if not builder.simple_outline(left_way, right_way):
                 r.skip = "bounds cross"
                 continue
-            if builder.lanelet(
+            status, rel = builder.lanelet(
                 left_way,
                 right_way,
                 (
@@ -534,24 +588,31 @@ def build_lanelet2_map(
                     ("one_way", "yes"),
                     ("csr:lane", lane),
                     ("csr:centerline_id", g.nodes[lane]["feature_id"]),
+                    *provenance_tags(lane_props),
                 ),
-            ):
+            )
+            if status == "":
                 n_virtual += has_virtual
+                approaches.append((rel, p[r.i0 : r.i1 + 1]))
             else:
-                r.skip = TWO_WAY
-                n_two_way += 1
+                r.skip = status
+                n_two_way += status == TWO_WAY
 
     # crosswalks, stop lines, road markings, unused lines
-    n_cross = n_stop = n_mark = 0
+    n_cross = n_stop = n_mark = n_stop_attached = 0
     for f in features:
         tags_id = (("csr:feature_id", f.feature_id),) if f.feature_id else ()
+        tags_id = (*tags_id, *provenance_tags(f.properties))
+        sigma_m = feature_sigma_m(f.properties)
         xy = np.asarray(f.points_xy_world, float)
         if f.type == ElementType.CROSSWALK and len(xy) >= 3:
             sides = _crosswalk_sides(xy)
             if sides is None:
                 continue
             cw = [
-                builder.way([points.add(q, PRIO_PAINT) for q in side], (("type", "zebra_marking"), *tags_id))
+                builder.way(
+                    [points.add(q, PRIO_PAINT, sigma_m) for q in side], (("type", "zebra_marking"), *tags_id)
+                )
                 for side in sides
             ]
             if cw[0] is not None and cw[1] is not None:
@@ -561,6 +622,7 @@ def build_lanelet2_map(
                     (
                         ("type", "lanelet"),
                         ("subtype", "crosswalk"),
+                        ("location", params.location),
                         ("one_way", "no"),
                         ("participant:pedestrian", "yes"),
                         *tags_id,
@@ -568,13 +630,25 @@ def build_lanelet2_map(
                 )
                 n_cross += 1
         elif f.type == ElementType.STOP_LINE and len(xy) >= 2:
-            if (
-                builder.way([points.add(q, PRIO_PAINT) for q in xy], (("type", "stop_line"), *tags_id))
-                is not None
-            ):
+            way = builder.way(
+                [points.add(q, PRIO_PAINT, sigma_m) for q in xy], (("type", "stop_line"), *tags_id)
+            )
+            if way is not None:
                 n_stop += 1
+                yielding = _lanelets_at_stop_line(xy, approaches, params)
+                builder.regulatory_element(
+                    (
+                        ("type", "regulatory_element"),
+                        ("subtype", "traffic_sign"),
+                        ("sign_type", "stop_line"),
+                        *tags_id,
+                    ),
+                    (("way", way, "ref_line"),),
+                    lanelets=yielding,
+                )
+                n_stop_attached += bool(yielding)
         elif f.type == ElementType.ROAD_MARKING and len(xy) >= 3:
-            ids = [points.add(q, PRIO_PAINT) for q in xy]
+            ids = [points.add(q, PRIO_PAINT, sigma_m) for q in xy]
             if builder.way([*ids, ids[0]], (("type", "road_marking"), ("area", "yes"), *tags_id)) is not None:
                 n_mark += 1
     n_unused = 0
@@ -594,7 +668,7 @@ def build_lanelet2_map(
             continue
         n_links += 1
         joined += all(roots[ru.ends[sd][1]] == roots[rv.ends[sd][0]] for sd in (LEFT, RIGHT))
-    node_ids, xy_world, ways, relations = builder.finish(len(points.parent))
+    node_ids, xy_world, node_sigma_m, ways, relations, n_merged = builder.finish(params.NODE_MERGE_M)
     report = ExportReport(
         lanes=g.number_of_nodes(),
         lanelets=sum(1 for lane_runs in runs.values() for r in lane_runs if not r.skip),
@@ -607,6 +681,9 @@ def build_lanelet2_map(
         centerlines_not_lanes=n_centerlines - len(fids),
         crosswalks=n_cross,
         stop_lines=n_stop,
+        stop_lines_governing=n_stop_attached,
+        regulatory_elements=sum(1 for r in relations if ("type", "regulatory_element") in r.tags),
+        nodes_merged=n_merged,
         road_markings=n_mark,
         lines_unused=n_unused,
         nodes=len(node_ids),
@@ -618,10 +695,36 @@ def build_lanelet2_map(
         node_ids,
         frame.to_lonlat(xy_world) if len(xy_world) else np.zeros((0, 2)),
         xy_world,
+        node_sigma_m,
         ways,
         relations,
         report,
     )
+
+
+def _lanelets_at_stop_line(
+    stop_xy: np.ndarray, approaches: Sequence[tuple[int, np.ndarray]], params: Lanelet2Params
+) -> list[int]:
+    """Road lanelets (relation indices) a stop line governs: their lane ends within
+    ``STOP_LINE_REACH_M`` of it, or crosses it, at an angle above ``STOP_LINE_MIN_ANGLE_RAD``."""
+    line = shapely.LineString(stop_xy)
+    d_stop = stop_xy[-1] - stop_xy[0]
+    d_stop = d_stop / max(float(np.linalg.norm(d_stop)), 1e-9)
+    out = []
+    for rel, lane_xy in approaches:
+        if len(lane_xy) < 2:
+            continue
+        end = shapely.Point(float(lane_xy[-1, 0]), float(lane_xy[-1, 1]))
+        lane_line = shapely.LineString(lane_xy)
+        if line.distance(end) > params.STOP_LINE_REACH_M and not line.intersects(lane_line):
+            continue
+        k = int(np.argmin(np.linalg.norm(lane_xy - np.asarray(line.centroid.coords[0]), axis=1)))
+        k = min(k, len(lane_xy) - 2)
+        t = lane_xy[k + 1] - lane_xy[k]
+        t = t / max(float(np.linalg.norm(t)), 1e-9)
+        if abs(float(t @ d_stop)) <= math.cos(params.STOP_LINE_MIN_ANGLE_RAD):
+            out.append(rel)
+    return out
 
 
 def _crosswalk_sides(outline_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -637,20 +740,28 @@ def _crosswalk_sides(outline_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | 
 
 
 class _OsmBuilder:
-    """Ways (deduplicated: one way per node sequence, either direction) and relations over the
-    resolved points; ids are assigned in ``finish``."""
+    """Ways (deduplicated: one way per node sequence, either direction) and relations (lanelets,
+    regulatory elements) over the resolved points; nodes closer than ``merge_m`` become one and
+    ids are assigned in ``finish``."""
 
     def __init__(self, points: _Points, roots: np.ndarray, pos: np.ndarray) -> None:
         self.points, self.roots, self.pos = points, roots, pos
         self.ways: list[tuple[tuple[int, ...], tuple[tuple[str, str], ...]]] = []
         self.by_nodes: dict[tuple[int, ...], int] = {}
-        self.relations: list[tuple[tuple[tuple[str, int, str], ...], tuple[tuple[str, str], ...]]] = []
+        # members: (member type "way" / "relation", way or relation index, role)
+        self.relations: list[tuple[list[tuple[str, int, str]], tuple[tuple[str, str], ...]]] = []
         self.by_bounds: dict[tuple[int, int], int] = {}
 
     def _root(self, i: int) -> int:
         if i >= len(self.roots):  # added after resolve: its own root and position
             return i
         return int(self.roots[i])
+
+    def _xy(self, n: int) -> np.ndarray:
+        return self.pos[n] if n < len(self.pos) else self.points.xy[n]
+
+    def _sigma_m(self, n: int) -> float:
+        return float(self.points.root_sigma_m[n]) if n < len(self.pos) else self.points.sigma_m[n]
 
     def way(self, chain: Sequence[int], tags: tuple[tuple[str, str], ...]) -> int | None:
         nodes: list[int] = []
@@ -669,7 +780,7 @@ class _OsmBuilder:
         return len(self.ways) - 1
 
     def xy_of(self, way: int) -> np.ndarray:
-        return np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in self.ways[way][0]])
+        return np.array([self._xy(n) for n in self.ways[way][0]])
 
     def simple_outline(self, left: int, right: int) -> bool:
         """Left and right bound enclose a simple polygon (a stored way may run either way)."""
@@ -680,32 +791,106 @@ class _OsmBuilder:
             b = b[::-1]
         return bool(shapely.Polygon(np.vstack([a, b[::-1]])).is_valid)
 
-    def lanelet(self, left: int, right: int, tags: tuple[tuple[str, str], ...]) -> bool:
-        """Add a lanelet; False if it is the other direction of one already added (same ways,
-        sides swapped: a two-way lane), which then becomes ``one_way=no``."""
+    def lanelet(self, left: int, right: int, tags: tuple[tuple[str, str], ...]) -> tuple[str, int]:
+        """Add a lanelet: ``("", index)``; ``(TWO_WAY, other)`` if it is the other direction of one
+        already added (same ways, sides swapped: a two-way lane), which then becomes
+        ``one_way=no``; ``(DUPLICATE, other)`` if one with the same two bounds exists (two
+        centrelines of one lane)."""
+        if (left, right) in self.by_bounds:
+            return DUPLICATE, self.by_bounds[(left, right)]
         other = self.by_bounds.get((right, left))
         if other is not None:
             members, old = self.relations[other]
             self.relations[other] = (members, tuple((k, "no" if k == "one_way" else v) for k, v in old))
-            return False
+            return TWO_WAY, other
         self.by_bounds[(left, right)] = len(self.relations)
-        self.relations.append(((("way", left, "left"), ("way", right, "right")), tags))
-        return True
+        self.relations.append(([("way", left, "left"), ("way", right, "right")], tags))
+        return "", len(self.relations) - 1
+
+    def regulatory_element(
+        self,
+        tags: tuple[tuple[str, str], ...],
+        members: tuple[tuple[str, int, str], ...],
+        lanelets: Sequence[int] = (),
+    ) -> int:
+        """Add a regulatory element; each of ``lanelets`` (relation indices) references it."""
+        self.relations.append((list(members), tags))
+        k = len(self.relations) - 1
+        for ll in lanelets:
+            self.relations[ll][0].append(("relation", k, "regulatory_element"))
+        return k
+
+    def _merge_close(self, used: list[int], merge_m: float) -> dict[int, int]:
+        """Point -> the point standing for it: points closer than ``merge_m`` (transitively) are
+        one, at their mean position (written back to ``pos`` / ``points.xy``)."""
+        if len(used) < 2 or merge_m <= 0:
+            return {n: n for n in used}
+        xy = np.array([self._xy(n) for n in used])
+        pairs = cKDTree(xy).query_pairs(merge_m, output_type="ndarray")
+        if not len(pairs):
+            return {n: n for n in used}
+        adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(used), len(used)))
+        _, comp = connected_components(adj, directed=False)
+        first: dict[int, int] = {}
+        for k, c in enumerate(comp.tolist()):
+            first.setdefault(c, used[k])
+        for c in np.unique(comp[pairs[:, 0]]).tolist():
+            members = np.flatnonzero(comp == c)
+            rep, mean = first[c], xy[members].mean(axis=0)
+            if rep < len(self.pos):
+                self.pos[rep] = mean
+            else:
+                self.points.xy[rep] = mean
+        return {n: first[c] for n, c in zip(used, comp.tolist(), strict=True)}
 
     def finish(
-        self, n_points: int
-    ) -> tuple[np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...]]:
+        self, merge_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...], int]:
+        """(node ids, node xy (N, 2), node sigma_m (N,), ways, relations, nodes merged). A way
+        shorter than ``merge_m`` disappears, and with it a lanelet it bounds or a regulatory
+        element with no member left."""
         used = sorted({n for nodes, _ in self.ways for n in nodes})
-        xy = np.array([self.pos[n] if n < len(self.pos) else self.points.xy[n] for n in used]).reshape(-1, 2)
-        node_id = {n: k + 1 for k, n in enumerate(used)}
-        way_base = len(used) + 1
-        ways = tuple(
-            OsmWay(way_base + w, tuple(node_id[n] for n in nodes), tags)
-            for w, (nodes, tags) in enumerate(self.ways)
-        )
-        rel_base = way_base + len(ways)
+        merged = self._merge_close(used, merge_m)
+        way_nodes: list[tuple[int, ...] | None] = []
+        for nodes, _ in self.ways:
+            chain: list[int] = []
+            for n in nodes:
+                m = merged[n]
+                if not chain or chain[-1] != m:
+                    chain.append(m)
+            way_nodes.append(tuple(chain) if len(set(chain)) >= 2 else None)
+        kept = sorted({n for seq in way_nodes if seq is not None for n in seq})
+        xy = np.array([self._xy(n) for n in kept]).reshape(-1, 2)
+        sigma = np.array([self._sigma_m(n) for n in kept], float)
+        node_id = {n: k + 1 for k, n in enumerate(kept)}
+        way_id: dict[int, int] = {}
+        ways: list[OsmWay] = []
+        for w, (seq, (_, tags)) in enumerate(zip(way_nodes, self.ways, strict=True)):
+            if seq is not None:
+                way_id[w] = len(kept) + 1 + len(ways)
+                ways.append(OsmWay(way_id[w], tuple(node_id[n] for n in seq), tags))
+        # relations: a lanelet without both bounds goes, then members referring to gone relations
+        alive = [
+            all(ref in way_id for t, ref, _ in members if t == "way")
+            and any(t == "way" for t, _, _ in members)
+            for members, _ in self.relations
+        ]
+        rel_base = len(kept) + 1 + len(ways)
+        rel_id: dict[int, int] = {}
+        for k, ok in enumerate(alive):
+            if ok:
+                rel_id[k] = rel_base + len(rel_id)
         relations = tuple(
-            OsmRelation(rel_base + k, tuple((t, way_base + ref, role) for t, ref, role in members), tags)
+            OsmRelation(
+                rel_id[k],
+                tuple(
+                    (t, way_id[ref] if t == "way" else rel_id[ref], role)
+                    for t, ref, role in members
+                    if (t == "way" and ref in way_id) or (t == "relation" and ref in rel_id)
+                ),
+                tags,
+            )
             for k, (members, tags) in enumerate(self.relations)
+            if k in rel_id
         )
-        return np.arange(1, len(used) + 1), xy, ways, relations
+        return np.arange(1, len(kept) + 1), xy, sigma, tuple(ways), relations, len(used) - len(kept)

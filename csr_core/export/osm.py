@@ -1,10 +1,12 @@
 """Lanelet2 OSM XML: writing a ``Lanelet2Map``, and a validator of the format's rules that
 needs no ``lanelet2`` package (ids unique, references resolve, every lanelet has one left and
 one right way on the correct sides, bounds running the same way without crossing, plausible
-widths, lanelets that share an end point share the whole end)."""
+widths; lanelets that share an end point and share not the whole end are listed apart as
+``half_joined``: a gap in routing, not a broken file)."""
 
 from __future__ import annotations
 
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
@@ -37,12 +39,13 @@ def to_osm_xml(m: Lanelet2Map, *, generator: str = "csr") -> bytes:
         out.append(
             f"<bounds minlat='{lo[1]:.9f}' minlon='{lo[0]:.9f}' maxlat='{hi[1]:.9f}' maxlon='{hi[0]:.9f}'/>"
         )
-    for nid, (lon, lat), (x, y) in zip(
-        m.node_ids.tolist(), m.lonlat_deg.tolist(), m.xy_world.tolist(), strict=True
+    for nid, (lon, lat), (x, y), sigma in zip(
+        m.node_ids.tolist(), m.lonlat_deg.tolist(), m.xy_world.tolist(), m.sigma_m.tolist(), strict=True
     ):
+        sigma_tag = f"<tag k='csr:sigma_m' v='{sigma:.3f}'/>" if math.isfinite(sigma) else ""
         out.append(
             f"<node id='{nid}' visible='true' version='1' lat='{lat:.9f}' lon='{lon:.9f}'>"
-            f"<tag k='ele' v='0'/><tag k='local_x' v='{x:.3f}'/><tag k='local_y' v='{y:.3f}'/></node>"
+            f"<tag k='ele' v='0'/><tag k='local_x' v='{x:.3f}'/><tag k='local_y' v='{y:.3f}'/>{sigma_tag}</node>"
         )
     for w in m.ways:
         nds = "".join(f"<nd ref='{n}'/>" for n in w.node_ids)
@@ -66,6 +69,7 @@ class ValidationResult:
     n_ways: int
     n_lanelets: int
     n_successor_pairs: int  # (a, b): b's bounds start at the very nodes where a's end
+    half_joined: tuple[str, ...] = ()  # (a, b) sharing one bound's end node only: no route a -> b
 
     @property
     def ok(self) -> bool:
@@ -167,6 +171,7 @@ def validate_lanelet2_osm(
         for n in start:
             starts.setdefault(n, []).append(rid)
     n_pairs = 0
+    half_joined: list[str] = []
     for rid, (_, end, _, dir_end) in ends.items():
         followers = {b for n in end for b in starts.get(n, []) if b != rid}
         for b in sorted(followers):
@@ -176,7 +181,15 @@ def validate_lanelet2_osm(
             if start_b == end:
                 n_pairs += 1
             elif start_b[0] == end[0] or start_b[1] == end[1]:  # (a neighbour shares it crosswise)
-                problems.append(f"lanelets {rid} -> {b}: share the end node of one bound, not of the other")
+                half_joined.append(
+                    f"lanelets {rid} -> {b}: share the end node of one bound, not of the other"
+                )
     return ValidationResult(
-        tuple(problems[:MAX_PROBLEMS]), len(problems), len(nodes), len(ways), n_lanelets, n_pairs
+        tuple(problems[:MAX_PROBLEMS]),
+        len(problems),
+        len(nodes),
+        len(ways),
+        n_lanelets,
+        n_pairs,
+        tuple(half_joined),
     )

@@ -31,6 +31,7 @@ _COMMAND_MODULES += ("bench_http",)  # csr bench-http: response compression per 
 _COMMAND_MODULES += ("encode_trip",)  # csr encode-trip / decode-trip: the compact binary upload
 _COMMAND_MODULES += ("bench_upload_size",)  # csr bench-upload-size: JSON vs binary bytes per km
 _COMMAND_MODULES += ("bench_upload_memory",)  # csr bench-upload-memory: peak memory per upload
+_COMMAND_MODULES += ("bench_lanelet2",)  # csr bench-lanelet2: the Lanelet2 export checked and routed
 
 
 def build_parser() -> argparse.ArgumentParser:

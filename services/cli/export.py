@@ -3,8 +3,9 @@ Lanelet2 export of a map GeoJSON (``GET /v1/map`` or ``csr reconstruct``'s ``map
 scenario folder: its reconstruction ``map.geojson`` or else ``truth/map.geojson``), no server.
 
 Prints a summary (lanelets written, skipped by reason, successor links joined); ``--json`` prints
-the report as JSON. ``--validate`` checks the file against the format's rules and, when the
-``lanelet2`` package is installed, loads it and builds a routing graph. Exit 2: bad input;
+the report as JSON. ``--validate`` checks the file against the format's rules and runs Lanelet2's validator checks
+on it (``csr_core.export.lanelet2_checks``: loaded with the ``lanelet2`` package, routing graph
+with German vehicle rules); errors fail the command, warnings are listed. Exit 2: bad input;
 1: nothing exportable or validation failed.
 """
 
@@ -28,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--location", choices=("urban", "nonurban"), default="urban", help="location tag of lanelets"
     )
     p.add_argument(
-        "--validate", action="store_true", help="check the file (format rules; lanelet2 if installed)"
+        "--validate", action="store_true", help="check the file (format rules; Lanelet2 validator checks)"
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_run)
@@ -46,26 +47,30 @@ def _input_path(args: argparse.Namespace) -> Path:
     raise ValueError(f"{d}: neither map.geojson nor truth/map.geojson")
 
 
-def _lanelet2_check(path: Path, origin_lat: float, origin_lon: float) -> str:
-    """Load with the lanelet2 package and build a German vehicle routing graph: a summary line."""
-    try:
-        import lanelet2  # type: ignore[import-not-found]
-        import lanelet2.routing
-        import lanelet2.traffic_rules as rules
-        from lanelet2.io import Origin
-        from lanelet2.projection import LocalCartesianProjector
-    except ImportError:
-        return "lanelet2 package not installed: loader check skipped"
-    lmap, errors = lanelet2.io.loadRobust(str(path), LocalCartesianProjector(Origin(origin_lat, origin_lon)))
-    graph = lanelet2.routing.RoutingGraph(
-        lmap, rules.create(rules.Locations.Germany, rules.Participants.Vehicle)
+def _lanelet2_checks(path: Path, origin_lat: float, origin_lon: float) -> tuple[dict, str]:
+    """Lanelet2's validator checks (``csr_core.export.lanelet2_checks``) on the written file and
+    routing figures: (report, summary line)."""
+    from csr_core.export.lanelet2_checks import check_lanelet2_map, load_lanelet2, routing_figures
+
+    lmap, errors = load_lanelet2(path, origin_lat, origin_lon)
+    checks = check_lanelet2_map(lmap, errors)
+    if errors:
+        return (
+            checks.as_dict(),
+            f"lanelet2 checks: {checks.n_errors} errors: the file does not load"
+            + "".join(f"\n  {i}" for i in checks.issues[:10]),
+        )
+    routing = routing_figures(lmap)
+    report = {**checks.as_dict(), "routing": {k: getattr(routing, k) for k in routing.__slots__}}
+    line = (
+        f"lanelet2 checks: {checks.n_errors} errors, {checks.n_warnings} warnings "
+        f"({', '.join(f'{n} {c}' for c, n in checks.counts_by_check().items()) or 'none'}); "
+        f"{checks.lanelets} lanelets, {checks.regulatory_elements} regulatory elements, "
+        f"{checks.nodes_within_1mm} nodes within 1 mm; routable pairs {routing.routable_share:.1%}, "
+        f"largest strongly connected component {routing.largest_scc} lanelets"
+        + "".join(f"\n  {i}" for i in checks.issues[:10])
     )
-    roads = [ll for ll in lmap.laneletLayer if ll.attributes["subtype"] == "road"]
-    following = sum(len(graph.following(ll)) for ll in roads)
-    return (
-        f"lanelet2 load: {len(lmap.laneletLayer)} lanelets, {len(errors)} load errors; routing graph: "
-        f"{following} successor relations among {len(roads)} road lanelets"
-    )
+    return report, line
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -108,15 +113,17 @@ def _run(args: argparse.Namespace) -> int:
             "problems": v.n_problems,
             "first": list(v.problems[:10]),
             "successor_pairs": v.n_successor_pairs,
+            "half_joined": len(v.half_joined),
         }
         lines.append(
             f"format check: {v.n_problems} problems, {v.n_lanelets} lanelets, "
-            f"{v.n_successor_pairs} successor pairs" + "".join(f"\n  {p}" for p in v.problems[:10])
+            f"{v.n_successor_pairs} successor pairs, {len(v.half_joined)} half-joined (one bound's end "
+            "node shared, not the other's: no route)" + "".join(f"\n  {p}" for p in v.problems[:10])
         )
-        loader = _lanelet2_check(out, lmap.frame.origin_lat, lmap.frame.origin_lon)
-        report["lanelet2"] = loader
-        lines.append(loader)
-        if v.n_problems:
+        checks, line = _lanelet2_checks(out, lmap.frame.origin_lat, lmap.frame.origin_lon)
+        report["lanelet2"] = checks
+        lines.append(line)
+        if v.n_problems or checks["errors"]:
             status = 1
     if args.json:
         print(orjson.dumps(report, option=orjson.OPT_INDENT_2).decode())

@@ -69,7 +69,10 @@ def _parse(xml: bytes) -> tuple[dict, dict, dict]:
     nodes = {n.get("id"): (float(n.attrib["lon"]), float(n.attrib["lat"])) for n in root.findall("node")}
     ways = {w.get("id"): ([nd.get("ref") for nd in w.findall("nd")], tags(w)) for w in root.findall("way")}
     rels = {
-        r.get("id"): ({m.get("role"): m.get("ref") for m in r.findall("member")}, tags(r))
+        r.get("id"): (
+            {m.get("role"): m.get("ref") for m in r.findall("member") if m.get("type") == "way"},
+            tags(r),
+        )
         for r in root.findall("relation")
     }
     return nodes, ways, rels
@@ -350,3 +353,59 @@ def test_karlsruhe_truth_round_trip(tmp_path):
     roads = [ll for ll in lmap.laneletLayer if ll.attributes["subtype"] == "road"]
     longest = max(len(graph.reachableSet(ll, 1e9, 0)) for ll in roads)
     assert longest >= 30  # a connected stretch across several junctions
+
+
+# --- regulatory elements, uncertainty and provenance -------------------------------------------
+
+
+def test_stop_line_is_the_reference_line_of_a_traffic_sign_governing_the_lanelets_ending_there(tmp_path):
+    """The road's stop line at x = 95 crosses both eastbound lanes' second pieces: one
+    regulatory element (Lanelet2's traffic_sign, the stop line as ref_line) that exactly those
+    two lanelets reference; the westbound lane (the other direction) does not."""
+    xml, m = export_lanelet2(_road_features())
+    assert (m.report.stop_lines, m.report.regulatory_elements, m.report.stop_lines_governing) == (1, 1, 1)
+    lmap, _, _ = _load(xml, tmp_path)
+    (regelem,) = list(lmap.regulatoryElementLayer)
+    assert (regelem.attributes["subtype"], regelem.attributes["sign_type"]) == ("traffic_sign", "stop_line")
+    (ref_line,) = regelem.parameters["ref_line"]
+    assert ref_line.attributes["type"] == "stop_line"
+    lanes = _by_lane(lmap)
+    governed = {c for c, lls in lanes.items() for ll in lls if ll.regulatoryElements}
+    assert governed == {"e0b", "e1b"}
+    assert [r.id for r in lanes["e0b"][0].regulatoryElements] == [regelem.id]
+
+
+def test_nodes_carry_the_element_uncertainty_and_lines_their_provenance():
+    feats = [
+        LonLatFeature(
+            f.type,
+            f.lonlat_deg,
+            f.style,
+            f.feature_id,
+            {"uncertainty_m": 0.12, "support_trips": 7, "tile_version": 4} if f.feature_id == "dash" else {},
+        )
+        for f in _road_features()
+    ]
+    feats = [
+        LonLatFeature(f.type, f.lonlat_deg, f.style, f.feature_id, {"support_trips": 3, "map_version": 9})
+        if f.feature_id == "e0a"
+        else f
+        for f in feats
+    ]
+    xml, m = export_lanelet2(feats)
+    nodes, ways, rels = _parse(xml)
+    dash = [w for w, (_, tags) in ways.items() if tags.get("csr:feature_id") == "dash"]
+    assert dash and all(ways[w][1]["csr:trips"] == "7" and ways[w][1]["csr:version"] == "4" for w in dash)
+    # the dashed divider's nodes carry its sigma; the curbs' (no uncertainty given) none
+    import xml.etree.ElementTree as ET
+
+    sigma = {
+        n.get("id"): {t.get("k"): t.get("v") for t in n.findall("tag")}.get("csr:sigma_m")
+        for n in ET.fromstring(xml).findall("node")
+    }
+    assert all(sigma[n] == "0.120" for w in dash for n in ways[w][0])
+    curb = next(w for w, (_, tags) in ways.items() if tags.get("csr:feature_id") == "curb_s")
+    assert all(sigma[n] is None for n in ways[curb][0][1:-1])
+    lanelet = next(t for _, t in rels.values() if t.get("csr:centerline_id") == "e0a")
+    assert (lanelet["csr:trips"], lanelet["csr:version"]) == ("3", "9")
+    assert np.isfinite(m.sigma_m).sum() >= len(dash[0:1])

@@ -26,10 +26,20 @@ router = APIRouter(prefix="/v1/export", tags=["export"])
 OSM_XML = "application/xml"
 
 
-def _lonlat_features(features: list[vs.VersionFeature]) -> tuple[list[LonLatFeature], int]:
-    """Service rows -> core records (multi-geometries split); count of rows of unknown type."""
+def _lonlat_features(rows: list[vs.MapFeature]) -> tuple[list[LonLatFeature], int]:
+    """Service rows -> core records (multi-geometries split), one per feature id (a feature read
+    from two tile versions is exported once, from the newer), with its provenance in
+    ``map_version`` (the map version that made the row) and ``tile_version``; count of rows of
+    unknown type."""
+    newest: dict[str, vs.MapFeature] = {}
+    for row in rows:
+        old = newest.get(row.feature.feature_id)
+        if old is None or row.tile_version_id > old.tile_version_id:
+            newest[row.feature.feature_id] = row
     out, unknown = [], 0
-    for f in features:
+    for row in newest.values():
+        f = row.feature
+        props = {**(f.properties or {}), "map_version": row.tile_version_id, "tile_version": row.version}
         try:
             etype = ElementType(f.type)
         except ValueError:
@@ -44,7 +54,7 @@ def _lonlat_features(features: list[vs.VersionFeature]) -> tuple[list[LonLatFeat
             if geom.geom_type == "Polygon" and len(lonlat) > 1 and np.array_equal(lonlat[0], lonlat[-1]):
                 lonlat = lonlat[:-1]
             style = DividerStyle(f.style) if f.style in DividerStyle._value2member_map_ else None
-            out.append(LonLatFeature(etype, lonlat, style, f.feature_id, dict(f.properties or {})))
+            out.append(LonLatFeature(etype, lonlat, style, f.feature_id, props))
     return out, unknown
 
 
@@ -82,12 +92,16 @@ def export_lanelet2_osm(
     version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
 ) -> Response:
     """Lanelets from the lane graph with bounds typed from divider styles and boundaries, stop
-    lines, crosswalks; an attachment ``csr-lanelet2-<version>.osm``."""
+    lines (with their regulatory elements), crosswalks; the whole bbox across its tiles, each
+    feature once; ``version`` pins the map version as ``GET /v1/map?version=`` reads it. Nodes
+    carry ``csr:sigma_m``, lines and lanelets ``csr:trips`` and ``csr:version``. An attachment
+    ``csr-lanelet2-<version>.osm``."""
     box = parse_bbox(bbox)
     with session.begin():
         pinned = check_map_version(session, version, location="version")
         map_version = pinned if pinned is not None else vs.current_map_version(session)
-        rows = vs.features_in_bbox(session, bbox_lonlat=box, map_version=pinned)
+        versions = vs.contributing_versions(session, bbox_lonlat=box, map_version=pinned)
+        rows = vs.map_features(session, bbox_lonlat=box, versions=versions)
     features, unknown = _lonlat_features(rows)
     frame = LocalFrame(origin_lat=round((box[1] + box[3]) / 2, 6), origin_lon=round((box[0] + box[2]) / 2, 6))
     try:
