@@ -139,12 +139,12 @@ def _osm_lines(xml: bytes) -> tuple[dict[str, set[str]], dict[str, int], list[st
     ways: dict[str, set[str]] = {}
     kinds: dict[str, int] = {}
     for w in root.findall("way"):
-        tags = {t.get("k"): t.get("v") for t in w.findall("tag")}
+        tags = {t.get("k", ""): t.get("v", "") for t in w.findall("tag")}
         if "csr:feature_id" in tags:
             ways.setdefault(tags["csr:feature_id"], set()).add(w.get("id", ""))
     centrelines: set[str] = set()
     for r in root.findall("relation"):
-        tags = {t.get("k"): t.get("v") for t in r.findall("tag")}
+        tags = {t.get("k", ""): t.get("v", "") for t in r.findall("tag")}
         kinds[tags.get("subtype", "")] = kinds.get(tags.get("subtype", ""), 0) + 1
         if "csr:centerline_id" in tags:
             centrelines.add(tags["csr:centerline_id"])
@@ -166,7 +166,7 @@ def test_pinned_version_export_has_the_lines_of_that_version(tiled: Tiled):
     bbox = f"{b.west},{b.south},{b.east},{b.north}"
     with tiled.http() as http:
         for pinned, expected_ids in ((first.id, {f.feature_id for f in _road(frame)}), (None, None)):
-            params = {"bbox": bbox, **({"version": pinned} if pinned else {})}
+            params: dict[str, str | int] = {"bbox": bbox, **({"version": pinned} if pinned else {})}
             geo = http.get("/v1/map", params=params).json()
             r = http.get("/v1/export/lanelet2", params=params)
             assert r.status_code == 200, r.text
@@ -197,7 +197,7 @@ def test_pinned_version_export_has_the_lines_of_that_version(tiled: Tiled):
                 line = LineString(frame.to_local(np.array(geo_lines[fid]["geometry"]["coordinates"])))
                 xy = frame.to_local(np.array([nodes[nd.get("ref")] for nd in w.findall("nd")]))
                 assert max(line.distance(Point(p)) for p in xy) < 0.06, fid  # nodes merge within 5 cm
-                version_tag = next(t.get("v") for t in w.findall("tag") if t.get("k") == "csr:version")
+                version_tag = next(t.get("v", "") for t in w.findall("tag") if t.get("k") == "csr:version")
                 assert int(version_tag) <= geo["map_version"]
     assert first.id < tiled.map_version()
 
