@@ -27,6 +27,8 @@ _COMMAND_MODULES += ("bench_single_trip",)  # csr bench-single-trip: the single-
 _COMMAND_MODULES += ("bench_validator",)  # csr bench-validator: the validator target
 _COMMAND_MODULES += ("bench_variants",)  # csr bench-variants: foreign fleets through csr reconstruct
 _COMMAND_MODULES += ("bench_budget",)  # csr bench-budget: where the mCD comes from
+_COMMAND_MODULES += ("bench_storage",)  # csr bench-storage: stored bytes per km as passes accumulate
+_COMMAND_MODULES += ("purge",)  # csr purge: erase a vehicle's data (services/cli/purge.py)
 
 
 def build_parser() -> argparse.ArgumentParser:
