@@ -352,3 +352,26 @@ def test_reader_keys_see_traces_by_default(make_isolated) -> None:
     with dep.client(reader) as http:
         for path in (f"/v1/trips/{pk}/poses", f"/v1/trips/{pk}/track.geojson", f"/v1/trips/{pk}/upload"):
             assert http.get(path).status_code == 200, path
+
+
+# --- storage: topology states -------------------------------------------------------------------
+
+
+def test_only_the_newest_and_live_versions_keep_their_topology_state(make_isolated) -> None:
+    """A state holds every trip's probe points: older versions drop theirs (their held-back lines
+    answer 409), so storage per km stays flat as passes accumulate."""
+    dep = _start(make_isolated, "embedded", "")
+    _upload_and_process(dep, ["veh-s1"])
+    _upload_and_process(dep, ["veh-s2"])
+    rows = dep.rows("SELECT z, x, y, version, state IS NOT NULL AS has_state FROM tile_versions ORDER BY id")
+    by_tile: dict[tuple[int, int, int], list] = {}
+    for r in rows:
+        by_tile.setdefault((r.z, r.x, r.y), []).append(r)
+    twice = {t: vs for t, vs in by_tile.items() if len(vs) >= 2}
+    assert twice, rows
+    with dep.admin() as http:
+        for (z, x, y), vs in twice.items():
+            assert [bool(v.has_state) for v in vs] == [False] * (len(vs) - 1) + [True]
+            old = http.get(f"/v1/tiles/{z}/{x}/{y}/held-back", params={"version": vs[0].version})
+            assert old.status_code == 409 and old.json()["error"] == "state_unavailable"
+            assert http.get(f"/v1/tiles/{z}/{x}/{y}/held-back").status_code == 200
