@@ -15,9 +15,10 @@ and ``merge_tile`` (topology generation and validation, then a new tile version,
 ``merge_tile z/x/y``
     Fuses the tile's aligned, not yet merged trips into the tile's road structure: incrementally
     (``update_topology``) from the state of the tile's latest version, or from scratch the first
-    time (or when a trip was re-aligned). Features are clipped to the tile and written as a new
-    version (``services.db.versions.write_tile_version``) with the expected version read at the
-    start: a concurrent merge of the same tile makes this one retry (:class:`RetryJob`). The
+    time (or when a trip was re-aligned, or a trip of the state erased: ``services.erasure``). Only
+    the new version and the live one keep their topology state (:func:`drop_older_states`).
+    Features are clipped to the tile and written as a new version
+    (``services.db.versions.write_tile_version``) with the expected version read at the start: a concurrent merge of the same tile makes this one retry (:class:`RetryJob`). The
     version is published unless the validator's tile quality is below
     ``Settings.publish_min_quality``: then it is a candidate for review.
 """
