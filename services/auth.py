@@ -52,3 +52,16 @@ def may_read_trip(caller: Caller, trip_vehicle_id: str) -> None:
     """Vehicle keys read only their own trips."""
     if caller.role == "vehicle" and caller.vehicle_id != trip_vehicle_id:
         raise ApiError(403, "forbidden", f"this key reads trips of vehicle {caller.vehicle_id!r} only")
+
+
+def may_read_trace(caller: Caller, trip_vehicle_id: str, *, reader_sees_traces: bool) -> None:
+    """A trip's traces (poses, track, raw upload): admin keys all, a vehicle key its own trips'; reader
+    keys only while ``CSR_READER_SEES_TRACES`` is true (the default: the contract lets readers read
+    poses)."""
+    may_read_trip(caller, trip_vehicle_id)
+    if caller.role == "reader" and not reader_sees_traces:
+        raise ApiError(
+            403,
+            "forbidden",
+            "reader keys may not read trip traces on this deployment (CSR_READER_SEES_TRACES=false)",
+        )

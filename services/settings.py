@@ -100,8 +100,25 @@ class Settings(BaseSettings):
         description="tiles, map and versions are sent Cache-Control: public (shared caches may keep them); "
         "unset: private (only the caller's own cache)",
     )
+    raw_retention_days: float | None = Field(
+        None,
+        gt=0,
+        description="raw uploads are deleted this many days after they were received (the trip, its "
+        "reconstruction and the map stay); unset: kept for ever",
+    )
+    retention_check_every_s: float = Field(
+        600.0, gt=0, description="how often the background loop deletes the raw uploads past their retention"
+    )
+    reader_sees_traces: bool = Field(
+        True,
+        description="reader keys may read trips' traces (poses, track.geojson, the raw upload); false: "
+        "only the trip's own vehicle key and admin keys may",
+    )
     test_merge_delay_s: float = Field(
         0.0, ge=0, description="TEST ONLY: sleep in the first attempt of a merge job, before it writes"
+    )
+    test_purge_delay_s: float = Field(
+        0.0, ge=0, description="TEST ONLY: csr purge sleeps this long before it commits its erasure"
     )
     test_ingest_delay_s: float = Field(
         0.0, ge=0, description="TEST ONLY: sleep in the first attempt of an ingest job"

@@ -1,6 +1,8 @@
 """A background thread that wakes on demand or every ``poll_interval_s``: the base of the outbox
 relay and of the embedded pool's dispatcher. Each wake-up also schedules dirty tiles whose quiet
-period has passed (several processes may do it: scheduling is safe against concurrency)."""
+period has passed, and every ``CSR_RETENTION_CHECK_EVERY_S`` it deletes the raw uploads past
+``CSR_RAW_RETENTION_DAYS`` (``services.retention``); several processes may do both: each is safe
+against concurrency."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import time
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from services import retention
 from services.db import repo
 from services.settings import Settings
 
@@ -28,6 +31,7 @@ class BackgroundLoop:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._last_schedule = 0.0
+        self._last_retention = float("-inf")  # the first round checks at once
 
     def start(self) -> None:
         self._thread.start()
@@ -48,6 +52,7 @@ class BackgroundLoop:
                 break
             try:
                 self._schedule_due_tiles()
+                self._purge_expired_uploads()
                 self.tick()
             except Exception:
                 log.exception("%s: iteration failed; retrying", self.name)
@@ -63,6 +68,15 @@ class BackgroundLoop:
             )
         if jobs:
             log.info("scheduled %d tile job(s) after the quiet period", len(jobs))
+
+    def _purge_expired_uploads(self) -> None:
+        days = self.settings.raw_retention_days
+        if days is None or time.monotonic() - self._last_retention < self.settings.retention_check_every_s:
+            return
+        self._last_retention = time.monotonic()
+        result = retention.purge_expired(self.session_factory, retention_days=days)
+        if result.purged:
+            log.info("deleted %d raw upload(s) received before %s", result.purged, result.cutoff.isoformat())
 
     def tick(self) -> None:
         """One round of work (subclasses)."""

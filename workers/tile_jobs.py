@@ -15,9 +15,10 @@ and ``merge_tile`` (topology generation and validation, then a new tile version,
 ``merge_tile z/x/y``
     Fuses the tile's aligned, not yet merged trips into the tile's road structure: incrementally
     (``update_topology``) from the state of the tile's latest version, or from scratch the first
-    time (or when a trip was re-aligned). Features are clipped to the tile and written as a new
-    version (``services.db.versions.write_tile_version``) with the expected version read at the
-    start: a concurrent merge of the same tile makes this one retry (:class:`RetryJob`). The
+    time (or when a trip was re-aligned, or a trip of the state erased: ``services.erasure``). Only
+    the new version and the live one keep their topology state (:func:`drop_older_states`).
+    Features are clipped to the tile and written as a new version
+    (``services.db.versions.write_tile_version``) with the expected version read at the start: a concurrent merge of the same tile makes this one retry (:class:`RetryJob`). The
     version is published unless the validator's tile quality is below
     ``Settings.publish_min_quality``: then it is a candidate for review.
 """
@@ -444,6 +445,14 @@ def persist_align_tile(
     session: Session, settings: Settings, job_id: str, z: int, x: int, y: int, result: AlignTileResult
 ) -> None:
     now = utcnow()
+    # a trip erased while the tile aligned (services.erasure) leaves nothing behind
+    alive = set(session.scalars(select(Trip.id).where(Trip.id.in_([ta.trip_pk for ta in result.trips]))))
+    result.trips = [ta for ta in result.trips if ta.trip_pk in alive]
+    result.match_pairs = [
+        mp
+        for mp in result.match_pairs
+        if all(mp.get(k) is None or mp.get(k) in alive for k in ("trip_pk_i", "trip_pk_j"))
+    ]
     for ta in result.trips:
         values = {
             "job_id": job_id,
@@ -670,6 +679,7 @@ class MergeTileResult:
     nothing_to_do: bool = False
     corrections: list[str] = field(default_factory=list)  # "<id>" applied, "<id>:undo" undone
     reason: str = "merge"
+    erased: list[str] = field(default_factory=list)  # trips of the tile's state that no longer exist here
 
 
 def compute_merge_tile(
@@ -686,6 +696,7 @@ def compute_merge_tile(
         if state is not None:  # incremental: only what is new is read
             stmt = stmt.where(TripTileAlignment.merged_version_id.is_(None))
         rows = session.scalars(stmt.order_by(TripTileAlignment.created_at)).all()
+        erased = trips_gone_from_state(session, state, z, x, y)
         started = (
             dict(
                 session.execute(
@@ -709,11 +720,13 @@ def compute_merge_tile(
         ).all()
         match_pairs = [p.record for p in pairs]
         applied = pending_corrections(session, z, x, y)
-    if not new:
+    if not new and not erased:
         return MergeTileResult(expected, [], [], {}, None, frame, False, nothing_to_do=True)
     reason = "merge"
     if applied:
         reason = "correction" if any(not a.endswith(":undo") for a in applied) else "undo correction"
+    if erased:  # trips erased (services.erasure): rebuilt from the trips that remain
+        reason = "erasure"
     instances = {pk: v[0] for pk, v in inputs_new.items()}
     noise = {pk: v[1] for pk, v in inputs_new.items()}
     paths = {pk: v[2] for pk, v in inputs_new.items()}
@@ -724,7 +737,7 @@ def compute_merge_tile(
         if state is None
         else ({m.trip_key for mem in state.members.values() for m in mem} | set(state.trip_points))
     )
-    if state is not None and not (set(instances) & known):
+    if state is not None and not (set(instances) & known) and not erased:
         topology = update_topology(
             state, instances, noise, trip_times=times, match_pairs=records, paths_xy_per_trip=paths
         )
@@ -742,6 +755,11 @@ def compute_merge_tile(
                         select(Trip.id, Trip.started_at).where(Trip.id.in_(list(inputs_all)))
                     ).all()
                 )
+        if not inputs_all:  # every trip of the tile erased: an empty version
+            quality = {**tile_quality([]), "seams": {}, "held_back": {}}
+            return MergeTileResult(
+                expected, [], [], quality, None, frame, True, reason=reason, erased=sorted(erased)
+            )
         topology = generate_topology(
             {pk: v[0] for pk, v in inputs_all.items()},
             {pk: v[1] for pk, v in inputs_all.items()},
@@ -768,14 +786,33 @@ def compute_merge_tile(
     return MergeTileResult(
         expected_latest=expected,
         features=features,
-        trips=sorted(inputs_new),
+        trips=sorted(inputs_all) if erased else sorted(inputs_new),
         quality=quality,
         state=zlib.compress(pickle.dumps((TOPOLOGY_STATE_VERSION, frame, topology), protocol=5)),
         frame=frame,
         publish=quality["score"] >= settings.publish_min_quality,
         corrections=applied,
         reason=reason,
+        erased=sorted(erased),
     )
+
+
+def trips_gone_from_state(session: Session, state: TopologyResult | None, z: int, x: int, y: int) -> set[str]:
+    """The trips the tile's topology state was built from that have no alignment row in the tile
+    any more (erased, or reprocessed onto other tiles): the next merge rebuilds without them."""
+    if state is None:
+        return set()
+    known = {m.trip_key for mem in state.members.values() for m in mem} | set(state.trip_points)
+    if not known:
+        return set()
+    present = set(
+        session.scalars(
+            select(TripTileAlignment.trip_pk).where(
+                TripTileAlignment.z == z, TripTileAlignment.x == x, TripTileAlignment.y == y
+            )
+        )
+    )
+    return {str(k) for k in known} - present
 
 
 def degraded_trips(session: Session, trip_pks: set[str]) -> set[str]:
@@ -995,6 +1032,7 @@ def persist_merge_tile(
         )
         .values(merged_version_id=version.id)
     )
+    drop_older_states(session, z, x, y, keep=version.id, keep_live=not result.erased)
     for entry in result.corrections:
         correction = session.get(Correction, entry.removesuffix(":undo"))
         if correction is None:
@@ -1003,6 +1041,27 @@ def persist_merge_tile(
             correction.payload = {**correction.payload, "undo_version_id": version.id}
         else:
             correction.result_version_id = version.id
+
+
+def drop_older_states(session: Session, z: int, x: int, y: int, *, keep: int, keep_live: bool) -> None:
+    """Drop the topology state of the tile's versions but ``keep`` (the new one, which the next merge
+    continues from) and, with ``keep_live``, the live one: each state holds every trip's probe
+    points, so keeping them all would grow the tile's storage with the square of its trips. An
+    older version's held-back lines then answer 409; rolling back to it rebuilds the next merge
+    from scratch. After an erasure (``keep_live`` False) only the new version's state is kept: the
+    others hold the erased trips' points."""
+    stmt = update(TileVersion).where(
+        TileVersion.z == z,
+        TileVersion.x == x,
+        TileVersion.y == y,
+        TileVersion.id != keep,
+        TileVersion.state.is_not(None),
+    )
+    if keep_live:
+        head = versions.tile_head(session, z=z, x=x, y=y)
+        if head is not None and head.live_version_id is not None:
+            stmt = stmt.where(TileVersion.id != head.live_version_id)
+    session.execute(stmt.values(state=None).execution_options(synchronize_session=False))
 
 
 def pending_corrections(session: Session, z: int, x: int, y: int) -> list[str]:

@@ -28,6 +28,7 @@ from services.api.routes import (
     tiles,
     trip_geometry,
     trips,
+    vehicles,
     versions,
     web,
 )
@@ -115,6 +116,7 @@ def create_app(settings: Settings) -> FastAPI:
         ops_jobs,
         trip_geometry,
         held_back,
+        vehicles,
     ):
         app.include_router(module.router)
     # Tile GETs answered from in-process caches before FastAPI's routing (docs/tiles.md)

@@ -3,7 +3,9 @@ raw uploads. Each trip gets a new ingest job (through the job table, the transac
 which the deployment's runners (`csr serve` embedded, or `csr worker`) execute like any ingest:
 the single-trip reconstruction of the current algorithm version is upserted, the track, length
 and tiles rewritten and the tiles marked dirty again. A trip that failed becomes ``processing``
-when it now succeeds. Configured like `csr serve` (CSR_DATABASE_URL / CSR_DATA_DIR)."""
+when it now succeeds. A trip whose raw upload retention deleted (``raw_purged_at``) has nothing to
+recompute from: ``--trip`` names it and exits 2, ``--all`` / ``--stale`` leave it out and say how
+many. Configured like `csr serve` (CSR_DATABASE_URL / CSR_DATA_DIR)."""
 
 from __future__ import annotations
 
@@ -45,17 +47,33 @@ def _run(args: argparse.Namespace) -> int:
         session_factory = make_session_factory(engine)
         with session_factory.begin() as session:
             if args.trip:
-                unknown = [pk for pk in args.trip if repo.raw_upload(session, trip_pk=pk) is None]
-                if unknown:
-                    print(
-                        f"csr reprocess: no trip with a stored upload: {', '.join(unknown)}", file=sys.stderr
-                    )
+                missing = [pk for pk in args.trip if repo.raw_upload(session, trip_pk=pk) is None]
+                for pk in missing:
+                    trip = repo.get_trip(session, trip_pk=pk)
+                    if trip is None:
+                        print(f"csr reprocess: no trip {pk}", file=sys.stderr)
+                    elif trip.raw_purged_at is not None:
+                        print(
+                            f"csr reprocess: trip {pk} has no raw upload to recompute from: it was deleted "
+                            f"at {trip.raw_purged_at.isoformat()} (CSR_RAW_RETENTION_DAYS); its reconstruction "
+                            "and the map keep what it contributed",
+                            file=sys.stderr,
+                        )
+                    else:
+                        print(f"csr reprocess: trip {pk} has no stored upload", file=sys.stderr)
+                if missing:
                     return 2
                 trip_pks = list(args.trip)
             else:
                 trip_pks = repo.trips_to_reprocess(
                     session, missing_version=ALGORITHM_VERSION if args.stale else None
                 )
+                purged = repo.count_purged_trips(session)
+                if purged:
+                    print(
+                        f"csr reprocess: {purged} trip(s) left out: their raw uploads were deleted "
+                        "(CSR_RAW_RETENTION_DAYS)"
+                    )
             jobs = repo.schedule_reprocess(session, trip_pks=trip_pks)
             job_ids = [job.id for job in jobs]
         print(

@@ -115,6 +115,8 @@ class Trip(Base):
     length_km: Mapped[float | None] = mapped_column(Float)
     track: Mapped[str | None] = mapped_column(TrackGeometry, nullable=True)  # raw GNSS fixes, EPSG:4326
     error: Mapped[str | None] = mapped_column(Text)
+    # when the raw upload was deleted (retention, services.retention); NULL while it is kept
+    raw_purged_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
 
 
 class TripUpload(Base):

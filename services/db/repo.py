@@ -233,6 +233,13 @@ def trips_to_reprocess(session: Session, *, missing_version: str | None = None) 
     return list(session.scalars(stmt))
 
 
+def count_purged_trips(session: Session) -> int:
+    """Trips whose raw upload retention deleted (nothing to reprocess them from)."""
+    return int(
+        session.scalar(select(func.count()).select_from(Trip).where(Trip.raw_purged_at.is_not(None))) or 0
+    )
+
+
 def schedule_reprocess(session: Session, *, trip_pks: Sequence[str]) -> list[Job]:
     """An ingest job (the outbox row) for each trip that has no ingest job queued or running
     yet: it recomputes the trip from its kept upload. A running ingest job whose lease ran out

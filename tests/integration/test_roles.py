@@ -59,6 +59,8 @@ REQUESTS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "GET /v1/trips": ("GET", "/v1/trips", {"params": {"bbox": BBOX}}),
     "GET /v1/trips/{id}/poses": ("GET", "/v1/trips/{trip}/poses", {}),
     "GET /v1/trips/{id}/track.geojson": ("GET", "/v1/trips/{trip}/track.geojson", {}),
+    "GET /v1/trips/{id}/upload": ("GET", "/v1/trips/{trip}/upload", {}),
+    "DELETE /v1/vehicles/{id}/data": ("DELETE", "/v1/vehicles/veh-without-trips/data", {}),
     "GET /v1/trips/{id}": ("GET", "/v1/trips/{trip}", {}),
     "GET /v1/jobs/summary": ("GET", "/v1/jobs/summary", {}),
     "GET /v1/jobs": ("GET", "/v1/jobs", {}),
@@ -118,8 +120,10 @@ MATRIX = {
     "POST /v1/trips":                    (401, 401, 401, 202, 403, 403, 202),
     "GET /v1/trips":                     (401, 401, 401, 200, 200, 200, 200),  # a vehicle: its own trips
     "GET /v1/trips/{id}":                (401, 401, 401, 200, 403, 200, 200),
-    "GET /v1/trips/{id}/poses":          (401, 401, 401, 403, 403, 409, 409),
+    "GET /v1/trips/{id}/poses":          (401, 401, 401, 409, 403, 409, 409),
     "GET /v1/trips/{id}/track.geojson":  (401, 401, 401, 200, 403, 200, 200),
+    "GET /v1/trips/{id}/upload":         (401, 401, 401, 200, 403, 200, 200),
+    "DELETE /v1/vehicles/{id}/data":     (401, 401, 401, 403, 403, 403, 200),
     "GET /v1/jobs/summary":              (401, 401, 401, 403, 403, 200, 200),
     "GET /v1/jobs":                      (401, 401, 401, 403, 403, 200, 200),
     "GET /v1/jobs/{id}":                 (401, 401, 401, 403, 403, 404, 404),
@@ -157,7 +161,7 @@ CASES = [
 
 
 def _generic(path: str) -> str:
-    for name in ("{trip_pk}", "{key_id}", "{job_id}", "{feature_id}", "{correction_id}"):
+    for name in ("{trip_pk}", "{key_id}", "{job_id}", "{feature_id}", "{correction_id}", "{vehicle_id}"):
         path = path.replace(name, "{id}")
     return path
 

@@ -23,7 +23,7 @@ from services.api.deps import AnyRole, Ctx, ReadSessionDep
 from services.api.errors import ApiError
 from services.api.openapi import errors
 from services.api.routes.trips import _iso_utc
-from services.auth import may_read_trip
+from services.auth import may_read_trace
 from services.db import repo
 from services.db import versions as vs
 from services.db.models import Trip, TripPoses, TripTile
@@ -138,19 +138,22 @@ def _poses_line(arrays: bytes) -> tuple[list[list[float]], dict[str, Any]]:
         200: answers.geojson("The raw GNSS track and the aligned trajectory"),
         **errors(
             {
-                403: {"forbidden": "a vehicle key reading another vehicle's trip."},
+                403: {
+                    "forbidden": "a vehicle key reading another vehicle's trip; a reader key when "
+                    "`CSR_READER_SEES_TRACES` is false."
+                },
                 404: {"not_found": "no trip with this id."},
             }
         ),
     },
 )
-def trip_track(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> Response:
+def trip_track(trip_pk: str, caller: AnyRole, ctx: Ctx, session: ReadSessionDep) -> Response:
     """FeatureCollection: ``kind: raw`` (GNSS fixes, once ingested) and ``kind: aligned`` (final
     poses, once aligned); each feature is left out until it exists."""
     trip = repo.get_trip(session, trip_pk=trip_pk)
     if trip is None:
         raise ApiError(404, "not_found", f"no trip {trip_pk!r}", location="id")
-    may_read_trip(caller, trip.vehicle_id)
+    may_read_trace(caller, trip.vehicle_id, reader_sees_traces=ctx.settings.reader_sees_traces)
     features: list[dict[str, Any]] = []
     line = track_shape(trip.track)
     if line is not None:

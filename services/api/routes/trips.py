@@ -1,4 +1,5 @@
-"""``POST /v1/trips`` (upload), ``GET /v1/trips/{id}``, ``GET /v1/trips/{id}/poses``."""
+"""``POST /v1/trips`` (upload), ``GET /v1/trips/{id}``, ``GET /v1/trips/{id}/poses``,
+``GET /v1/trips/{id}/upload`` (the raw upload as kept, gzip)."""
 
 from __future__ import annotations
 
@@ -7,17 +8,17 @@ from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from csr_core.errors import UploadError
 from services.api import answers
 from services.api.body import read_limited, too_large
-from services.api.deps import AnyRole, Ctx, Reader, ReadSessionDep, Uploader
+from services.api.deps import AnyRole, Ctx, ReadSessionDep, Uploader
 from services.api.errors import ApiError, as_api_error
 from services.api.openapi import errors, upload_request_body
-from services.auth import may_read_trip
+from services.auth import may_read_trace, may_read_trip
 from services.db import repo
 from services.db.models import Trip, TripPoses
 from services.reconstructions import ALGORITHM_VERSION, decode_arrays
@@ -64,6 +65,7 @@ def trip_json(
         "updated_at": _iso_utc(trip.updated_at),
         "length_km": trip.length_km,
         "error": trip.error,
+        "raw_purged_at": _iso_utc(trip.raw_purged_at) if trip.raw_purged_at is not None else None,
     }
     if tiles is not None:
         out["tiles"] = [f"{t.z}/{t.x}/{t.y}" for t in tiles]
@@ -220,14 +222,19 @@ def get_trip(trip_pk: str, caller: AnyRole, session: ReadSessionDep) -> dict[str
         200: answers.answer(answers.Poses, "Every uploaded frame's final pose, in upload order"),
         **errors(
             {
+                403: {
+                    "forbidden": "a vehicle key reading another vehicle's trip; a reader key when "
+                    "`CSR_READER_SEES_TRACES` is false."
+                },
                 404: {"not_found": "no trip with this id."},
                 409: {"not_aligned": "the trip is not aligned (yet), or failed (the reason)."},
             }
         ),
     },
 )
-def get_poses(trip_pk: str, caller: Reader, session: ReadSessionDep) -> dict[str, Any]:
+def get_poses(trip_pk: str, caller: AnyRole, ctx: Ctx, session: ReadSessionDep) -> dict[str, Any]:
     trip = _load_trip(session, trip_pk)
+    may_read_trace(caller, trip.vehicle_id, reader_sees_traces=ctx.settings.reader_sees_traces)
     poses = session.get(TripPoses, trip.id) if trip.status == "aligned" else None
     if poses is None:  # contract section 3: 409 before it is aligned
         detail = f": {trip.error}" if trip.status == "failed" and trip.error else ""
@@ -246,3 +253,40 @@ def get_poses(trip_pk: str, caller: Reader, session: ReadSessionDep) -> dict[str
         "id": trip.id,
         "frames": [{"t": t, "lat": lat, "lon": lon, "heading_deg": h} for t, lat, lon, h in rows],
     }
+
+
+@router.get(
+    "/{trip_pk}/upload",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "The raw upload as kept, with `Content-Encoding: gzip`: the contract's JSON, "
+            "or the compact binary as sent",
+            "content": {
+                "application/json": {"schema": {"type": "object"}},
+                UploadType.CBOR.value: {"schema": {"type": "string", "contentMediaType": "application/cbor"}},
+            },
+        },
+        **errors(
+            {
+                403: {
+                    "forbidden": "a vehicle key reading another vehicle's trip; a reader key when "
+                    "`CSR_READER_SEES_TRACES` is false."
+                },
+                404: {"not_found": "no trip with this id."},
+                410: {"purged": "retention deleted the raw upload (`CSR_RAW_RETENTION_DAYS`)."},
+            }
+        ),
+    },
+)
+def get_upload(trip_pk: str, caller: AnyRole, ctx: Ctx, session: ReadSessionDep) -> Response:
+    """The raw upload as kept (gzip-compressed JSON, sent with ``Content-Encoding: gzip``); 410
+    ``purged`` once retention deleted it."""
+    trip = _load_trip(session, trip_pk)
+    may_read_trace(caller, trip.vehicle_id, reader_sees_traces=ctx.settings.reader_sees_traces)
+    upload = repo.raw_upload(session, trip_pk=trip.id)
+    if upload is None:
+        when = _iso_utc(trip.raw_purged_at) if trip.raw_purged_at is not None else "earlier"
+        raise ApiError(410, "purged", f"trip {trip.id}: its raw upload was deleted ({when})", location="id")
+    kind = UploadType.CBOR if upload.encoding == UploadType.CBOR.stored_encoding else UploadType.JSON
+    return Response(upload.body, media_type=kind.value, headers={"Content-Encoding": "gzip"})
