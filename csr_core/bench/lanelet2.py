@@ -73,8 +73,9 @@ class Lanelet2Row:
     with_lane_change: int
 
 
-def lanelet2_row(world: str, source: str, map_geojson: dict, n_sources: int = 40) -> Lanelet2Row:
-    """Export ``map_geojson``, load the file with ``lanelet2``, check it and route on it."""
+def lanelet2_row(world: str, source: str, map_geojson: dict, n_sources: int | None = None) -> Lanelet2Row:
+    """Export ``map_geojson``, load the file with ``lanelet2``, check it and route on it (from
+    ``n_sources`` sampled road lanelets; None: from every one)."""
     xml_bytes, m, _ = export_lanelet2_geojson(map_geojson)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "map.osm"

@@ -2,8 +2,10 @@
 
 ``build_lanelet2_map`` reads like its recipe:
 
-1. lanes: the lane graph of the centrelines (``csr_core.topology.lane_graph``), each lane
-   sampled every ``SAMPLE_STEP_M`` along its direction of travel;
+1. lanes: the lane graph of the centrelines (``csr_core.topology.lane_graph``), its dead ends
+   linked to the open starts ahead (``junction_bridges``: connector centrelines across junctions,
+   shared ends across tile seams), each lane sampled every ``SAMPLE_STEP_M`` along its
+   direction of travel;
 2. bound candidates: every lane divider and road boundary, sampled densely;
 3. sides: per lane sample, the nearest candidate beside it on each side (parallel within
    ``BOUND_MAX_ANGLE_RAD``, ``BOUND_MIN_OFFSET_M``..``BOUND_MAX_OFFSET_M`` away);
@@ -40,6 +42,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from csr_core.errors import CsrError
+from csr_core.export.junction_bridges import BRIDGE_ID_PREFIX, BridgeParams, bridge_lane_graph
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.splicing import resample_polyline
 from csr_core.topology.fusion import arclength
@@ -92,6 +95,8 @@ class Lanelet2Params:
     NODE_MERGE_M: float = 0.05  # nodes closer than this are one (Lanelet2's points_too_close limit)
     # lane graph: short centrelines are lanes here (junction pieces of a real map), not fragments
     topology: TopologyParams = field(default_factory=lambda: TopologyParams(LANE_MIN_LENGTH_M=1.5))
+    # connector centrelines from dead ends to open starts (None: the lane graph as the map gives it)
+    bridges: BridgeParams | None = field(default_factory=BridgeParams)
 
 
 DEFAULT = Lanelet2Params()
@@ -123,6 +128,9 @@ class ExportReport:
     runs_skipped: dict[str, int]  # reason -> runs (would-be lanelets) not written
     successor_links: int  # lane graph successor edges between written lanelets
     successor_links_joined: int  # ... whose bounds share the end/start nodes
+    bridges: int  # connector centrelines added from dead ends to open starts (junction_bridges)
+    seams: int  # dead ends linked to an open start within the seam tolerance (junction_bridges)
+    bridge_runs_skipped: int  # runs of bridges among runs_skipped (no plausible bounds in the junction)
     centerlines_not_lanes: int  # centreline features too short to be lanes
     crosswalks: int
     stop_lines: int
@@ -429,11 +437,26 @@ def _estimate_offset(
     return sign * params.DEFAULT_HALF_WIDTH_M, PRIO_DEFAULT
 
 
+def _join_tolerances_m(props_a: dict, props_b: dict, params: Lanelet2Params) -> tuple[float, float]:
+    """(across, along): how far apart the painted end points of two linked lanes may be and still
+    become one node: ``JOIN_M`` / ``CONNECT_M``, or ``SEAM_SIGMAS`` combined 1-sigma
+    uncertainties of the two lanes where that is more (ends at a tile seam or a version boundary)."""
+    sig = [feature_sigma_m(p) for p in (props_a, props_b)]
+    k = params.bridges.SEAM_SIGMAS if params.bridges is not None else 0.0
+    seam_m = k * math.hypot(*(x if math.isfinite(x) else 0.0 for x in sig))
+    return max(params.JOIN_M, seam_m), max(params.topology.CONNECT_M, seam_m)
+
+
 def build_lanelet2_map(
     features: Sequence[MapFeature], frame: LocalFrame, params: Lanelet2Params = DEFAULT
 ) -> Lanelet2Map:
     """Lanelets of the map ``features`` (world plane of ``frame``, metres), see the module doc."""
     lane_graph = build_lane_graph(features, params.topology)
+    n_bridges = n_seams = 0
+    if params.bridges is not None:
+        features, lane_graph, n_bridges, n_seams = bridge_lane_graph(
+            features, lane_graph, params.topology, params.bridges
+        )
     g = lane_graph.graph
     cands = _candidates(features)
     index = _CandidateIndex.of(cands, params.CANDIDATE_STEP_M)
@@ -493,9 +516,14 @@ def build_lanelet2_map(
         (u, v) for u, v, kind in g.edges(data="kind") if kind == "successor" and u in runs and v in runs
     ]
     for u, v in succ_edges:
+        join_m, along_m = _join_tolerances_m(
+            centre_props.get(g.nodes[u]["feature_id"], {}),
+            centre_props.get(g.nodes[v]["feature_id"], {}),
+            params,
+        )
         for side in (LEFT, RIGHT):
             a, b = runs[u][-1].ends[side][1], runs[v][0].ends[side][0]
-            if points.union(a, b, params.JOIN_M, params.topology.CONNECT_M, samples[u][1][-1]):
+            if points.union(a, b, join_m, along_m, samples[u][1][-1]):
                 continue
             if len(lane_graph.predecessors(v)) == 1 and runs[v][0].lead[side] < 0:
                 runs[v][0].force_start(side, a)
@@ -678,6 +706,14 @@ def build_lanelet2_map(
         runs_skipped=dict(sorted(skipped.items())),
         successor_links=n_links,
         successor_links_joined=int(joined),
+        bridges=n_bridges,
+        seams=n_seams,
+        bridge_runs_skipped=sum(
+            1
+            for lane_runs in runs.values()
+            for r in lane_runs
+            if r.skip not in ("", TWO_WAY) and g.nodes[r.lane]["feature_id"].startswith(BRIDGE_ID_PREFIX)
+        ),
         centerlines_not_lanes=n_centerlines - len(fids),
         crosswalks=n_cross,
         stop_lines=n_stop,

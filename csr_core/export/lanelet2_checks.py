@@ -309,8 +309,9 @@ def check_lanelet2_file(path: str | Path, origin_lat: float, origin_lon: float) 
     return check_lanelet2_map(lmap, errors)
 
 
-def routing_figures(lmap: Any, n_sources: int = 40, seed: int = 0) -> RoutingFigures:
-    """Routing figures of the road lanelets: per sampled source lanelet (``n_sources``, seeded),
+def routing_figures(lmap: Any, n_sources: int | None = 40, seed: int = 0) -> RoutingFigures:
+    """Routing figures of the road lanelets: per sampled source lanelet (``n_sources``, seeded;
+    None: every road lanelet),
     ``reachableSet`` gives its routable targets; the share counts every other road lanelet as a
     target. The lane graph for the strongly connected components has Lanelet2's routable
     relations: following and lane changes (left/right)."""
@@ -333,7 +334,7 @@ def routing_figures(lmap: Any, n_sources: int = 40, seed: int = 0) -> RoutingFig
     if n < 2:
         return RoutingFigures(n, 0, 0.0, largest, with_succ, with_change)
     rng = np.random.default_rng(seed)
-    sources = rng.choice(n, size=min(n_sources, n), replace=False)
+    sources = np.arange(n) if n_sources is None else rng.choice(n, size=min(n_sources, n), replace=False)
     routable = 0
     for k in sources:
         reach = {x.id for x in graph.reachableSet(roads[int(k)], math.inf, 0, True)}  # lane changes allowed

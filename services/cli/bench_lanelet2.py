@@ -53,8 +53,7 @@ def _run(args: argparse.Namespace) -> int:
             f"{args.trips} simulated trips (seed {args.seed}, standard profile), loaded with the `lanelet2` "
             "package and judged by Lanelet2's validator checks (`csr export --validate`, "
             "`csr_core/export/lanelet2_checks.py`). Routing with German vehicle rules: the share of "
-            "ordered pairs of road lanelets with a route (40 sampled sources against every other road "
-            "lanelet) and the largest strongly connected component of the routable relations "
+            "ordered pairs of road lanelets with a route (from every road lanelet to every other) and the largest strongly connected component of the routable relations "
             "(following, lane changes).",
             "",
             lanelet2_table(rows),

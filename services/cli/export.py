@@ -99,7 +99,8 @@ def _run(args: argparse.Namespace) -> int:
         f"wrote {out}: {r.lanelets} lanelets from {r.lanes} lanes ({r.lanelets_with_virtual_bound} with a virtual "
         f"bound, {r.two_way_lanelets} two-way), {r.crosswalks} crosswalks, {r.stop_lines} stop lines, "
         f"{r.road_markings} road markings; {r.nodes} nodes, {r.ways} ways",
-        f"successor links: {r.successor_links_joined}/{r.successor_links} share their junction nodes",
+        f"successor links: {r.successor_links_joined}/{r.successor_links} share their junction nodes; "
+        f"bridges added: {r.bridges}, seams joined: {r.seams}",
         "skipped: "
         + (", ".join(f"{n} {why}" for why, n in r.runs_skipped.items()) or "nothing")
         + f"; lanes without any lanelet: {r.lanes_skipped}; centrelines too short to be lanes: "

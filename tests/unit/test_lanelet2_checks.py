@@ -245,6 +245,8 @@ def test_routing_figures_known_answers(tmp_path):
         lmap, _, _ = _export_and_load(_two_lanes(style), tmp_path)
         r = routing_figures(lmap)
         assert (r.road_lanelets, r.pairs_sampled) == (2, 2)
+        assert routing_figures(lmap, n_sources=1).pairs_sampled == 1  # one source, one other lanelet
+        assert routing_figures(lmap, n_sources=None) == r  # every lanelet a source
         assert (r.routable_share, r.largest_scc, r.with_lane_change, r.with_successor) == (
             share,
             scc,
