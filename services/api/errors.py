@@ -6,6 +6,7 @@ from __future__ import annotations
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import iter_route_contexts
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -70,6 +71,18 @@ def database_error(exc: Exception) -> ApiError:
     )
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """The methods of every route at the request's path (Starlette's own 405 names only the first
+    route's, when two routes share a path: ``GET`` and ``POST /v1/trips``)."""
+    path = request.scope["path"]
+    methods: set[str] = set()
+    for route in iter_route_contexts(request.app.routes):
+        regex = getattr(route, "path_regex", None)
+        if regex is not None and regex.match(path):
+            methods |= set(route.methods or ())
+    return sorted(methods)
+
+
 def error_response(error: ApiError) -> JSONResponse:
     return JSONResponse(
         error.as_dict(), status_code=error.status, headers={**CORS_HEADERS, **(error.headers or {})}
@@ -92,11 +105,17 @@ def install_error_handlers(app: FastAPI) -> None:
         app.add_exception_handler(error_type, _database_error)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:
+            # FastAPI's only 400: a JSON body it could not read as text (not UTF-8)
+            return error_response(
+                ApiError(400, "json", f"body: not JSON text ({exc.detail})", location="body")
+            )
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
-        return error_response(
-            ApiError(exc.status_code, code, str(exc.detail), headers=getattr(exc, "headers", None))
-        )
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(request))}
+        return error_response(ApiError(exc.status_code, code, str(exc.detail), headers=headers))
 
     @app.exception_handler(Exception)
     async def _internal_error(_: Request, exc: Exception) -> JSONResponse:

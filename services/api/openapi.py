@@ -9,9 +9,12 @@ routes, so that it cannot drift from them:
 - **Errors.** Every 4xx/5xx body is :class:`ErrorBody`; the document names, per operation and
   status, the ``error`` codes it can carry (an ``enum`` on ``error``). The statuses every route of a
   kind shares are added here: 401 and 403 from the role check, 422 from the parameter check that
-  runs before every route (``services.api.params``), 503 for a route that reads the database. A
+  runs before every route (``services.api.params``), 400 for a route with a JSON body that is not
+  JSON, 503 for a route that reads the database. A
   route declares its own (404, 409, ...) with :func:`errors` in its decorator. FastAPI's default
   422 (``HTTPValidationError``, a body the service never sends) is replaced everywhere.
+- **Parameters.** The parameter check's rules are written into each path and query parameter's
+  schema (``services.api.openapi_params``).
 - **Upload body.** ``POST /v1/trips`` reads its body raw (gzip, limits, idempotency): its request
   body is described from the contract's JSON Schema (:func:`upload_request_body`).
 """
@@ -34,6 +37,7 @@ from pydantic.json_schema import models_json_schema
 
 from services.api.answers import GEOJSON_MODELS
 from services.api.deps import get_read_session, get_session
+from services.api.openapi_params import constrain_parameters
 
 BEARER = "bearerAuth"
 REF = "#/components/schemas/{model}"
@@ -84,6 +88,11 @@ NOT_ACCEPTABLE = (
     "(`location: header.accept-encoding`).",
 )
 BODY_INVALID = " A request body that is not the documented one (`location`: `body.<field>`)."
+BODY_UNREADABLE = (
+    400,
+    ("json",),
+    "The request body is not JSON text (not UTF-8 included; `location: body`).",
+)
 DATABASE = (
     503,
     ("database_busy", "database_unavailable"),
@@ -250,6 +259,9 @@ def _complete_operation(
             )
     status, codes, description = INVALID_PARAMETER
     _add_error(operation, status, codes, description + (BODY_INVALID if has_body else ""))
+    constrain_parameters(operation)
+    if has_body:
+        _add_error(operation, *BODY_UNREADABLE)
     if reads_database(dependant):
         _add_error(operation, *DATABASE)
     if method == "get":

@@ -89,7 +89,10 @@ def export_lanelet2_osm(
     _: Reader,
     session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
-    version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
+    version: Annotated[
+        int | None,
+        Query(description="map version (default: the live map)", json_schema_extra={"minimum": 0}),
+    ] = None,
 ) -> Response:
     """Lanelets from the lane graph with bounds typed from divider styles and boundaries, stop
     lines (with their regulatory elements), crosswalks; the whole bbox across its tiles, each

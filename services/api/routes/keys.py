@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Response
-from pydantic import BaseModel, ConfigDict, StringConstraints, model_validator
+from fastapi import APIRouter, Body, Response
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from services.api import answers
 from services.api.deps import Admin, SessionDep
@@ -16,17 +16,38 @@ from services.db import repo
 router = APIRouter(prefix="/v1/keys", tags=["keys"])
 
 
-class KeyRequest(BaseModel):
+VehicleId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9._:-]{1,64}$")]
+
+
+class VehicleKeyRequest(BaseModel):
+    """A vehicle's key: it uploads for this ``vehicle_id`` only."""
+
     model_config = ConfigDict(extra="forbid")
 
-    role: Literal["vehicle", "reader", "admin"]
-    vehicle_id: Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9._:-]{1,64}$")] | None = None
+    role: Literal["vehicle"]
+    vehicle_id: VehicleId
 
-    @model_validator(mode="after")
-    def _vehicle_id_iff_vehicle(self) -> KeyRequest:
-        if (self.role == "vehicle") != (self.vehicle_id is not None):
-            raise ValueError("vehicle_id is required for role vehicle and not allowed for other roles")
-        return self
+
+class ReaderKeyRequest(BaseModel):
+    """A reader's key (no ``vehicle_id``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: Literal["reader"]
+    vehicle_id: None = None
+
+
+class AdminKeyRequest(BaseModel):
+    """An admin's key (no ``vehicle_id``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: Literal["admin"]
+    vehicle_id: None = None
+
+
+# ``role`` picks the body's shape, so that the document says which fields go with which role
+KeyRequest = Annotated[VehicleKeyRequest | ReaderKeyRequest | AdminKeyRequest, Field(discriminator="role")]
 
 
 @router.post(
@@ -34,7 +55,7 @@ class KeyRequest(BaseModel):
     status_code=201,
     responses={201: answers.answer(answers.KeyCreated, "The new key; its secret is shown only here")},
 )
-def create_key(request: KeyRequest, _: Admin, session: SessionDep) -> dict:
+def create_key(request: Annotated[KeyRequest, Body()], _: Admin, session: SessionDep) -> dict:
     with session.begin():
         row, secret = repo.create_key(session, role=request.role, vehicle_id=request.vehicle_id)
     return {"id": row.id, "key": secret, "role": row.role, "vehicle_id": row.vehicle_id}

@@ -41,7 +41,10 @@ def get_map(
     ctx: Ctx,
     session: ReadSessionDep,
     bbox: Annotated[str, Query(description="minlon,minlat,maxlon,maxlat (degrees, EPSG:4326)")],
-    version: Annotated[int | None, Query(description="map version (default: the live map)")] = None,
+    version: Annotated[
+        int | None,
+        Query(description="map version (default: the live map)", json_schema_extra={"minimum": 0}),
+    ] = None,
 ) -> Response:
     """LineString for line types, Polygon for ``crosswalk`` and ``road_marking``; ``properties.type``
     is the element type, ``id`` the stable feature id; ``map_version`` names what was read; ``bbox``

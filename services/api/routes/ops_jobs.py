@@ -91,8 +91,12 @@ def _retried_by(session: Session, jobs: list[Job]) -> dict[str, str]:
 def list_jobs(
     _: Reader,
     session: ReadSessionDep,
-    state: Annotated[str | None, Query(description="queued | running | done | failed")] = None,
-    kind: Annotated[str | None, Query(description="ingest_trip | align_tile | ...")] = None,
+    state: Annotated[
+        str | None, Query(description="a job state", json_schema_extra={"enum": list(repo.JOB_STATES)})
+    ] = None,
+    kind: Annotated[
+        str | None, Query(description="a job kind", json_schema_extra={"enum": list(repo.QUEUE_OF_KIND)})
+    ] = None,
     subject: Annotated[str | None, Query(description="a trip id or z/x/y")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 100,
 ) -> dict[str, Any]:

@@ -32,7 +32,11 @@ router = APIRouter(prefix="/v1", tags=["tiles"])
 
 PinnedVersion = Annotated[
     int | None,
-    Query(alias="v", description="map version: the tile as it was then (immutable, cached forever)"),
+    Query(
+        alias="v",
+        description="map version: the tile as it was then (immutable, cached forever)",
+        json_schema_extra={"minimum": 0},  # checked by check_map_version
+    ),
 ]
 IfNoneMatch = Annotated[str | None, Header()]
 # The answers a tile shares besides its 200 (OpenAPI)
