@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Path, Query
 
 from services.api.deps import Admin, Ctx, SessionDep
 from services.api.errors import ApiError
@@ -35,7 +35,9 @@ def _tiles(plan: ErasurePlan) -> list[str]:
     },
 )
 def erase_vehicle_data(
-    vehicle_id: str,
+    vehicle_id: Annotated[
+        str, Path(description="the uploads' `vehicle_id`", json_schema_extra={"pattern": VEHICLE_ID.pattern})
+    ],
     _: Admin,
     ctx: Ctx,
     session: SessionDep,
