@@ -32,6 +32,7 @@ _COMMAND_MODULES += ("encode_trip",)  # csr encode-trip / decode-trip: the compa
 _COMMAND_MODULES += ("bench_upload_size",)  # csr bench-upload-size: JSON vs binary bytes per km
 _COMMAND_MODULES += ("bench_upload_memory",)  # csr bench-upload-memory: peak memory per upload
 _COMMAND_MODULES += ("bench_lanelet2",)  # csr bench-lanelet2: the Lanelet2 export checked and routed
+_COMMAND_MODULES += ("bench_uncertainty",)  # csr bench-uncertainty: sigma_abs_m calibration
 
 
 def build_parser() -> argparse.ArgumentParser:
