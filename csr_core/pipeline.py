@@ -33,6 +33,7 @@ from csr_core.single_trip import DEFAULT as SINGLE_TRIP_DEFAULT
 from csr_core.single_trip import reconstruct_trip
 from csr_core.single_trip.integrity import check_aligned_poses as check_aligned_poses_of_trip
 from csr_core.topology import TopologyResult, generate_topology, reposition_instances
+from csr_core.topology.absolute_uncertainty import trip_biases, with_absolute_uncertainty
 from csr_core.topology.degraded import hold_back_degraded
 from csr_core.types import Reconstruction, Trip, TripReconstruction
 
@@ -131,6 +132,11 @@ def _csr_pipeline(trips: Sequence[Trip], frame: LocalFrame, params: PipelinePara
     # 6. fuse: instances of all trips moved with their alignment, matched and fused (III-E)
     topology = fuse_trips(recons, poses_by_key, alignment.match_pairs if alignment is not None else ())
     features, held_back = hold_back_degraded(topology.features, topology.suppressed, set(degraded))
+    # each element's absolute sigma: its relative spread and its trips' GNSS biases (Eq. 1)
+    biases = trip_biases({r.trip.key: r.diagnostics for r in recons})
+    paths = {k: xyyaw[:, :2] for k, xyyaw in poses_by_key.items()}
+    features = tuple(with_absolute_uncertainty(features, biases, paths))
+    held_back = tuple(with_absolute_uncertainty(held_back, biases, paths))
     stages.append("topology")
     lap("fuse")
 

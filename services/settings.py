@@ -55,6 +55,12 @@ class Settings(BaseSettings):
         description="a tile's first alignment waits for its edge neighbours of the other colour (x + y even "
         "first), so that every seam is aligned once against a map",
     )
+    certificate_target_m: float = Field(
+        0.10,
+        gt=0,
+        description="the absolute lateral error (metres, RMS over a tile) whose passes a tile's accuracy "
+        "certificate counts (`passes_needed`)",
+    )
     publish_min_quality: float = Field(
         0.8,
         ge=0,

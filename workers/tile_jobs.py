@@ -74,6 +74,7 @@ from csr_core.topology import (
     reposition_instances,
     update_topology,
 )
+from csr_core.topology.absolute_uncertainty import TripBias, trip_biases, with_absolute_uncertainty
 from csr_core.topology.degraded import hold_back_degraded
 from csr_core.types import DividerStyle, ElementType, MapFeature, TripReconstruction
 from csr_core.upload import decode_trip
@@ -768,13 +769,21 @@ def compute_merge_tile(
             match_pairs=records,
             paths_xy_per_trip={pk: v[2] for pk, v in inputs_all.items()},
         )
+    behind = {t for f in (*topology.features, *topology.suppressed) for t in f.properties.get("trips", ())}
+    behind |= set(topology.trip_paths) | set(topology.trip_points)
     with session_factory() as session:
-        degraded = degraded_trips(
-            session, {t for f in topology.features for t in f.properties.get("trips", ())}
-        )
+        degraded = degraded_trips(session, behind)
+        biases = trip_biases_of(session, behind)
     if degraded:  # features of degraded trips flagged; those only they support held back (like ghosts)
         kept, held = hold_back_degraded(topology.features, topology.suppressed, degraded)
         topology = replace(topology, features=kept, suppressed=held)
+    # each element's absolute sigma: its relative spread and its trips' GNSS biases (Eq. 1)
+    paths = {**topology.trip_points, **topology.trip_paths}
+    topology = replace(
+        topology,
+        features=tuple(with_absolute_uncertainty(topology.features, biases, paths)),
+        suppressed=tuple(with_absolute_uncertainty(topology.suppressed, biases, paths)),
+    )
     features = clip_to_tile(topology.features, frame, z, x, y)
     with read_only(session_factory)() as session:
         seams = check_seams(session, features, frame, z, x, y)
@@ -827,6 +836,21 @@ def degraded_trips(session: Session, trip_pks: set[str]) -> set[str]:
         )
     ).all()
     return {pk for pk, diag in rows if ((diag or {}).get("quality") or {}).get("verdict") == "degraded"}
+
+
+def trip_biases_of(session: Session, trip_pks: set[str]) -> dict[str, TripBias]:
+    """The GNSS bias (sigma, correlation length) of each trip among ``trip_pks`` whose current
+    reconstruction's diagnostics hold one; the others are absent (Eq. 1 of
+    ``topology.absolute_uncertainty`` counts a trip that saw an element with the unknown sigma)."""
+    if not trip_pks:
+        return {}
+    r = TripReconstructionRecord
+    rows = session.execute(
+        select(r.trip_pk, r.diagnostics).where(
+            r.trip_pk.in_(sorted(trip_pks)), r.algorithm_version == ALGORITHM_VERSION
+        )
+    ).all()
+    return trip_biases({pk: diag or {} for pk, diag in rows})
 
 
 class _PairView:

@@ -159,6 +159,9 @@ class Lanelet2Map:
     ways: tuple[OsmWay, ...]
     relations: tuple[OsmRelation, ...]
     report: ExportReport
+    sigma_abs_m: np.ndarray | None = (
+        None  # (N,) the element's absolute 1 sigma, ``sigma_abs_m`` (NaN: unknown)
+    )
 
 
 # --- points with union-find ------------------------------------------------------------------
@@ -173,9 +176,10 @@ class _Points:
         self.prio: list[int] = []
         self.parent: list[int] = []
         self.anchor: list[np.ndarray | None] = []  # per root: a painted member's position
-        self.sigma_m: list[float] = []  # 1-sigma position uncertainty of the source element (NaN: unknown)
+        # (relative, absolute) 1-sigma position uncertainty of the source element (NaN: unknown)
+        self.sigma_m: list[tuple[float, float]] = []
 
-    def add(self, xy: np.ndarray, prio: int, sigma_m: float = math.nan) -> int:
+    def add(self, xy: np.ndarray, prio: int, sigma_m: tuple[float, float] = (math.nan, math.nan)) -> int:
         self.xy.append(np.asarray(xy, float))
         self.prio.append(prio)
         self.sigma_m.append(sigma_m)
@@ -221,12 +225,14 @@ class _Points:
         np.add.at(pos, roots[keep], xy[keep])
         np.add.at(count, roots[keep], 1.0)
         pos[count > 0] /= count[count > 0, None]
-        sig = np.array(self.sigma_m, float)
-        known = keep & np.isfinite(sig)
-        sig_sum, sig_n = np.zeros(len(roots)), np.zeros(len(roots))
-        np.add.at(sig_sum, roots[known], sig[known])
-        np.add.at(sig_n, roots[known], 1.0)
-        self.root_sigma_m = np.where(sig_n > 0, sig_sum / np.maximum(sig_n, 1.0), np.nan)
+        sig = np.array(self.sigma_m, float).reshape(-1, 2)
+        self.root_sigma_m = np.full((len(roots), 2), np.nan)
+        for c in range(2):  # the mean of the best-known members' sigmas, relative and absolute
+            known = keep & np.isfinite(sig[:, c])
+            sig_sum, sig_n = np.zeros(len(roots)), np.zeros(len(roots))
+            np.add.at(sig_sum, roots[known], sig[known, c])
+            np.add.at(sig_n, roots[known], 1.0)
+            self.root_sigma_m[:, c] = np.where(sig_n > 0, sig_sum / np.maximum(sig_n, 1.0), np.nan)
         self.best_prio = best
         return roots, pos
 
@@ -259,8 +265,8 @@ class _Candidate:
         return (*tags, *provenance_tags(f.properties))
 
     @property
-    def sigma_m(self) -> float:
-        return feature_sigma_m(self.feature.properties)
+    def sigma_m(self) -> tuple[float, float]:
+        return feature_sigmas_m(self.feature.properties)
 
     def station(self, points: _Points, xy: np.ndarray, snap_m: float) -> tuple[int, float]:
         """The node where ``xy`` projects onto this line (an existing one within ``snap_m``)."""
@@ -294,6 +300,16 @@ def feature_sigma_m(properties: dict) -> float:
         return float(properties.get("uncertainty_m", math.nan))
     except (TypeError, ValueError):
         return math.nan
+
+
+def feature_sigmas_m(properties: dict) -> tuple[float, float]:
+    """The element's relative (``uncertainty_m``) and absolute (``sigma_abs_m``) 1 sigma, metres;
+    NaN where the map gives none."""
+    try:
+        absolute = float(properties.get("sigma_abs_m", math.nan))
+    except (TypeError, ValueError):
+        absolute = math.nan
+    return feature_sigma_m(properties), absolute
 
 
 def provenance_tags(properties: dict) -> tuple[tuple[str, str], ...]:
@@ -489,7 +505,7 @@ def build_lanelet2_map(
             if b > a
         ]
         samples[lane] = (p, t, s)
-        lane_sigma_m = feature_sigma_m(centre_props.get(g.nodes[lane]["feature_id"], {}))
+        lane_sigma_m = feature_sigmas_m(centre_props.get(g.nodes[lane]["feature_id"], {}))
         # 5. end points: stations on painted sides, estimates elsewhere; runs of a lane joined
         n_xy = np.column_stack([-t[:, 1], t[:, 0]])
         for r in lane_runs:
@@ -593,7 +609,7 @@ def build_lanelet2_map(
                         points.add(
                             p[i] + ((1 - wi) * o_a + wi * o_b) * n_xy[i],
                             PRIO_ESTIMATED,
-                            feature_sigma_m(lane_props),
+                            feature_sigmas_m(lane_props),
                         )
                         for i, wi in zip(inner, w, strict=True)
                     ]
@@ -631,7 +647,7 @@ def build_lanelet2_map(
     for f in features:
         tags_id = (("csr:feature_id", f.feature_id),) if f.feature_id else ()
         tags_id = (*tags_id, *provenance_tags(f.properties))
-        sigma_m = feature_sigma_m(f.properties)
+        sigma_m = feature_sigmas_m(f.properties)
         xy = np.asarray(f.points_xy_world, float)
         if f.type == ElementType.CROSSWALK and len(xy) >= 3:
             sides = _crosswalk_sides(xy)
@@ -731,10 +747,11 @@ def build_lanelet2_map(
         node_ids,
         frame.to_lonlat(xy_world) if len(xy_world) else np.zeros((0, 2)),
         xy_world,
-        node_sigma_m,
+        node_sigma_m[:, 0],
         ways,
         relations,
         report,
+        node_sigma_m[:, 1],
     )
 
 
@@ -796,8 +813,9 @@ class _OsmBuilder:
     def _xy(self, n: int) -> np.ndarray:
         return self.pos[n] if n < len(self.pos) else self.points.xy[n]
 
-    def _sigma_m(self, n: int) -> float:
-        return float(self.points.root_sigma_m[n]) if n < len(self.pos) else self.points.sigma_m[n]
+    def _sigma_m(self, n: int) -> np.ndarray:
+        """(2,) the node's relative and absolute 1 sigma."""
+        return np.asarray(self.points.root_sigma_m[n] if n < len(self.pos) else self.points.sigma_m[n], float)
 
     def way(self, chain: Sequence[int], tags: tuple[tuple[str, str], ...]) -> int | None:
         nodes: list[int] = []
@@ -882,7 +900,8 @@ class _OsmBuilder:
     def finish(
         self, merge_m: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[OsmWay, ...], tuple[OsmRelation, ...], int]:
-        """(node ids, node xy (N, 2), node sigma_m (N,), ways, relations, nodes merged). A way
+        """(node ids, node xy (N, 2), node sigmas (N, 2): relative and absolute, ways, relations,
+        nodes merged). A way
         shorter than ``merge_m`` disappears, and with it a lanelet it bounds or a regulatory
         element with no member left."""
         used = sorted({n for nodes, _ in self.ways for n in nodes})
@@ -897,7 +916,7 @@ class _OsmBuilder:
             way_nodes.append(tuple(chain) if len(set(chain)) >= 2 else None)
         kept = sorted({n for seq in way_nodes if seq is not None for n in seq})
         xy = np.array([self._xy(n) for n in kept]).reshape(-1, 2)
-        sigma = np.array([self._sigma_m(n) for n in kept], float)
+        sigma = np.array([self._sigma_m(n) for n in kept], float).reshape(-1, 2)
         node_id = {n: k + 1 for k, n in enumerate(kept)}
         way_id: dict[int, int] = {}
         ways: list[OsmWay] = []

@@ -39,10 +39,18 @@ def to_osm_xml(m: Lanelet2Map, *, generator: str = "csr") -> bytes:
         out.append(
             f"<bounds minlat='{lo[1]:.9f}' minlon='{lo[0]:.9f}' maxlat='{hi[1]:.9f}' maxlon='{hi[0]:.9f}'/>"
         )
-    for nid, (lon, lat), (x, y), sigma in zip(
-        m.node_ids.tolist(), m.lonlat_deg.tolist(), m.xy_world.tolist(), m.sigma_m.tolist(), strict=True
+    sigma_abs = m.sigma_abs_m if m.sigma_abs_m is not None else np.full(len(m.node_ids), np.nan)
+    for nid, (lon, lat), (x, y), sigma, absolute in zip(
+        m.node_ids.tolist(),
+        m.lonlat_deg.tolist(),
+        m.xy_world.tolist(),
+        m.sigma_m.tolist(),
+        sigma_abs.tolist(),
+        strict=True,
     ):
         sigma_tag = f"<tag k='csr:sigma_m' v='{sigma:.3f}'/>" if math.isfinite(sigma) else ""
+        if math.isfinite(absolute):
+            sigma_tag += f"<tag k='csr:sigma_abs_m' v='{absolute:.3f}'/>"
         out.append(
             f"<node id='{nid}' visible='true' version='1' lat='{lat:.9f}' lon='{lon:.9f}'>"
             f"<tag k='ele' v='0'/><tag k='local_x' v='{x:.3f}'/><tag k='local_y' v='{y:.3f}'/>{sigma_tag}</node>"

@@ -24,6 +24,12 @@ from scipy.spatial import cKDTree
 from csr_core.geo import LocalFrame
 from csr_core.single_trip.compiled import checks, observations, search
 from csr_core.single_trip.dash_chaining import chain_dash_tracks
+from csr_core.single_trip.gnss_bias import (
+    TRIP_BIAS_LENGTH_KEY,
+    TRIP_BIAS_SIGMA_KEY,
+    bias_correlation_length_m,
+    trip_bias_sigma_m,
+)
 from csr_core.single_trip.integrity import TripQuality, TripVerdict, smooth_poses_checked
 from csr_core.single_trip.keyframes import select_keyframes, select_tracking_frames
 from csr_core.single_trip.noise import estimate_noise, robust_sigma
@@ -688,6 +694,8 @@ def reconstruct_trip(
         "odom_scale": smoothed.odom_scale,
         "odom_yaw_rate_bias_deg_s": float(np.degrees(smoothed.odom_yaw_rate_bias_rad_s)),
         "gnss_latency_s": smoothed.gnss_latency_s,
+        TRIP_BIAS_SIGMA_KEY: trip_bias_sigma_m(trip.fix_status, trip.gnss_std_m, params),
+        TRIP_BIAS_LENGTH_KEY: bias_correlation_length_m(trip.timestamps_s, poses[:, :2], params),
         "gnss_rejected_share": float(1.0 - smoothed.gnss_inlier[trip.has_fix].mean())
         if trip.has_fix.any()
         else 0.0,

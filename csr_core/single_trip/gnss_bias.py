@@ -14,6 +14,10 @@ the run, else the status table), ``tau`` ``GNSS_BIAS_TAU_S``, and a new bias whe
 the fixes still hold the trip where the bias has wandered (the chain is no stiffer than the
 receiver's own sigma allows).
 
+:func:`trip_bias_sigma_m` gives the stationary sigma of the trip as a whole (the median of its
+fixes' ``s``): the part of the trip's error that no alignment removes, which the map's
+absolute uncertainty (``topology.absolute_uncertainty``) is made of.
+
 Built-in factors only (LIBRARY-NOTES: Python custom factors are 30-100x slower): a bias is a
 ``Pose2`` whose rotation is held at 0, a fix is ``BetweenFactorPose2(b_k, x_k)`` measuring the
 fix position with the node's current yaw (so SE(2)'s log map does not mix the rotation into the
@@ -33,9 +37,54 @@ import gtsam
 import numpy as np
 
 from csr_core.single_trip.params import SingleTripParams
+from csr_core.types import GnssStatus
 
 FREE_ROTATION_SIGMA_RAD = 1e3  # a fix says nothing about the yaw
 BIAS_YAW_SIGMA_RAD = 1e-6  # a bias is a translation: its rotation is held at 0
+#: a trip with no readable error model: the status table's single-point sigma (metres, per axis)
+UNKNOWN_TRIP_BIAS_SIGMA_M = SingleTripParams().GNSS_SIGMA_BY_STATUS_M[int(GnssStatus.SINGLE)]
+#: the diagnostics keys of :func:`trip_bias_sigma_m` and :func:`bias_correlation_length_m`
+TRIP_BIAS_SIGMA_KEY = "gnss_bias_sigma_m"
+TRIP_BIAS_LENGTH_KEY = "gnss_bias_length_m"
+
+
+def trip_bias_sigma_m(
+    gnss_status: np.ndarray, gnss_std_m: np.ndarray, params: SingleTripParams = SingleTripParams()
+) -> float:
+    """A trip's per-axis GNSS bias sigma (metres): the median over its fixes (status not
+    ``none``) of the reported ``std_m``, or the status table's sigma where the receiver gave none,
+    floored at ``GNSS_SIGMA_FLOOR_M``. A trip without a fix: :data:`UNKNOWN_TRIP_BIAS_SIGMA_M`.
+    ``gnss_status`` (N,) uint8 codes, ``gnss_std_m`` (N,)."""
+    status = np.asarray(gnss_status, np.int64)
+    std = np.asarray(gnss_std_m, float)
+    if status.shape != std.shape:
+        raise ValueError(f"gnss_status {status.shape} and gnss_std_m {std.shape} differ in shape")
+    fix = status != int(GnssStatus.NONE)
+    if not fix.any():
+        return UNKNOWN_TRIP_BIAS_SIGMA_M
+    table = np.asarray(params.GNSS_SIGMA_BY_STATUS_M, float)[status[fix]]
+    reported = std[fix]
+    sigma = np.where(np.isfinite(reported) & (reported > 0), reported, table)
+    return float(max(np.median(sigma), params.GNSS_SIGMA_FLOOR_M))
+
+
+def bias_correlation_length_m(
+    timestamps_s: np.ndarray, positions_xy: np.ndarray, params: SingleTripParams = SingleTripParams()
+) -> float:
+    """How far the trip drives in one bias correlation time ``GNSS_BIAS_TAU_S`` at its median
+    speed (metres): along this distance the trip's bias, and so the correction its alignment
+    to other trips makes, is shared. ``timestamps_s (N,)``, ``positions_xy (N, 2)``; 0 for fewer
+    than two frames."""
+    t = np.asarray(timestamps_s, float)
+    xy = np.asarray(positions_xy, float)
+    if xy.shape != (len(t), 2):
+        raise ValueError(f"positions_xy {xy.shape} must be ({len(t)}, 2)")
+    dt = np.diff(t)
+    ok = dt > 0
+    if not ok.any():
+        return 0.0
+    speed = np.linalg.norm(np.diff(xy, axis=0), axis=1)[ok] / dt[ok]
+    return float(np.median(speed) * params.GNSS_BIAS_TAU_S)
 
 
 def _bias_key(k: int) -> int:

@@ -184,6 +184,28 @@ class MatchPairs(Answer):
     next: str | None = Field(description="the URL of the next page; null on the last one")
 
 
+class TileCertificate(Answer):
+    """What a tile's map promises about its lateral error (docs/tiles.md, "Accuracy certificate")."""
+
+    tile: str = Field(description="z/x/y")
+    map_version: int | None = Field(description="the map version certified (`v`), or null: the live map")
+    expected_absolute_error_m: float = Field(
+        description="RMS of the elements' `sigma_abs_m`, weighted by their length in the tile: the expected "
+        "1-sigma lateral error against the true (GNSS) frame"
+    )
+    expected_relative_error_m: float = Field(
+        description="RMS of the elements' `uncertainty_m`, length-weighted: the error left after a global alignment"
+    )
+    n_features: int = Field(description="elements certified (those with a `sigma_abs_m`)")
+    trips: int = Field(description="distinct trips merged into the tile's versions")
+    passes_median: float = Field(description="median support trips per element")
+    target_m: float = Field(description="the absolute error the tile is measured against (setting)")
+    passes_needed: int | None = Field(
+        description="more passes per element until `expected_absolute_error_m` reaches `target_m` (1/sqrt(n) "
+        "model); 0 when it does, null when the relative error alone exceeds the target or the tile is empty"
+    )
+
+
 class Feature(Answer):
     """A GeoJSON Feature (RFC 7946)."""
 

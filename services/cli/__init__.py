@@ -34,6 +34,7 @@ _COMMAND_MODULES += ("bench_upload_memory",)  # csr bench-upload-memory: peak me
 _COMMAND_MODULES += ("bench_lanelet2",)  # csr bench-lanelet2: the Lanelet2 export checked and routed
 _COMMAND_MODULES += ("bench_storage",)  # csr bench-storage: stored bytes per km as passes accumulate
 _COMMAND_MODULES += ("purge",)  # csr purge: erase a vehicle's data (services/cli/purge.py)
+_COMMAND_MODULES += ("bench_uncertainty",)  # csr bench-uncertainty: sigma_abs_m calibration
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -115,6 +115,9 @@ def test_the_body_of_an_undocumented_code_fails_the_documented_schema(served: di
     assert not check.is_valid({"error": "gone", "location": "id", "message": "no trip 'x'"})
 
 
+CERTIFICATE = "/v1/tiles/{z}/{x}/{y}/certificate"
+
+
 def test_answers_are_the_documented_ones(
     deployment: Deployment, served: dict[str, Any], keys: dict[str, str]
 ):
@@ -135,6 +138,9 @@ def test_answers_are_the_documented_ones(
             ("GET", "/v1/corrections", 200, http.get("/v1/corrections")),
             ("GET", "/v1/trips", 200, http.get("/v1/trips", params={"bbox": "8.3,48.9,8.5,49.1"})),
             ("GET", "/healthz", 200, http.get("/healthz")),
+            ("GET", CERTIFICATE, 200, http.get("/v1/tiles/16/34000/22000/certificate")),
+            ("GET", CERTIFICATE, 422, http.get("/v1/tiles/16/70000/0/certificate")),
+            ("GET", CERTIFICATE, 404, http.get("/v1/tiles/16/0/0/certificate", params={"v": 10**9})),
         ]
     with deployment.admin() as http:
         answers.append(("POST", "/v1/keys", 201, http.post("/v1/keys", json={"role": "reader"})))

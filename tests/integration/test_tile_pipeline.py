@@ -6,6 +6,8 @@ incremental trip, two merges racing for one tile, and a worker killed in the mid
 from __future__ import annotations
 
 import json
+import math
+import os
 import shutil
 import signal
 import subprocess
@@ -33,7 +35,11 @@ def _csr(*args: str) -> subprocess.CompletedProcess:
         capture_output=True,
         text=True,
         check=True,
-        env={"OPENBLAS_NUM_THREADS": "1", "PATH": str(Path(sys.executable).parent)},
+        env={
+            "OPENBLAS_NUM_THREADS": "1",
+            "PATH": str(Path(sys.executable).parent),
+            **{k: v for k, v in os.environ.items() if k == "PYTHONPATH"},  # the code under test
+        },
     )
 
 
@@ -132,6 +138,35 @@ def test_a_fleet_uploaded_over_http_is_aligned_and_mapped_like_csr_reconstruct(
             http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}/versions").raise_for_status().json()
         )
         assert [v["version"] for v in history["versions"]] == [1]
+        # every element has its absolute sigma: above its relative one, within its trips' GNSS bias
+        tile_features = (
+            http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}.geojson").raise_for_status().json()
+        )["features"]
+        biases = [
+            (d if isinstance(d, dict) else json.loads(d))["gnss_bias_sigma_m"]
+            for (d,) in dep.rows("SELECT diagnostics FROM trip_reconstructions")
+        ]
+        for f in tile_features:
+            p = f["properties"]
+            assert (
+                p["uncertainty_m"] < p["sigma_abs_m"] <= math.hypot(p["uncertainty_m"], max(biases)) + 1e-3
+            ), p
+        cert = (
+            http.get(f"/v1/tiles/{busiest.z}/{busiest.x}/{busiest.y}/certificate").raise_for_status().json()
+        )
+        merged = dep.rows(
+            "SELECT DISTINCT trip_pk FROM trip_tile_alignments WHERE z = :z AND x = :x AND y = :y "
+            "AND merged_version_id IS NOT NULL",
+            z=busiest.z,
+            x=busiest.x,
+            y=busiest.y,
+        )
+        assert cert["n_features"] > 0 and cert["trips"] == len(merged) > 0, cert
+        assert cert["expected_relative_error_m"] < cert["expected_absolute_error_m"], cert
+    batch_map = json.loads((fleet_dirs["reconstruct"] / "map.geojson").read_text())["features"]
+    assert batch_map and all(
+        f["properties"]["sigma_abs_m"] >= f["properties"]["uncertainty_m"] for f in batch_map
+    )
 
     # incremental: one more trip updates the tiles it crosses; element ids carry over
     v1_ids = {r.feature_id for r in dep.rows("SELECT feature_id FROM map_features WHERE change != 'removed'")}

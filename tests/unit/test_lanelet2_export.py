@@ -462,7 +462,9 @@ def test_nodes_carry_the_element_uncertainty_and_lines_their_provenance():
             f.lonlat_deg,
             f.style,
             f.feature_id,
-            {"uncertainty_m": 0.12, "support_trips": 7, "tile_version": 4} if f.feature_id == "dash" else {},
+            {"uncertainty_m": 0.12, "sigma_abs_m": 0.35, "support_trips": 7, "tile_version": 4}
+            if f.feature_id == "dash"
+            else {},
         )
         for f in _road_features()
     ]
@@ -484,8 +486,14 @@ def test_nodes_carry_the_element_uncertainty_and_lines_their_provenance():
         for n in ET.fromstring(xml).findall("node")
     }
     assert all(sigma[n] == "0.120" for w in dash for n in ways[w][0])
+    # and its absolute sigma beside it
+    sigma_abs = {
+        n.get("id"): {t.get("k"): t.get("v") for t in n.findall("tag")}.get("csr:sigma_abs_m")
+        for n in ET.fromstring(xml).findall("node")
+    }
+    assert all(sigma_abs[n] == "0.350" for w in dash for n in ways[w][0])
     curb = next(w for w, (_, tags) in ways.items() if tags.get("csr:feature_id") == "curb_s")
-    assert all(sigma[n] is None for n in ways[curb][0][1:-1])
+    assert all(sigma[n] is None and sigma_abs[n] is None for n in ways[curb][0][1:-1])
     lanelet = next(t for _, t in rels.values() if t.get("csr:centerline_id") == "e0a")
     assert (lanelet["csr:trips"], lanelet["csr:version"]) == ("3", "9")
     assert np.isfinite(m.sigma_m).sum() >= len(dash[0:1])

@@ -97,7 +97,7 @@ def export_lanelet2_osm(
     """Lanelets from the lane graph with bounds typed from divider styles and boundaries, stop
     lines (with their regulatory elements), crosswalks; the whole bbox across its tiles, each
     feature once; ``version`` pins the map version as ``GET /v1/map?version=`` reads it. Nodes
-    carry ``csr:sigma_m``, lines and lanelets ``csr:trips`` and ``csr:version``. An attachment
+    carry ``csr:sigma_m`` and ``csr:sigma_abs_m``, lines and lanelets ``csr:trips`` and ``csr:version``. An attachment
     ``csr-lanelet2-<version>.osm``."""
     box = parse_bbox(bbox)
     with session.begin():

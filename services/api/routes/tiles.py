@@ -18,6 +18,7 @@ from services.api import answers
 from services.api.deps import Ctx, Reader, ReadSessionDep
 from services.api.openapi import errors
 from services.tiles import render
+from services.tiles.certificate import map_certificate, tile_certificate_at
 from services.tiles.http import (
     CORS_HEADERS,
     PREFLIGHT_HEADERS,
@@ -136,6 +137,36 @@ def tile_geojson(
 
 
 @router.get(
+    "/tiles/{z}/{x}/{y}/certificate",
+    responses={
+        200: answers.answer(answers.TileCertificate, "The tile's accuracy certificate"),
+        **errors({404: {"not_found": "the map version `v` does not exist (yet)."}}),
+    },
+)
+def tile_certificate(
+    _: Reader, ctx: Ctx, session: ReadSessionDep, z: int, x: int, y: int, v: PinnedVersion = None
+) -> JSONResponse:
+    """The tile's expected absolute and relative lateral error (length-weighted RMS of its elements'
+    ``sigma_abs_m`` and ``uncertainty_m``), the trips behind it, and the passes still needed to reach
+    the ``certificate_target_m`` setting."""
+    check_tile(z, x, y)
+    with session.begin():
+        map_version = check_map_version(session, v, location="v")
+        cert = tile_certificate_at(
+            session, z=z, x=x, y=y, map_version=map_version, target_m=ctx.settings.certificate_target_m
+        )
+    return JSONResponse(
+        {"tile": f"{z}/{x}/{y}", "map_version": map_version, **cert.as_dict()},
+        headers={
+            **CORS_HEADERS,
+            "Cache-Control": cache_control(
+                pinned=map_version is not None, public_map=ctx.settings.public_map
+            ),
+        },
+    )
+
+
+@router.get(
     "/tiles.json",
     responses={200: {"description": "TileJSON 3.0.0 of the map (https://github.com/mapbox/tilejson-spec)"}},
 )
@@ -144,6 +175,8 @@ def tile_json(_: Reader, request: Request, ctx: Ctx, session: ReadSessionDep) ->
     base = str(request.base_url).rstrip("/")
     with session.begin():
         doc = render.tilejson(session, base_url=base, tile_zoom=ctx.settings.tile_zoom)
+        doc["certificate"] = map_certificate(session, target_m=ctx.settings.certificate_target_m).as_dict()
+        doc["certificate_tiles"] = [f"{base}/v1/tiles/{{z}}/{{x}}/{{y}}/certificate"]
     return JSONResponse(
         doc,
         headers={
