@@ -82,6 +82,7 @@ REQUESTS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "POST /v1/tiles/{z}/{x}/{y}/versions/{v}/approve": ("POST", "/v1/tiles/16/0/0/versions/1/approve", {}),
     "GET /v1/features/{id}": ("GET", "/v1/features/none", {}),
     "GET /v1/tiles/{z}/{x}/{y}/match-pairs": ("GET", "/v1/tiles/16/0/0/match-pairs", {}),
+    "GET /v1/tiles/{z}/{x}/{y}/certificate": ("GET", "/v1/tiles/16/0/0/certificate", {}),
     "POST /v1/tiles/{z}/{x}/{y}/corrections": (
         "POST",
         "/v1/tiles/16/0/0/corrections",
@@ -145,6 +146,7 @@ MATRIX = {
     "POST /v1/tiles/{z}/{x}/{y}/versions/{v}/approve": (401, 401, 401, 403, 403, 403, 404),
     "GET /v1/features/{id}":             (401, 401, 401, 403, 403, 404, 404),
     "GET /v1/tiles/{z}/{x}/{y}/match-pairs":  (401, 401, 401, 403, 403, 200, 200),
+    "GET /v1/tiles/{z}/{x}/{y}/certificate":  (401, 401, 401, 403, 403, 200, 200),
     "POST /v1/tiles/{z}/{x}/{y}/corrections": (401, 401, 401, 403, 403, 403, 404),
     "GET /v1/corrections":               (401, 401, 401, 403, 403, 200, 200),
     "POST /v1/corrections/{id}/undo":    (401, 401, 401, 403, 403, 403, 404),
