@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import sqlalchemy as sa
 
-from tests.integration.conftest import BIN, REPO, Deployment, base_env, moving_trip, wait_until
+from tests.integration.conftest import BIN, REPO, Deployment, RedisServer, base_env, moving_trip, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -126,10 +126,10 @@ def test_migration_0008_adds_and_drops_raw_purged_at(tmp_path: Path, pg, backend
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_retention_deletes_raw_uploads_past_their_time_and_keeps_the_map(
-    make_isolated, shared_redis_url: str, kind: str
+    make_isolated, private_redis: RedisServer, kind: str
 ) -> None:
     dep = _start(
-        make_isolated, kind, shared_redis_url, CSR_RAW_RETENTION_DAYS="1", CSR_RETENTION_CHECK_EVERY_S="0.5"
+        make_isolated, kind, private_redis.url, CSR_RAW_RETENTION_DAYS="1", CSR_RETENTION_CHECK_EVERY_S="0.5"
     )
     old, recent = _upload_and_process(dep, ["veh-r1", "veh-r2"])
     features_before = _map(dep)
@@ -173,9 +173,9 @@ def test_retention_deletes_raw_uploads_past_their_time_and_keeps_the_map(
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_purge_erases_every_row_of_a_vehicle_and_remerges_its_tiles(
-    make_isolated, shared_redis_url: str, kind: str
+    make_isolated, private_redis: RedisServer, kind: str
 ) -> None:
-    dep = _start(make_isolated, kind, shared_redis_url)
+    dep = _start(make_isolated, kind, private_redis.url)
     pks = _upload_and_process(dep, ["veh-gone", "veh-stay", "veh-gone", "veh-stay"])
     gone, stay = [pks[0], pks[2]], [pks[1], pks[3]]
     assert set(gone) <= set(_version_trips(dep))
@@ -265,14 +265,14 @@ def test_erasure_endpoint_checks_its_input_and_role(make_isolated) -> None:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_purge_killed_before_its_commit_erases_nothing(
-    make_isolated, shared_redis_url: str, tmp_path: Path, kind: str
+    make_isolated, private_redis: RedisServer, tmp_path: Path, kind: str
 ) -> None:
     """The erasure is one transaction: a purge killed after erasing every trip, before its commit,
     leaves every row; the next purge erases them all."""
     import os
     import signal
 
-    dep = _start(make_isolated, kind, shared_redis_url, CSR_EMBEDDED_WORKERS="0")
+    dep = _start(make_isolated, kind, private_redis.url, CSR_EMBEDDED_WORKERS="0")
     for _ in range(3):
         assert dep.upload(moving_trip("veh-k")).status_code == 202
     log = tmp_path / "purge.log"
@@ -307,9 +307,9 @@ def test_purge_killed_before_its_commit_erases_nothing(
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_reader_keys_see_traces_only_when_the_setting_allows(
-    make_isolated, shared_redis_url: str, kind: str
+    make_isolated, private_redis: RedisServer, kind: str
 ) -> None:
-    dep = _start(make_isolated, kind, shared_redis_url, CSR_READER_SEES_TRACES="false")
+    dep = _start(make_isolated, kind, private_redis.url, CSR_READER_SEES_TRACES="false")
     (pk,) = _upload_and_process(dep, ["veh-t"])
     with dep.admin() as http:
         reader = http.post("/v1/keys", json={"role": "reader"}).json()["key"]
